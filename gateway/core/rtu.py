@@ -1,0 +1,225 @@
+"""Modbus RTU framing (Modbus over Serial Line v1.02): encoding and response decoding.
+
+Theory of operation: an RTU frame is unit + PDU + CRC16 (low byte first), at
+most 256 bytes. ``frame_length`` predicts a frame's total length from its first
+bytes, by function code and byte count, so the gateway knows that a response
+is complete the moment its last byte arrives, without waiting for line
+silence. It returns ``None`` for function codes whose length cannot be known
+from the frame; those frames end at t3.5 of silence (``RtuResponseDecoder.end_of_frame``).
+``RtuResponseDecoder`` accepts a response only when its CRC is good and it
+comes from the unit and for the function that was asked; anything else raises
+``ResponseError`` and is never passed on.
+"""
+
+from __future__ import annotations
+
+from typing import Final, NamedTuple
+
+from . import pdu as fc
+from .crc import check_crc, crc16_bytes
+from .errors import ResponseError
+
+MAX_RTU_FRAME: Final = 256
+MIN_RTU_FRAME: Final = 4  # unit + function + CRC
+NEED_MORE: Final = -1  # the frame's length cannot be told yet: wait for more bytes
+
+
+class RtuFrame(NamedTuple):
+    """A checked RTU frame: the unit (slave address) and the PDU, CRC removed."""
+
+    unit: int
+    pdu: bytes
+
+
+def encode_rtu(unit: int, pdu: bytes) -> bytes:
+    """Build the serial ADU: unit, PDU, CRC16 low byte first."""
+    body = bytes((unit,)) + pdu
+    return body + crc16_bytes(body)
+
+
+# Responses whose length is fixed whatever the request: total frame length.
+_FIXED_RESPONSE_LENGTH: Final = {
+    fc.WRITE_SINGLE_COIL: 8,
+    fc.WRITE_SINGLE_REGISTER: 8,
+    fc.WRITE_MULTIPLE_COILS: 8,
+    fc.WRITE_MULTIPLE_REGISTERS: 8,
+    fc.READ_EXCEPTION_STATUS: 5,
+    fc.GET_COMM_EVENT_COUNTER: 8,
+    fc.MASK_WRITE_REGISTER: 10,
+}
+
+# Responses that carry a one-byte byte count at offset 2: total = 3 + count + 2.
+_BYTE_COUNT_RESPONSES: Final = frozenset(
+    {
+        fc.READ_COILS,
+        fc.READ_DISCRETE_INPUTS,
+        fc.READ_HOLDING_REGISTERS,
+        fc.READ_INPUT_REGISTERS,
+        fc.GET_COMM_EVENT_LOG,
+        fc.REPORT_SERVER_ID,
+        fc.READ_FILE_RECORD,
+        fc.READ_WRITE_MULTIPLE_REGISTERS,
+    }
+)
+
+# Responses that echo the request: total = 1 + len(request PDU) + 2.
+_ECHO_RESPONSES: Final = frozenset({fc.DIAGNOSTICS, fc.WRITE_FILE_RECORD})
+
+
+def response_length(request_pdu: bytes, prefix: bytes | bytearray) -> int | None:
+    """Total length of the response frame that starts with ``prefix``.
+
+    Returns ``NEED_MORE`` while more bytes are needed to tell, and ``None`` when
+    the length cannot be known from the frame (end it on line silence).
+    """
+    if len(prefix) < 2:
+        return NEED_MORE
+    function = prefix[1]
+    if function & fc.EXCEPTION_FLAG:
+        return 5
+    if function in _BYTE_COUNT_RESPONSES:
+        return 5 + prefix[2] if len(prefix) >= 3 else NEED_MORE
+    fixed = _FIXED_RESPONSE_LENGTH.get(function)
+    if fixed is not None:
+        return fixed
+    if function in _ECHO_RESPONSES:
+        if request_pdu and request_pdu[0] == function:
+            return 3 + len(request_pdu)
+        return None
+    if function == fc.READ_FIFO_QUEUE:
+        return 6 + ((prefix[2] << 8) | prefix[3]) if len(prefix) >= 4 else NEED_MORE
+    if function == fc.ENCAPSULATED_INTERFACE:
+        return _device_id_length(prefix)
+    return None
+
+
+def _device_id_length(prefix: bytes | bytearray) -> int | None:
+    """Length of a Read Device Identification (43/14) response, walking its object list."""
+    if len(prefix) < 3:
+        return NEED_MORE
+    if prefix[2] != fc.MEI_READ_DEVICE_ID:
+        return None
+    if len(prefix) < 8:
+        return NEED_MORE
+    count = prefix[7]
+    offset = 8
+    for _ in range(count):
+        if len(prefix) < offset + 2:
+            return NEED_MORE
+        offset += 2 + prefix[offset + 1]
+        if offset > MAX_RTU_FRAME:
+            return MAX_RTU_FRAME + 1
+    return offset + 2
+
+
+def request_length(prefix: bytes | bytearray) -> int | None:
+    """Total length of the request frame that starts with ``prefix`` (for slaves and simulators).
+
+    Same conventions as ``response_length``.
+    """
+    if len(prefix) < 2:
+        return NEED_MORE
+    function = prefix[1]
+    if function in (
+        fc.READ_COILS,
+        fc.READ_DISCRETE_INPUTS,
+        fc.READ_HOLDING_REGISTERS,
+        fc.READ_INPUT_REGISTERS,
+        fc.WRITE_SINGLE_COIL,
+        fc.WRITE_SINGLE_REGISTER,
+    ):
+        return 8
+    if function in (
+        fc.READ_EXCEPTION_STATUS,
+        fc.GET_COMM_EVENT_COUNTER,
+        fc.GET_COMM_EVENT_LOG,
+        fc.REPORT_SERVER_ID,
+    ):
+        return 4
+    if function in (fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS):
+        return 9 + prefix[6] if len(prefix) >= 7 else NEED_MORE
+    if function in (fc.READ_FILE_RECORD, fc.WRITE_FILE_RECORD):
+        return 5 + prefix[2] if len(prefix) >= 3 else NEED_MORE
+    if function == fc.MASK_WRITE_REGISTER:
+        return 10
+    if function == fc.READ_WRITE_MULTIPLE_REGISTERS:
+        return 13 + prefix[10] if len(prefix) >= 11 else NEED_MORE
+    if function == fc.READ_FIFO_QUEUE:
+        return 6
+    if function == fc.ENCAPSULATED_INTERFACE:
+        if len(prefix) < 3:
+            return NEED_MORE
+        return 7 if prefix[2] == fc.MEI_READ_DEVICE_ID else None
+    if function == fc.DIAGNOSTICS:
+        return None
+    return None
+
+
+class RtuResponseDecoder:
+    """Collects the bytes of one response and checks it against the request on the wire."""
+
+    __slots__ = ("_buffer", "_expected", "_function", "_request_pdu", "_unit")
+
+    def __init__(self, unit: int, request_pdu: bytes) -> None:
+        self._unit = unit
+        self._request_pdu = request_pdu
+        self._function = request_pdu[0]
+        self._buffer = bytearray()
+        self._expected: int | None = NEED_MORE
+
+    @property
+    def buffered(self) -> int:
+        """Bytes of the response collected so far."""
+        return len(self._buffer)
+
+    @property
+    def waits_for_silence(self) -> bool:
+        """True when the frame's end can only be found by t3.5 of line silence."""
+        return self._expected is None
+
+    def feed(self, data: bytes | bytearray | memoryview) -> RtuFrame | None:
+        """Add received bytes; return the response once complete, ``None`` while incomplete.
+
+        Raises ``ResponseError`` for a frame that must not be passed on.
+        """
+        buffer = self._buffer
+        buffer += data
+        if len(buffer) > MAX_RTU_FRAME:
+            raise ResponseError("oversize", f"response exceeds {MAX_RTU_FRAME} bytes")
+        if self._expected == NEED_MORE:
+            self._expected = response_length(self._request_pdu, buffer)
+            if self._expected is not None and self._expected > MAX_RTU_FRAME:
+                raise ResponseError("oversize", f"response announces {self._expected} bytes")
+        expected = self._expected
+        if expected is None or expected == NEED_MORE or len(buffer) < expected:
+            return None
+        if len(buffer) > expected:
+            raise ResponseError(
+                "trailing_bytes", f"{len(buffer) - expected} bytes after the response"
+            )
+        return self._check(bytes(buffer))
+
+    def end_of_frame(self) -> RtuFrame:
+        """The line went silent: whatever was collected is the whole frame."""
+        return self._check(bytes(self._buffer))
+
+    def reset(self) -> None:
+        """Forget a discarded frame and wait for the real answer."""
+        self._buffer.clear()
+        self._expected = NEED_MORE
+
+    def _check(self, frame: bytes) -> RtuFrame:
+        if len(frame) < MIN_RTU_FRAME:
+            raise ResponseError("short_frame", f"response of {len(frame)} bytes is too short")
+        if not check_crc(frame):
+            raise ResponseError("crc", "response CRC mismatch")
+        if frame[0] != self._unit:
+            raise ResponseError(
+                "unexpected_unit", f"response from unit {frame[0]}, expected {self._unit}"
+            )
+        if frame[1] & 0x7F != self._function:
+            raise ResponseError(
+                "unexpected_function",
+                f"response for function {frame[1] & 0x7F}, expected {self._function}",
+            )
+        return RtuFrame(frame[0], frame[2:-2])
