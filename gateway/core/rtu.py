@@ -7,8 +7,9 @@ is complete the moment its last byte arrives, without waiting for line
 silence. It returns ``None`` for function codes whose length cannot be known
 from the frame; those frames end at t3.5 of silence (``RtuResponseDecoder.end_of_frame``).
 ``RtuResponseDecoder`` accepts a response only when its CRC is good and it
-comes from the unit and for the function that was asked; anything else raises
-``ResponseError`` and is never passed on.
+comes from the unit and for the function that was asked, with the byte count
+or echo that the request implies; anything else raises ``ResponseError`` and
+is never passed on.
 """
 
 from __future__ import annotations
@@ -183,9 +184,10 @@ class RtuResponseDecoder:
         Raises ``ResponseError`` for a frame that must not be passed on.
         """
         buffer = self._buffer
-        buffer += data
-        if len(buffer) > MAX_RTU_FRAME:
+        if len(buffer) + len(data) > MAX_RTU_FRAME:
+            # Bounded before buffering: the bytes that would overflow the frame are not kept.
             raise ResponseError("oversize", f"response exceeds {MAX_RTU_FRAME} bytes")
+        buffer += data
         if self._expected == NEED_MORE:
             self._expected = response_length(self._request_pdu, buffer)
             if self._expected is not None and self._expected > MAX_RTU_FRAME:
@@ -222,4 +224,36 @@ class RtuResponseDecoder:
                 "unexpected_function",
                 f"response for function {frame[1] & 0x7F}, expected {self._function}",
             )
-        return RtuFrame(frame[0], frame[2:-2])
+        pdu = frame[1:-2]
+        if not pdu[0] & fc.EXCEPTION_FLAG:
+            mismatch = _mismatch(self._request_pdu, pdu)
+            if mismatch:
+                raise ResponseError("mismatch", mismatch)
+        return RtuFrame(frame[0], pdu)
+
+
+_REGISTER_READS: Final = frozenset(
+    {fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS, fc.READ_WRITE_MULTIPLE_REGISTERS}
+)
+
+
+def _mismatch(request: bytes, response: bytes) -> str:
+    """Why ``response`` cannot answer ``request`` (empty when it can).
+
+    Catches a late answer to an earlier request of the same unit and function:
+    its byte count or echoed address differs from what this request asks for.
+    """
+    function = request[0]
+    if function in (fc.READ_COILS, fc.READ_DISCRETE_INPUTS) and len(request) >= 5:
+        expected = (((request[3] << 8) | request[4]) + 7) // 8
+    elif function in _REGISTER_READS and len(request) >= 5:
+        expected = 2 * ((request[3] << 8) | request[4])
+    elif function in (fc.WRITE_SINGLE_COIL, fc.WRITE_SINGLE_REGISTER, fc.MASK_WRITE_REGISTER):
+        return "" if response == request else "response does not echo the request"
+    elif function in (fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS):
+        return "" if response[:5] == request[:5] else "response does not echo address and quantity"
+    else:
+        return ""
+    if len(response) < 2 or response[1] != expected:
+        return f"byte count does not match the {expected} bytes the request asks for"
+    return ""

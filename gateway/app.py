@@ -1,0 +1,230 @@
+"""Composition and lifecycle: config → lines, router, TCP server, metrics; start, stop, reload.
+
+The application owns no protocol logic. ``start`` opens the lines and binds
+the listener, then sets ``ready``; ``stop`` stops accepting, lets each line
+finish the transaction on the wire within the grace period, answers what is
+still queued with 0x0A and closes every connection; ``reload`` swaps routes,
+timeouts and limits in place and reopens only lines whose port settings changed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+from prometheus_client import CollectorRegistry
+
+from .config import ConfigError, GatewayConfig, LineConfig, build_config, read_config_file
+from .io.bus import Bus
+from .io.clock import PreciseClock
+from .io.http import HttpEndpoint, start_http
+from .io.tcp import ModbusTcpServer, Router, Target
+from .metrics import GatewayMetrics
+
+log = logging.getLogger("gateway")
+
+#: Line settings that need the port reopened when they change.
+_PORT_SETTINGS = ("device", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
+                  "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
+                  "rs485_delay_before_tx", "rs485_delay_after_tx")  # fmt: skip
+
+
+def _port_changed(old: LineConfig, new: LineConfig) -> bool:
+    return any(getattr(old, key) != getattr(new, key) for key in _PORT_SETTINGS)
+
+
+class Gateway:
+    """The running gateway."""
+
+    def __init__(self, config: GatewayConfig, registry: CollectorRegistry | None = None) -> None:
+        self.config = config
+        self.metrics = GatewayMetrics(registry)
+        self.ready = asyncio.Event()
+        self.stopped = asyncio.Event()
+        self.buses: dict[str, Bus] = {}
+        self.server: ModbusTcpServer | None = None
+        self._clock: PreciseClock | None = None
+        self._http: HttpEndpoint | None = None
+        self._stopping = False
+        self._unit_labels: dict[int, str] = {}
+
+    # -- addresses ---------------------------------------------------------------------
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The Modbus TCP listening address (after ``start``)."""
+        assert self.server is not None
+        return self.server.sockets[0]
+
+    @property
+    def metrics_address(self) -> tuple[str, int] | None:
+        """The HTTP endpoint's address, ``None`` when disabled."""
+        return self._http.address if self._http is not None else None
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
+        loop = asyncio.get_running_loop()
+        self._clock = PreciseClock(loop)
+        for line in self.config.lines:
+            bus = Bus(line, self.metrics, loop, self._clock)
+            self.buses[line.name] = bus
+            bus.start()
+        self.metrics.describe_lines([line.name for line in self.config.lines])
+        self.server = ModbusTcpServer(
+            self.config.server, self._build_router(), self.metrics, self._unit_label
+        )
+        await self.server.start()
+        if self.config.metrics.enabled:
+            self._http = await self._start_http()
+        host, port = self.address
+        log.info("listening on %s:%d (Modbus TCP), %d line(s)", host, port, len(self.buses))
+        if self.metrics_address is not None:
+            mhost, mport = self.metrics_address
+            log.info("metrics on http://%s:%d/metrics", mhost, mport)
+        self.ready.set()
+
+    async def _start_http(self) -> HttpEndpoint:
+        return await start_http(self.config.metrics, self.metrics.registry, self.is_ready)
+
+    def is_ready(self) -> tuple[bool, str]:
+        """Readiness for /readyz: the listener is up and every line is open."""
+        if self.server is None or self._stopping:
+            return False, "not listening"
+        down = [name for name, bus in self.buses.items() if not bus.up]
+        if down:
+            return False, "line(s) down: " + ", ".join(down)
+        return True, "ok"
+
+    async def stop(self, grace: float = 5.0) -> None:
+        """Graceful stop: see the module docstring."""
+        if self._stopping:
+            return
+        self._stopping = True
+        log.info("stopping: no new connections, finishing the transactions on the wire")
+        if self.server is not None:
+            self.server.stop_accepting()
+        await asyncio.gather(*(bus.stop(grace) for bus in self.buses.values()))
+        if self.server is not None:
+            self.server.close_all("shutdown")
+            await self.server.wait_closed()
+        if self._http is not None:
+            await self._http.close()
+        if self._clock is not None:
+            self._clock.close()
+        log.info("stopped")
+        self.stopped.set()
+
+    async def reload(self, config: GatewayConfig) -> None:
+        """Apply a new configuration without dropping connections or in-flight transactions."""
+        loop = asyncio.get_running_loop()
+        assert self._clock is not None and self.server is not None
+        new_names = {line.name for line in config.lines}
+        for name in list(self.buses):
+            if name not in new_names:
+                log.info("reload: line %s removed", name)
+                await self.buses.pop(name).stop(grace=5.0)
+        for line in config.lines:
+            bus = self.buses.get(line.name)
+            if bus is not None and not _port_changed(bus.config, line):
+                bus.reconfigure(line)
+                continue
+            if bus is not None:
+                log.info("reload: line %s port settings changed, reopening", line.name)
+                await bus.stop(grace=5.0)
+            else:
+                log.info("reload: line %s added", line.name)
+            bus = Bus(line, self.metrics, loop, self._clock)
+            self.buses[line.name] = bus
+            bus.start()
+        if (config.server.host, config.server.port) != (
+            self.config.server.host,
+            self.config.server.port,
+        ):
+            log.warning(
+                "reload: server.listen changes need a restart; keeping %s:%d",
+                self.config.server.host,
+                self.config.server.port,
+            )
+            config = replace(
+                config,
+                server=replace(
+                    config.server, host=self.config.server.host, port=self.config.server.port
+                ),
+            )
+        self.config = config
+        self.server.config = config.server
+        self.server.router = self._build_router()
+        self.metrics.describe_lines([line.name for line in config.lines])
+        log.info("reload: configuration from %s applied", config.source)
+
+    # -- helpers -----------------------------------------------------------------------
+
+    def _build_router(self) -> Router:
+        routes = {
+            unit: Target(self.buses[route.line], route.slave)
+            for unit, route in self.config.routes.items()
+        }
+        broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
+        self._unit_labels = {unit: str(unit) for unit in self.config.routes}
+        return Router(routes, broadcast)
+
+    def _unit_label(self, unit: int) -> str:
+        return self._unit_labels.get(unit, "other")
+
+
+async def run_until_signalled(
+    gateway: Gateway,
+    reload_source: Callable[[], GatewayConfig] | None,
+    grace: float,
+) -> None:
+    """Run until SIGTERM/SIGINT (a second one exits at once); SIGHUP reloads the file."""
+    loop = asyncio.get_running_loop()
+    stop_requested = asyncio.Event()
+    signals_seen = 0
+    reloads: set[asyncio.Task[None]] = set()
+
+    def on_stop_signal(signum: int) -> None:
+        nonlocal signals_seen
+        signals_seen += 1
+        if signals_seen > 1:
+            log.warning("second %s: exiting at once", signal.Signals(signum).name)
+            raise SystemExit(1)
+        log.info("%s received", signal.Signals(signum).name)
+        stop_requested.set()
+
+    def on_reload_signal() -> None:
+        if reload_source is None:
+            log.warning("SIGHUP: no configuration file to reload")
+            return
+        try:
+            config = reload_source()
+        except ConfigError as error:
+            log.error("reload rejected, the running configuration stays: %s", error)
+            return
+        task = loop.create_task(gateway.reload(config))
+        reloads.add(task)
+        task.add_done_callback(reloads.discard)
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, on_stop_signal, signum)
+    loop.add_signal_handler(signal.SIGHUP, on_reload_signal)
+    await gateway.start()
+    await stop_requested.wait()
+    await gateway.stop(grace)
+
+
+def reloader(
+    path: str, apply: Callable[[dict[str, Any]], dict[str, Any]]
+) -> Callable[[], GatewayConfig]:
+    """A function that re-reads ``path`` with the command line's overrides applied."""
+
+    def load() -> GatewayConfig:
+        return build_config(apply(read_config_file(path)), path)
+
+    return load

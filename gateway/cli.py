@@ -1,0 +1,201 @@
+"""Command line: flags and file → configuration → a running gateway (uvloop when importable)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import copy
+import logging
+import sys
+from collections.abc import Callable, Coroutine, Sequence
+from typing import Any
+
+from . import __version__
+from .app import Gateway, reloader, run_until_signalled
+from .config import ConfigError, build_config, parse_host_port, read_config_file
+from .logs import setup_logging
+
+log = logging.getLogger("gateway")
+
+DEMO_LISTEN = "127.0.0.1:5020"
+
+
+def _host_port(text: str) -> str:
+    try:
+        parse_host_port(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
+def _metrics_address(text: str) -> str:
+    return text if text.lower() == "off" else _host_port(text)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``modbus-gateway`` argument parser (run mode)."""
+    parser = argparse.ArgumentParser(
+        prog="modbus-gateway",
+        description="Modbus TCP to Modbus RTU gateway. Subcommand: 'check-config FILE'.",
+    )
+    parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
+    parser.add_argument(
+        "--listen",
+        metavar="HOST:PORT",
+        type=_host_port,
+        help="Modbus TCP address (default 0.0.0.0:502; 127.0.0.1:5020 with --demo)",
+    )
+    parser.add_argument("--serial", metavar="DEVICE_OR_URL",
+                        help="serial device or pyserial URL; without --config every unit "
+                        "1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
+    parser.add_argument("--parity", choices=["N", "E", "O"], help="parity of every line")
+    parser.add_argument("--stopbits", type=int, choices=[1, 2], help="stop bits of every line")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        metavar="SECONDS",
+        help="response timeout of every line (default 1.0)",
+    )
+    parser.add_argument(
+        "--retries", type=int, metavar="N", help="retries after a timeout or bad CRC (default 1)"
+    )
+    parser.add_argument(
+        "--frame-gap",
+        type=float,
+        metavar="SECONDS",
+        help="silence before every request (default t3.5; 0 for serial servers)",
+    )
+    parser.add_argument("--metrics", metavar="HOST:PORT|off", type=_metrics_address,
+                        help="HTTP endpoint for /metrics, /healthz, /readyz "
+                        "(default 127.0.0.1:9502)")  # fmt: skip
+    parser.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
+    parser.add_argument("--log-format", choices=["text", "json"])
+    parser.add_argument(
+        "--grace",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long a stop waits for the transactions on the wire (default 5)",
+    )
+    parser.add_argument(
+        "--demo",
+        action="store_true",
+        help="serve a built-in simulated RTU line (no hardware needed)",
+    )
+    parser.add_argument("--no-uvloop", action="store_true", help=argparse.SUPPRESS)
+    return parser
+
+
+def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """Merge command-line flags into the raw configuration tables (the file is not changed)."""
+    raw = copy.deepcopy(raw)
+    if args.listen:
+        raw.setdefault("server", {})["listen"] = args.listen
+    if args.metrics:
+        raw.setdefault("metrics", {})["listen"] = args.metrics
+    if args.log_level:
+        raw.setdefault("logging", {})["level"] = args.log_level
+    if args.log_format:
+        raw.setdefault("logging", {})["format"] = args.log_format
+    lines = raw.setdefault("lines", {})
+    if args.serial:
+        if not lines:
+            lines["default"] = {"device": args.serial, "units": ["1-247"]}
+        elif len(lines) == 1:
+            next(iter(lines.values()))["device"] = args.serial
+        else:
+            raise ConfigError(
+                "--serial",
+                ["the configuration has several lines; set each device in the file instead"],
+            )
+    per_line = {
+        "baudrate": args.baudrate,
+        "parity": args.parity,
+        "stop_bits": args.stopbits,
+        "timeout": args.timeout,
+        "retries": args.retries,
+        "frame_gap": args.frame_gap,
+    }
+    for table in lines.values():
+        if isinstance(table, dict):
+            table.update({key: value for key, value in per_line.items() if value is not None})
+    return raw
+
+
+def _check_config(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="modbus-gateway check-config", description="Validate a configuration file."
+    )
+    parser.add_argument("file")
+    args = parser.parse_args(argv)
+    try:
+        config = build_config(read_config_file(args.file), args.file)
+    except ConfigError as error:
+        print(error, file=sys.stderr)
+        return 2
+    print(
+        f"{args.file}: OK: {len(config.lines)} line(s), {len(config.routes)} routed unit(s), "
+        f"listening on {config.server.host}:{config.server.port}"
+    )
+    return 0
+
+
+def _run(main: Coroutine[Any, Any, None], use_uvloop: bool) -> None:
+    if use_uvloop:
+        try:
+            import uvloop
+        except ImportError:
+            pass
+        else:
+            uvloop.run(main)
+            return
+    asyncio.run(main)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``modbus-gateway`` command."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "check-config":
+        return _check_config(argv[1:])
+    args = build_parser().parse_args(argv)
+    raw: dict[str, Any] = {}
+    try:
+        if args.config:
+            raw = read_config_file(args.config)
+        if args.demo:
+            from .sim.demo import demo_overrides
+
+            raw = demo_overrides(raw, listen=args.listen or DEMO_LISTEN)
+        config = build_config(apply_overrides(raw, args), args.config or "<command line>")
+    except ConfigError as error:
+        print(f"modbus-gateway: {error}", file=sys.stderr)
+        return 2
+    setup_logging(config.logging.level, config.logging.format)
+    reload_source: Callable[[], Any] | None = None
+    if args.config and not args.demo:
+        reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))
+
+    async def serve() -> None:
+        demo = None
+        if args.demo:
+            from .sim.demo import start_demo_line
+
+            demo = start_demo_line(config)
+        try:
+            await run_until_signalled(Gateway(config), reload_source, args.grace)
+        finally:
+            if demo is not None:
+                demo.stop()
+
+    try:
+        _run(serve(), use_uvloop=not args.no_uvloop)
+    except OSError as error:
+        log.error("cannot start: %s", error)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,493 @@
+"""Configuration: a TOML file and command-line overrides, as frozen, validated dataclasses.
+
+Theory of operation: ``read_config_file`` parses the file, the CLI merges
+its flags into the raw tables, and ``build_config`` validates
+everything at once, so that one ``ConfigError`` lists every fault with its
+file, key and fix instead of stopping at the first. Nothing here opens a port.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .core.timing import t35
+
+DEFAULT_LISTEN = "0.0.0.0:502"
+DEFAULT_METRICS = "127.0.0.1:9502"
+VALID_PARITIES = ("N", "E", "O")
+VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
+VALID_LOG_FORMATS = ("text", "json")
+VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
+URL_SCHEMES = ("socket://", "rfc2217://", "loop://", "spy://")
+
+
+class ConfigError(Exception):
+    """Every problem found in one configuration, each naming file, key and fix."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = problems
+        lines = "\n".join(f"  - {problem}" for problem in problems)
+        super().__init__(f"{source}: {len(problems)} configuration problem(s):\n{lines}")
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """The Modbus TCP side."""
+
+    host: str = "0.0.0.0"
+    port: int = 502
+    max_connections: int = 100
+    when_full: str = "close_oldest_idle"
+    idle_timeout: float = 300.0
+    max_pipeline: int = 16
+    backlog: int = 1024
+    broadcast_reply: bool = False
+    refuse_functions: frozenset[int] = frozenset()
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """The HTTP endpoint for /metrics, /healthz and /readyz."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 9502
+
+
+@dataclass(frozen=True)
+class LoggingConfig:
+    """Log level and format."""
+
+    level: str = "info"
+    format: str = "text"
+
+
+@dataclass(frozen=True)
+class LineConfig:
+    """One serial line (RS485 bus) and how to talk on it."""
+
+    name: str
+    device: str
+    baudrate: int = 9600
+    data_bits: int = 8
+    parity: str = "N"
+    stop_bits: float = 1
+    timeout: float = 1.0
+    retries: int = 1
+    retry_writes: bool = False
+    frame_gap: float | None = None
+    broadcast: bool = True
+    broadcast_turnaround: float = 0.1
+    max_queue: int = 256
+    rs485: bool = False
+    rs485_rts_level_for_tx: bool = True
+    rs485_rts_level_for_rx: bool = False
+    rs485_delay_before_tx: float = 0.0
+    rs485_delay_after_tx: float = 0.0
+    units: tuple[int, ...] = ()
+
+    @property
+    def is_url(self) -> bool:
+        """True for a pyserial URL (a serial server over the network) rather than a device node."""
+        return "://" in self.device
+
+    @property
+    def gap(self) -> float:
+        """Silence kept before every request: ``frame_gap`` when set, else t3.5."""
+        if self.frame_gap is not None:
+            return self.frame_gap
+        return t35(self.baudrate, self.data_bits, self.parity, self.stop_bits)
+
+    @property
+    def silence(self) -> float:
+        """Line silence that ends a frame whose length cannot be predicted."""
+        floor = 0.05 if self.is_url else 0.0
+        return max(t35(self.baudrate, self.data_bits, self.parity, self.stop_bits), floor)
+
+
+@dataclass(frozen=True)
+class Route:
+    """Where one TCP unit id goes: a line and the slave address on it."""
+
+    unit: int
+    line: str
+    slave: int
+
+
+@dataclass(frozen=True)
+class GatewayConfig:
+    """The whole validated configuration."""
+
+    server: ServerConfig = field(default_factory=ServerConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    lines: tuple[LineConfig, ...] = ()
+    routes: Mapping[int, Route] = field(default_factory=dict)
+    source: str = "<defaults>"
+
+    def line(self, name: str) -> LineConfig:
+        """The line called ``name``."""
+        for line in self.lines:
+            if line.name == name:
+                return line
+        raise KeyError(name)
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """Split ``HOST:PORT`` (``[v6]:PORT`` too); raise ValueError with the fix."""
+    host, sep, port_text = text.rpartition(":")
+    if not sep or not port_text.isdigit():
+        raise ValueError(f"{text!r} is not HOST:PORT; write it like 0.0.0.0:502")
+    port = int(port_text)
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port {port} outside 0..65535")
+    host = host.strip("[]") or "0.0.0.0"
+    return host, port
+
+
+def parse_units(value: Any) -> list[int]:
+    """Units as a list of ints and ``"A-B"`` ranges; raise ValueError with the fix."""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list):
+        raise ValueError('write units as a list, like [1, 2, "10-20"]')
+    units: list[int] = []
+    for item in value:
+        if isinstance(item, bool):
+            raise ValueError(f"{item!r} is not a unit id")
+        if isinstance(item, int):
+            units.append(item)
+        elif isinstance(item, str) and "-" in item:
+            low_text, _, high_text = item.partition("-")
+            if not (low_text.strip().isdigit() and high_text.strip().isdigit()):
+                raise ValueError(f'{item!r} is not a range like "10-20"')
+            low, high = int(low_text), int(high_text)
+            if low > high:
+                raise ValueError(f"range {item!r} runs backwards")
+            units.extend(range(low, high + 1))
+        elif isinstance(item, str) and item.strip().isdigit():
+            units.append(int(item))
+        else:
+            raise ValueError(f'{item!r} is not a unit id or a range like "10-20"')
+    for unit in units:
+        if not 1 <= unit <= 247:
+            raise ValueError(f"unit {unit} outside 1..247 (0 is broadcast, 248..255 are reserved)")
+    return units
+
+
+class _Checker:
+    """Reads typed values out of raw TOML tables, collecting problems instead of raising."""
+
+    def __init__(self) -> None:
+        self.problems: list[str] = []
+
+    def fail(self, key: str, message: str) -> None:
+        self.problems.append(f"{key}: {message}")
+
+    def unknown_keys(self, table: Mapping[str, Any], known: set[str], prefix: str) -> None:
+        for key in table:
+            if key not in known:
+                choices = ", ".join(sorted(known))
+                self.fail(f"{prefix}{key}", f"unknown key; known keys here are: {choices}")
+
+    def integer(
+        self, table: Mapping[str, Any], key: str, prefix: str, default: int, low: int, high: int
+    ) -> int:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            self.fail(
+                f"{prefix}{key}",
+                f"{value!r} is not an integer; write a whole number from {low} to {high}",
+            )
+            return default
+        if not low <= value <= high:
+            self.fail(f"{prefix}{key}", f"{value} outside {low}..{high}")
+            return default
+        return value
+
+    def number(
+        self,
+        table: Mapping[str, Any],
+        key: str,
+        prefix: str,
+        default: float,
+        low: float,
+        high: float,
+    ) -> float:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
+            self.fail(
+                f"{prefix}{key}", f"{value!r} is not a number of seconds; write e.g. {default}"
+            )
+            return default
+        if not low <= value <= high:
+            self.fail(f"{prefix}{key}", f"{value} outside {low}..{high}")
+            return default
+        return float(value)
+
+    def boolean(self, table: Mapping[str, Any], key: str, prefix: str, default: bool) -> bool:
+        value = table.get(key, default)
+        if not isinstance(value, bool):
+            self.fail(f"{prefix}{key}", f"{value!r} is not true or false")
+            return default
+        return value
+
+    def choice(
+        self,
+        table: Mapping[str, Any],
+        key: str,
+        prefix: str,
+        default: str,
+        choices: tuple[str, ...],
+        *,
+        upper: bool = False,
+    ) -> str:
+        value = table.get(key, default)
+        if not isinstance(value, str) or (value.upper() if upper else value.lower()) not in choices:
+            self.fail(f"{prefix}{key}", f"{value!r} is not one of: {', '.join(choices)}")
+            return default
+        return value.upper() if upper else value.lower()
+
+    def address(
+        self, table: Mapping[str, Any], key: str, prefix: str, default: str
+    ) -> tuple[str, int] | None:
+        value = table.get(key, default)
+        if not isinstance(value, str):
+            self.fail(f"{prefix}{key}", f'{value!r} is not a string like "0.0.0.0:502"')
+            return parse_host_port(default)
+        if value.lower() == "off":
+            return None
+        try:
+            return parse_host_port(value)
+        except ValueError as error:
+            self.fail(f"{prefix}{key}", str(error))
+            return parse_host_port(default)
+
+    def table(self, raw: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+        value = raw.get(key, {})
+        if not isinstance(value, dict):
+            self.fail(key, f"must be a table ([{key}]), not {type(value).__name__}")
+            return {}
+        return value
+
+
+_SERVER_KEYS = {
+    "listen",
+    "max_connections",
+    "when_full",
+    "idle_timeout",
+    "max_pipeline",
+    "backlog",
+    "broadcast_reply",
+    "refuse_functions",
+}
+_LINE_KEYS = {
+    "device",
+    "baudrate",
+    "data_bits",
+    "parity",
+    "stop_bits",
+    "timeout",
+    "retries",
+    "retry_writes",
+    "frame_gap",
+    "broadcast",
+    "broadcast_turnaround",
+    "max_queue",
+    "rs485",
+    "rs485_rts_level_for_tx",
+    "rs485_rts_level_for_rx",
+    "rs485_delay_before_tx",
+    "rs485_delay_after_tx",
+    "units",
+}
+
+
+def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
+    table = check.table(raw, "server")
+    prefix = "server."
+    check.unknown_keys(table, _SERVER_KEYS, prefix)
+    listen = check.address(table, "listen", prefix, DEFAULT_LISTEN) or parse_host_port(
+        DEFAULT_LISTEN
+    )
+    refuse_raw = table.get("refuse_functions", [])
+    refuse: set[int] = set()
+    if not isinstance(refuse_raw, list) or not all(
+        isinstance(code, int) and not isinstance(code, bool) and 1 <= code <= 127
+        for code in refuse_raw
+    ):
+        check.fail(
+            f"{prefix}refuse_functions", "write a list of function codes 1..127, like [8, 17]"
+        )
+    else:
+        refuse = set(refuse_raw)
+    return ServerConfig(
+        host=listen[0],
+        port=listen[1],
+        max_connections=check.integer(table, "max_connections", prefix, 100, 1, 100_000),
+        when_full=check.choice(table, "when_full", prefix, "close_oldest_idle", VALID_WHEN_FULL),
+        idle_timeout=check.number(table, "idle_timeout", prefix, 300.0, 0.0, 86_400.0),
+        max_pipeline=check.integer(table, "max_pipeline", prefix, 16, 1, 256),
+        backlog=check.integer(table, "backlog", prefix, 1024, 1, 65_535),
+        broadcast_reply=check.boolean(table, "broadcast_reply", prefix, False),
+        refuse_functions=frozenset(refuse),
+    )
+
+
+def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineConfig | None:
+    prefix = f"lines.{name}."
+    if not isinstance(table, dict):
+        check.fail(f"lines.{name}", "must be a table ([lines.NAME]) with at least a device")
+        return None
+    check.unknown_keys(table, _LINE_KEYS, prefix)
+    device = table.get("device")
+    if not isinstance(device, str) or not device:
+        check.fail(
+            f"{prefix}device",
+            'missing; set the serial device or URL, like "/dev/ttyUSB0" '
+            'or "socket://10.0.0.5:4001"',
+        )
+        device = ""
+    stop_bits_raw = table.get("stop_bits", 1)
+    if stop_bits_raw not in (1, 1.5, 2) or isinstance(stop_bits_raw, bool):
+        check.fail(f"{prefix}stop_bits", f"{stop_bits_raw!r} is not 1, 1.5 or 2")
+        stop_bits_raw = 1
+    frame_gap_raw = table.get("frame_gap")
+    frame_gap: float | None = None
+    if frame_gap_raw is not None and frame_gap_raw != "auto":
+        frame_gap = check.number(table, "frame_gap", prefix, 0.0, 0.0, 1.0)
+    units: tuple[int, ...] = ()
+    if "units" in table:
+        try:
+            units = tuple(parse_units(table["units"]))
+        except ValueError as error:
+            check.fail(f"{prefix}units", str(error))
+    return LineConfig(
+        name=name,
+        device=device,
+        baudrate=check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000),
+        data_bits=check.integer(table, "data_bits", prefix, 8, 7, 8),
+        parity=check.choice(table, "parity", prefix, "N", VALID_PARITIES, upper=True),
+        stop_bits=float(stop_bits_raw),
+        timeout=check.number(table, "timeout", prefix, 1.0, 0.001, 60.0),
+        retries=check.integer(table, "retries", prefix, 1, 0, 10),
+        retry_writes=check.boolean(table, "retry_writes", prefix, False),
+        frame_gap=frame_gap,
+        broadcast=check.boolean(table, "broadcast", prefix, True),
+        broadcast_turnaround=check.number(table, "broadcast_turnaround", prefix, 0.1, 0.0, 10.0),
+        max_queue=check.integer(table, "max_queue", prefix, 256, 1, 100_000),
+        rs485=check.boolean(table, "rs485", prefix, False),
+        rs485_rts_level_for_tx=check.boolean(table, "rs485_rts_level_for_tx", prefix, True),
+        rs485_rts_level_for_rx=check.boolean(table, "rs485_rts_level_for_rx", prefix, False),
+        rs485_delay_before_tx=check.number(table, "rs485_delay_before_tx", prefix, 0.0, 0.0, 1.0),
+        rs485_delay_after_tx=check.number(table, "rs485_delay_after_tx", prefix, 0.0, 0.0, 1.0),
+        units=units,
+    )
+
+
+def _build_routes(
+    check: _Checker, raw: Mapping[str, Any], lines: tuple[LineConfig, ...]
+) -> dict[int, Route]:
+    routes: dict[int, Route] = {}
+    names = {line.name for line in lines}
+    for line in lines:
+        for unit in line.units:
+            if unit in routes:
+                check.fail(
+                    f"lines.{line.name}.units",
+                    f"unit {unit} is already routed to line "
+                    f"{routes[unit].line!r}; give each unit one line",
+                )
+            routes[unit] = Route(unit, line.name, unit)
+    raw_routes = raw.get("routes", [])
+    if not isinstance(raw_routes, list):
+        check.fail("routes", "write routes as [[routes]] tables with unit, line and slave")
+        return routes
+    for index, entry in enumerate(raw_routes):
+        key = f"routes[{index}]"
+        if not isinstance(entry, dict):
+            check.fail(key, "must be a table with unit, line and slave")
+            continue
+        check.unknown_keys(entry, {"unit", "line", "slave"}, f"{key}.")
+        unit = check.integer(entry, "unit", f"{key}.", -1, 1, 255) if "unit" in entry else -1
+        if "unit" not in entry:
+            check.fail(f"{key}.unit", "missing; the TCP unit id (1..255) this route answers for")
+        line_name = entry.get("line")
+        if not isinstance(line_name, str) or line_name not in names:
+            known = ", ".join(sorted(names)) or "(none defined)"
+            check.fail(f"{key}.line", f"{line_name!r} is not a configured line; lines are: {known}")
+            continue
+        slave = check.integer(entry, "slave", f"{key}.", unit if 1 <= unit <= 247 else 1, 1, 247)
+        if unit < 1:
+            continue
+        if unit in routes:
+            check.fail(
+                f"{key}.unit", f"unit {unit} is already routed to line {routes[unit].line!r}"
+            )
+            continue
+        routes[unit] = Route(unit, line_name, slave)
+    return routes
+
+
+def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
+    """Validate raw tables into a ``GatewayConfig``; raise ``ConfigError`` listing every fault."""
+    check = _Checker()
+    check.unknown_keys(raw, {"server", "metrics", "logging", "lines", "routes"}, "")
+    server = _build_server(check, raw)
+    metrics_table = check.table(raw, "metrics")
+    check.unknown_keys(metrics_table, {"listen"}, "metrics.")
+    metrics_address = check.address(metrics_table, "listen", "metrics.", DEFAULT_METRICS)
+    metrics = (
+        MetricsConfig(True, metrics_address[0], metrics_address[1])
+        if metrics_address is not None
+        else MetricsConfig(enabled=False)
+    )
+    logging_table = check.table(raw, "logging")
+    check.unknown_keys(logging_table, {"level", "format"}, "logging.")
+    log = LoggingConfig(
+        level=check.choice(logging_table, "level", "logging.", "info", VALID_LOG_LEVELS),
+        format=check.choice(logging_table, "format", "logging.", "text", VALID_LOG_FORMATS),
+    )
+    lines_table = check.table(raw, "lines")
+    lines = tuple(
+        line
+        for name, table in lines_table.items()
+        if (line := _build_line(check, name, table)) is not None
+    )
+    if not lines:
+        check.fail(
+            "lines",
+            'no serial line configured; add [lines.a] with device = "/dev/ttyUSB0" '
+            "(or run with --serial DEVICE, or --demo)",
+        )
+    routes = _build_routes(check, raw, lines)
+    if check.problems:
+        raise ConfigError(source, check.problems)
+    return GatewayConfig(server, metrics, log, lines, routes, source)
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file; raise ``ConfigError`` naming the file and the syntax fault."""
+    source = str(path)
+    try:
+        with open(path, "rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(source, ["file not found; pass an existing file with --config"]) from None
+    except PermissionError:
+        raise ConfigError(
+            source, ["permission denied; make the file readable by the gateway's user"]
+        ) from None
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(source, [f"TOML syntax: {error}"]) from None
+
+
+def load_config(path: str | Path) -> GatewayConfig:
+    """Read and validate a configuration file."""
+    return build_config(read_config_file(path), str(path))

@@ -1,0 +1,425 @@
+"""One serial line: a fair queue and exactly one transaction on the wire at a time.
+
+Theory of operation: masters ``submit`` requests; each master has its own FIFO
+and the worker takes one request from each master in turn, so a deep pipeline
+cannot starve the others. For each request the worker keeps at least the
+frame gap (t3.5 by default) of silence after the last byte seen on the line
+(measured with ``time.monotonic`` and waited for with ``PreciseClock``), drops
+whatever arrived unasked, writes unit + PDU + CRC, and feeds the answer to the
+core's ``RtuResponseDecoder``, which knows from the function code when the
+answer is complete. Timeouts and bad CRCs are retried (writes only when the
+line allows it); a frame from another unit or for another request is
+discarded and the wait goes on. After a timeout or a garbled answer the line
+must be silent for a frame gap before anything is sent, and bytes arriving
+while no transaction waits are discarded, so a late answer is never taken for
+the next one. While the port is down every request is answered 0x0A at once
+and the port is reopened with back-off.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from ..config import LineConfig
+from ..core import pdu as fc
+from ..core.errors import ExceptionCode, ResponseError
+from ..core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
+from ..core.timing import character_time
+from ..metrics import GatewayMetrics
+from .clock import PreciseClock
+from .serial_port import SerialLink, SerialPortError, open_serial
+
+log = logging.getLogger("gateway.bus")
+
+#: Called once per request with the response PDU (normal or exception) and its outcome.
+ReplyCallback = Callable[[bytes, str], None]
+
+_DISCARD_KINDS = frozenset({"unexpected_unit", "unexpected_function", "mismatch"})
+_REOPEN_FIRST_DELAY = 0.05
+_REOPEN_MAX_DELAY = 0.5
+
+
+@dataclass(slots=True, eq=False)
+class Request:
+    """A request waiting for, or on, the line."""
+
+    slave: int
+    pdu: bytes
+    client: object
+    reply: ReplyCallback
+    enqueued_at: float = 0.0
+    broadcast: bool = False
+    cancelled: bool = False
+    answered: bool = field(default=False)
+
+    def answer(self, pdu: bytes, outcome: str) -> None:
+        """Deliver the answer exactly once."""
+        if not self.answered:
+            self.answered = True
+            self.reply(pdu, outcome)
+
+
+class FairQueue:
+    """Per-master FIFOs served round robin."""
+
+    __slots__ = ("_queues", "_ready", "size")
+
+    def __init__(self) -> None:
+        self._queues: dict[object, deque[Request]] = {}
+        self._ready: deque[object] = deque()
+        self.size = 0
+
+    def push(self, request: Request) -> None:
+        """Queue ``request`` behind its master's earlier ones."""
+        queue = self._queues.get(request.client)
+        if queue is None:
+            queue = self._queues[request.client] = deque()
+            self._ready.append(request.client)
+        queue.append(request)
+        self.size += 1
+
+    def pop(self) -> Request | None:
+        """The next master's oldest request, or ``None`` when empty."""
+        while self._ready:
+            client = self._ready.popleft()
+            queue = self._queues[client]
+            request = queue.popleft()
+            self.size -= 1
+            if queue:
+                self._ready.append(client)
+            else:
+                del self._queues[client]
+            return request
+        return None
+
+    def drain(self) -> list[Request]:
+        """Remove and return everything queued."""
+        requests = [request for queue in self._queues.values() for request in queue]
+        self._queues.clear()
+        self._ready.clear()
+        self.size = 0
+        return requests
+
+
+class Bus:
+    """One RS485 line and the worker that owns it."""
+
+    def __init__(
+        self,
+        config: LineConfig,
+        metrics: GatewayMetrics,
+        loop: asyncio.AbstractEventLoop,
+        clock: PreciseClock,
+    ) -> None:
+        self.config = config
+        self.name = config.name
+        self._metrics = metrics
+        self._loop = loop
+        self._clock = clock
+        self._queue = FairQueue()
+        self._wakeup = asyncio.Event()
+        self._link: SerialLink | None = None
+        self._worker: asyncio.Task[None] | None = None
+        self._reopener: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._quiet_since = 0.0  # monotonic time of the last activity on the line
+        self._decoder: RtuResponseDecoder | None = None
+        self._waiter: asyncio.Future[RtuFrame | ResponseError | None] | None = None
+        self._silence_timer: asyncio.TimerHandle | None = None
+        self._unit_labels = {unit: str(unit) for unit in range(256)}
+        self._char_time = character_time(
+            config.baudrate, config.data_bits, config.parity, config.stop_bits
+        )
+        self.idle = asyncio.Event()
+        self.idle.set()
+        self._m_queue_depth = metrics.queue_depth.labels(self.name)
+        self._m_queue_wait = metrics.queue_wait.labels(self.name)
+        self._m_wire = metrics.wire_duration.labels(self.name)
+        self._m_sent = metrics.frames_sent.labels(self.name)
+        self._m_received = metrics.frames_received.labels(self.name)
+        self._m_written = metrics.bytes_written.labels(self.name)
+        self._m_read = metrics.bytes_read.labels(self.name)
+        self._m_line_up = metrics.line_up.labels(self.name)
+        self._m_line_up.set(0)
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    @property
+    def up(self) -> bool:
+        """True while the serial port is open."""
+        return self._link is not None and not self._link.closed
+
+    @property
+    def queued(self) -> int:
+        """Requests waiting for the line."""
+        return self._queue.size
+
+    def start(self) -> None:
+        """Open the port (or begin retrying) and start the worker."""
+        self._try_open()
+        if not self.up:
+            self._schedule_reopen()
+        self._worker = self._loop.create_task(self._run(), name=f"bus-{self.name}")
+
+    async def stop(self, grace: float) -> None:
+        """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
+        self._stopping = True
+        self._fail_queued("gateway stopping")
+        self._wakeup.set()
+        if self._reopener is not None:
+            self._reopener.cancel()
+        if self._worker is not None:
+            try:
+                await asyncio.wait_for(asyncio.shield(self._worker), grace)
+            except TimeoutError:
+                self._worker.cancel()
+            except asyncio.CancelledError:
+                pass
+        if self._link is not None:
+            self._link.close()
+            self._link = None
+        self._m_line_up.set(0)
+
+    def reconfigure(self, config: LineConfig) -> None:
+        """Take new timeouts, retries and limits; the port settings must be unchanged."""
+        self.config = config
+
+    # -- the master's side -------------------------------------------------------------
+
+    def submit(self, request: Request) -> bool:
+        """Queue a request; ``False`` (answer 0x0A) when the line is down, stopping or full."""
+        if self._stopping or not self.up or self._queue.size >= self.config.max_queue:
+            return False
+        request.enqueued_at = time.monotonic()
+        self._queue.push(request)
+        self._m_queue_depth.set(self._queue.size)
+        self._wakeup.set()
+        return True
+
+    # -- the worker --------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        while not self._stopping:
+            request = self._queue.pop()
+            if request is None:
+                self.idle.set()
+                self._wakeup.clear()
+                await self._wakeup.wait()
+                continue
+            self.idle.clear()
+            self._m_queue_depth.set(self._queue.size)
+            if request.cancelled:
+                self._metrics.count_request(
+                    self.name, self._unit_labels[request.slave], request.pdu[0], "dropped"
+                )
+                continue
+            self._m_queue_wait.observe(time.monotonic() - request.enqueued_at)
+            try:
+                if request.broadcast:
+                    await self._broadcast(request)
+                else:
+                    await self._transact(request)
+            except SerialPortError as error:
+                request.answer(
+                    self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+                )
+                log.warning("line %s: %s", self.name, error)
+        self.idle.set()
+
+    async def _transact(self, request: Request) -> None:
+        config = self.config
+        retry_allowed = request.pdu[0] not in fc.WRITE_FUNCTIONS or config.retry_writes
+        attempts = 1 + (config.retries if retry_allowed else 0)
+        unit = self._unit_labels[request.slave]
+        frame = encode_rtu(request.slave, request.pdu)
+        transmit_time = len(frame) * self._char_time
+        for attempt in range(attempts):
+            if attempt:
+                self._metrics.retries.labels(self.name, unit).inc()
+            link = await self._ready_to_send()
+            if link is None:
+                request.answer(
+                    self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+                )
+                return
+            self._decoder = RtuResponseDecoder(request.slave, request.pdu)
+            waiter: asyncio.Future[RtuFrame | ResponseError | None] = self._loop.create_future()
+            self._waiter = waiter
+            link.write(frame)
+            sent_at = time.monotonic()
+            self._quiet_since = sent_at + transmit_time
+            self._m_sent.inc()
+            self._m_written.inc(len(frame))
+            timer = self._loop.call_later(transmit_time + config.timeout, self._on_timeout, waiter)
+            try:
+                result = await waiter
+            finally:
+                timer.cancel()
+                self._decoder = None
+                self._waiter = None
+                if self._silence_timer is not None:
+                    self._silence_timer.cancel()
+                    self._silence_timer = None
+            if isinstance(result, RtuFrame):
+                self._m_wire.observe(time.monotonic() - sent_at)
+                self._m_received.inc()
+                outcome = "slave_exception" if fc.is_exception(result.pdu) else "ok"
+                request.answer(result.pdu, outcome)
+                return
+            if result is None:
+                self._metrics.timeouts.labels(self.name, unit).inc()
+            elif result.kind == "crc":
+                self._metrics.crc_errors.labels(self.name, unit).inc()
+            else:
+                self._metrics.discarded_frames.labels(self.name, result.kind).inc()
+            if not self.up:
+                break
+        request.answer(
+            self._exception(request, ExceptionCode.GATEWAY_TARGET_FAILED), "target_failed"
+        )
+
+    async def _broadcast(self, request: Request) -> None:
+        link = await self._ready_to_send()
+        if link is None:
+            request.answer(
+                self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+            )
+            return
+        frame = encode_rtu(0, request.pdu)
+        link.write(frame)
+        sent_at = time.monotonic()
+        self._m_sent.inc()
+        self._m_written.inc(len(frame))
+        end = sent_at + len(frame) * self._char_time + self.config.broadcast_turnaround
+        self._quiet_since = end
+        request.answer(b"", "broadcast")
+        await asyncio.sleep(max(0.0, end - time.monotonic()))
+
+    async def _ready_to_send(self) -> SerialLink | None:
+        """Wait for the frame gap of silence, then drop unasked bytes; ``None`` if down."""
+        gap = self.config.gap
+        while True:
+            link = self._link
+            if link is None or link.closed:
+                return None
+            deadline = self._quiet_since + gap
+            if time.monotonic() >= deadline:
+                break
+            await self._clock.sleep_until(deadline)
+        dropped = link.discard_input()
+        if dropped:
+            self._note_discarded("late", dropped)
+        return link if not link.closed else None
+
+    # -- line events -------------------------------------------------------------------
+
+    def _on_data(self, data: bytes) -> None:
+        now = time.monotonic()
+        self._quiet_since = now
+        self._m_read.inc(len(data))
+        decoder = self._decoder
+        waiter = self._waiter
+        if decoder is None or waiter is None or waiter.done():
+            self._note_discarded("late", len(data))
+            return
+        try:
+            frame = decoder.feed(data)
+        except ResponseError as error:
+            if error.kind in _DISCARD_KINDS:
+                self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+                decoder.reset()
+            else:
+                self._decoder = None  # the rest of this garbled answer is drained as late
+                waiter.set_result(error)
+            return
+        if frame is not None:
+            waiter.set_result(frame)
+        elif decoder.waits_for_silence:
+            if self._silence_timer is not None:
+                self._silence_timer.cancel()
+            self._silence_timer = self._loop.call_later(self.config.silence, self._on_silence)
+
+    def _on_silence(self) -> None:
+        self._silence_timer = None
+        decoder = self._decoder
+        waiter = self._waiter
+        if decoder is None or waiter is None or waiter.done():
+            return
+        try:
+            waiter.set_result(decoder.end_of_frame())
+        except ResponseError as error:
+            if error.kind in _DISCARD_KINDS:
+                self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+                decoder.reset()
+            else:
+                waiter.set_result(error)
+
+    def _on_timeout(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:
+        if not waiter.done():
+            if self._decoder is not None and self._decoder.buffered:
+                self._note_discarded("incomplete", self._decoder.buffered)
+            waiter.set_result(None)
+
+    def _note_discarded(self, reason: str, count: int) -> None:
+        self._metrics.discarded_frames.labels(self.name, reason).inc()
+        log.debug("line %s: discarded %d %s byte(s)", self.name, count, reason)
+
+    # -- port state --------------------------------------------------------------------
+
+    def _try_open(self) -> bool:
+        try:
+            port = open_serial(self.config)
+        except SerialPortError as error:
+            if self._reopener is None:
+                log.error("%s", error)
+            return False
+        self._link = SerialLink(port, self._loop, self._on_data, self._on_lost)
+        self._quiet_since = time.monotonic()
+        self._m_line_up.set(1)
+        log.info("line %s: %s open at %d baud", self.name, self.config.device, self.config.baudrate)
+        return True
+
+    def _on_lost(self, error: OSError) -> None:
+        log.error(
+            "line %s: %s lost: %s; answering 0x0A until it returns",
+            self.name,
+            self.config.device,
+            error,
+        )
+        self._m_line_up.set(0)
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+        self._fail_queued("line down")
+        if not self._stopping:
+            self._schedule_reopen()
+
+    def _schedule_reopen(self) -> None:
+        if self._reopener is None or self._reopener.done():
+            self._reopener = self._loop.create_task(self._reopen(), name=f"reopen-{self.name}")
+
+    async def _reopen(self) -> None:
+        delay = _REOPEN_FIRST_DELAY
+        while not self._stopping:
+            await asyncio.sleep(delay)
+            if self._try_open():
+                log.info("line %s: back up", self.name)
+                self._reopener = None
+                return
+            delay = min(delay * 2, _REOPEN_MAX_DELAY)
+
+    def _fail_queued(self, why: str) -> None:
+        for request in self._queue.drain():
+            request.answer(
+                self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+            )
+        self._m_queue_depth.set(0)
+
+    @staticmethod
+    def _exception(request: Request, code: ExceptionCode) -> bytes:
+        return fc.exception_pdu(request.pdu[0], code)

@@ -1,0 +1,349 @@
+"""The Modbus TCP server: many masters, several requests in flight on each.
+
+Theory of operation: each connection owns an incremental ``MbapDecoder``. A
+complete frame is validated by the core (answered locally when no slave
+could accept it), routed by unit id, and handed to its line's ``Bus`` with a
+callback that writes the reply under the request's own transaction id, in
+whatever order replies complete. At ``max_pipeline`` requests in flight the
+connection stops reading (TCP back-pressure) until a reply goes out. A framing
+error closes that connection only. When a master leaves, its queued requests
+are cancelled so nothing is sent on its behalf.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+from ..config import ServerConfig
+from ..core import pdu as fc
+from ..core.errors import ExceptionCode, FramingError, ModbusError
+from ..core.mbap import MbapDecoder, MbapFrame, encode_mbap
+from ..metrics import GatewayMetrics
+from .bus import Bus, Request
+
+log = logging.getLogger("gateway.tcp")
+
+_READ_LIMIT_CHUNK = 65536
+
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    """Where a TCP unit id goes."""
+
+    bus: Bus
+    slave: int
+
+
+class Router:
+    """TCP unit id → (bus, slave); replaced as a whole on reload."""
+
+    def __init__(self, routes: Mapping[int, Target], broadcast_buses: list[Bus]) -> None:
+        self.routes = dict(routes)
+        self.broadcast_buses = broadcast_buses
+
+    def lookup(self, unit: int) -> Target | None:
+        """The route for ``unit``, ``None`` when there is none."""
+        return self.routes.get(unit)
+
+
+def _broadcast_reply(pdu: bytes) -> bytes:
+    """What a slave would have answered to a write that was broadcast instead."""
+    if pdu[0] in (fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS):
+        return pdu[:5]
+    return pdu
+
+
+class MasterConnection(asyncio.Protocol):
+    """One TCP master."""
+
+    def __init__(self, server: ModbusTcpServer) -> None:
+        self._server = server
+        self._decoder = MbapDecoder()
+        self._transport: asyncio.Transport | None = None
+        self._pending: set[Request] = set()
+        self._in_flight = 0
+        self._paused = False
+        self._closed = False
+        self.peer = "?"
+        self.last_activity = time.monotonic()
+        self._idle_timer: asyncio.TimerHandle | None = None
+
+    # -- asyncio.Protocol --------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
+        peer = transport.get_extra_info("peername")
+        self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        sock = transport.get_extra_info("socket")
+        if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        if not self._server.admit(self):
+            self._closed = True
+            transport.abort()
+            return
+        self._arm_idle_timer()
+
+    def data_received(self, data: bytes) -> None:
+        self.last_activity = time.monotonic()
+        try:
+            self._decoder.feed(data)
+        except FramingError:
+            return  # already reported when the decoder failed
+        self._process_frames()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._closed = True
+        if self._idle_timer is not None:
+            self._idle_timer.cancel()
+        for request in self._pending:
+            request.cancelled = True
+        self._pending.clear()
+        self._server.forget(self, "peer_closed" if exc is None else "error")
+
+    # -- requests ----------------------------------------------------------------------
+
+    @property
+    def busy(self) -> bool:
+        """True while requests of this master are queued or on the wire."""
+        return self._in_flight > 0
+
+    def _process_frames(self) -> None:
+        limit = self._server.config.max_pipeline
+        while not self._closed and self._in_flight < limit:
+            try:
+                frame = self._decoder.next_frame()
+            except FramingError as error:
+                self._server.metrics.protocol_errors.labels(error.kind).inc()
+                log.warning("master %s: %s; closing the connection", self.peer, error.reason)
+                self.close("protocol_error")
+                return
+            if frame is None:
+                break
+            self._handle(frame)
+        if self._closed or self._transport is None:
+            return
+        if self._in_flight >= limit and not self._paused:
+            self._paused = True
+            self._transport.pause_reading()
+        elif self._in_flight < limit and self._paused:
+            self._paused = False
+            self._transport.resume_reading()
+
+    def _handle(self, frame: MbapFrame) -> None:
+        server = self._server
+        arrived = time.monotonic()
+        transaction_id, unit, pdu = frame
+        function = pdu[0] if pdu else 0
+        try:
+            if function in server.config.refuse_functions:
+                raise ModbusError(
+                    ExceptionCode.ILLEGAL_FUNCTION, "function refused by configuration"
+                )
+            fc.validate_request(pdu)
+            if unit == 0 and function not in fc.BROADCAST_FUNCTIONS:
+                raise ModbusError(ExceptionCode.ILLEGAL_FUNCTION, "only writes can be broadcast")
+        except ModbusError as error:
+            server.metrics.protocol_errors.labels("invalid_request").inc()
+            self._send(transaction_id, unit, fc.exception_pdu(function, error.code))
+            server.metrics.count_request("none", "other", function, "rejected")
+            return
+        if unit == 0:
+            self._broadcast(transaction_id, pdu, arrived)
+            return
+        target = server.router.lookup(unit)
+        if target is None:
+            self._send(
+                transaction_id,
+                unit,
+                fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
+            )
+            server.metrics.count_request("none", "other", function, "no_route")
+            return
+        bus = target.bus
+        line = bus.name
+        unit_label = server.unit_label(unit)
+
+        def reply(response: bytes, outcome: str) -> None:
+            self._pending.discard(request)
+            if self._closed:
+                outcome = "dropped"
+            else:
+                self._send(transaction_id, unit, response)
+                server.metrics.request_duration.labels(line).observe(time.monotonic() - arrived)
+            server.metrics.count_request(line, unit_label, function, outcome)
+            self._request_done()
+
+        request = Request(target.slave, pdu, self, reply)
+        if not bus.submit(request):
+            self._send(
+                transaction_id,
+                unit,
+                fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
+            )
+            server.metrics.count_request(line, unit_label, function, "no_route")
+            return
+        self._pending.add(request)
+        self._in_flight += 1
+
+    def _broadcast(self, transaction_id: int, pdu: bytes, arrived: float) -> None:
+        server = self._server
+        buses = [bus for bus in server.router.broadcast_buses if bus.up]
+        if not buses:
+            self._send(
+                transaction_id, 0, fc.exception_pdu(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
+            )
+            server.metrics.count_request("none", "other", pdu[0], "no_route")
+            return
+        remaining = len(buses)
+
+        def sent(_response: bytes, outcome: str) -> None:
+            nonlocal remaining
+            remaining -= 1
+            if remaining:
+                return
+            if server.config.broadcast_reply and not self._closed:
+                self._send(transaction_id, 0, _broadcast_reply(pdu))
+            server.metrics.count_request("broadcast", "0", pdu[0], outcome)
+            self._request_done()
+
+        self._in_flight += 1
+        for bus in buses:
+            request = Request(0, pdu, self, sent, broadcast=True)
+            if bus.submit(request):
+                self._pending.add(request)
+            else:
+                sent(b"", "no_route")
+
+    def _request_done(self) -> None:
+        self._in_flight -= 1
+        self.last_activity = time.monotonic()
+        if self._paused and not self._closed:
+            self._process_frames()
+
+    def _send(self, transaction_id: int, unit: int, pdu: bytes) -> None:
+        if self._transport is not None and not self._closed:
+            self._transport.write(encode_mbap(transaction_id, unit, pdu))
+
+    # -- closing -----------------------------------------------------------------------
+
+    def close(self, reason: str) -> None:
+        """Close this connection, recording why."""
+        if self._closed:
+            return
+        self._closed = True
+        for request in self._pending:
+            request.cancelled = True
+        self._server.forget(self, reason)
+        if self._transport is not None:
+            self._transport.close()
+
+    def _arm_idle_timer(self) -> None:
+        timeout = self._server.config.idle_timeout
+        if timeout <= 0 or self._closed:
+            return
+        delay = self.last_activity + timeout - time.monotonic()
+        loop = asyncio.get_running_loop()
+        self._idle_timer = loop.call_later(max(delay, 0.0), self._check_idle)
+
+    def _check_idle(self) -> None:
+        timeout = self._server.config.idle_timeout
+        if self._closed:
+            return
+        if timeout > 0 and not self.busy and time.monotonic() - self.last_activity >= timeout:
+            log.info("master %s: idle for %.0f s, closing", self.peer, timeout)
+            self.close("idle")
+            return
+        if self.busy:
+            self.last_activity = time.monotonic()
+        self._arm_idle_timer()
+
+
+class ModbusTcpServer:
+    """Accepts masters and enforces the connection limit."""
+
+    def __init__(
+        self,
+        config: ServerConfig,
+        router: Router,
+        metrics: GatewayMetrics,
+        unit_labels: Callable[[int], str],
+    ) -> None:
+        self.config = config
+        self.router = router
+        self.metrics = metrics
+        self.unit_label = unit_labels
+        self._connections: dict[MasterConnection, None] = {}
+        self._server: asyncio.Server | None = None
+
+    @property
+    def connections(self) -> int:
+        """Masters connected now."""
+        return len(self._connections)
+
+    @property
+    def sockets(self) -> list[tuple[str, int]]:
+        """The addresses the server listens on."""
+        if self._server is None:
+            return []
+        return [sock.getsockname()[:2] for sock in self._server.sockets]
+
+    async def start(self) -> None:
+        """Bind and start accepting."""
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            lambda: MasterConnection(self), self.config.host, self.config.port,
+            backlog=self.config.backlog, reuse_address=True,
+        )  # fmt: skip
+
+    def stop_accepting(self) -> None:
+        """Close the listening sockets; connections stay."""
+        if self._server is not None:
+            self._server.close()
+
+    def close_all(self, reason: str) -> None:
+        """Close every connection."""
+        for connection in list(self._connections):
+            connection.close(reason)
+
+    async def wait_closed(self) -> None:
+        """Wait for the listening sockets to close."""
+        if self._server is not None:
+            await self._server.wait_closed()
+
+    def admit(self, connection: MasterConnection) -> bool:
+        """Accept a new master, or make room (or refuse) at the limit."""
+        if len(self._connections) >= self.config.max_connections:
+            victim = None
+            if self.config.when_full == "close_oldest_idle":
+                idle = [c for c in self._connections if not c.busy]
+                if idle:
+                    victim = min(idle, key=lambda c: c.last_activity)
+            if victim is None:
+                self.metrics.connections_rejected.inc()
+                log.warning(
+                    "master %s refused: %d connections open (server.max_connections)",
+                    connection.peer,
+                    len(self._connections),
+                )
+                return False
+            log.info("master %s: closed to make room for %s", victim.peer, connection.peer)
+            victim.close("evicted")
+        self._connections[connection] = None
+        self.metrics.connections_accepted.inc()
+        self.metrics.connections_open.set(len(self._connections))
+        log.info("master %s connected", connection.peer)
+        return True
+
+    def forget(self, connection: MasterConnection, reason: str) -> None:
+        """Drop a closed connection from the books (once)."""
+        if self._connections.pop(connection, False) is None:
+            self.metrics.connections_closed.labels(reason).inc()
+            self.metrics.connections_open.set(len(self._connections))
+            log.info("master %s disconnected (%s)", connection.peer, reason)
