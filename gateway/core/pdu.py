@@ -115,20 +115,32 @@ def _need_length(pdu: bytes, length: int, name: str) -> None:
         )
 
 
-def _check_range(pdu: bytes, name: str, low: int, high: int) -> None:
-    """Address + quantity at offsets 1 and 3, quantity within [low, high], no 16-bit overflow."""
-    address = _u16(pdu, 1)
+def _check_quantity(pdu: bytes, name: str, low: int, high: int) -> None:
+    """Quantity at offset 3 within [low, high] (exception 0x03)."""
     quantity = _u16(pdu, 3)
     if not low <= quantity <= high:
         raise _fail(
             ExceptionCode.ILLEGAL_DATA_VALUE,
             f"{name} quantity {quantity} outside {low}..{high}",
         )
+
+
+def _check_address(pdu: bytes, name: str) -> None:
+    """Address at offset 1 + quantity at offset 3 stays within 0..65535 (exception 0x02)."""
+    address = _u16(pdu, 1)
+    quantity = _u16(pdu, 3)
     if address + quantity > 0x10000:
         raise _fail(
             ExceptionCode.ILLEGAL_DATA_ADDRESS,
             f"{name} address {address} + quantity {quantity} passes 65535",
         )
+
+
+def _check_range(pdu: bytes, name: str, low: int, high: int) -> None:
+    """Quantity within [low, high] first (0x03), then no 16-bit overflow (0x02), as the spec's
+    state diagrams order them."""
+    _check_quantity(pdu, name, low, high)
+    _check_address(pdu, name)
 
 
 def validate_request(pdu: bytes) -> None:
@@ -200,7 +212,8 @@ def validate_request(pdu: bytes) -> None:
 def _validate_write_multiple(pdu: bytes, name: str, limit: int, *, bits: bool) -> None:
     if len(pdu) < 6:
         raise _fail(ExceptionCode.ILLEGAL_DATA_VALUE, f"{name} request PDU too short")
-    _check_range(pdu, name, 1, limit)
+    # The specification checks quantity and byte count (0x03) before the address range (0x02).
+    _check_quantity(pdu, name, 1, limit)
     quantity = _u16(pdu, 3)
     byte_count = pdu[5]
     expected = (quantity + 7) // 8 if bits else quantity * 2
@@ -214,6 +227,7 @@ def _validate_write_multiple(pdu: bytes, name: str, limit: int, *, bits: bool) -
             ExceptionCode.ILLEGAL_DATA_VALUE,
             f"{name} carries {len(pdu) - 6} data bytes, byte count says {byte_count}",
         )
+    _check_address(pdu, name)
 
 
 def _validate_file_record(pdu: bytes, name: str, low: int, high: int) -> None:
@@ -240,7 +254,9 @@ def _validate_file_record(pdu: bytes, name: str, low: int, high: int) -> None:
 def _validate_read_write(pdu: bytes, name: str) -> None:
     if len(pdu) < 10:
         raise _fail(ExceptionCode.ILLEGAL_DATA_VALUE, f"{name} request PDU too short")
-    _check_range(pdu, name, 1, 125)
+    # The specification checks both quantities and the byte count (0x03) before either
+    # address range (0x02).
+    _check_quantity(pdu, name, 1, 125)
     write_address = _u16(pdu, 5)
     write_quantity = _u16(pdu, 7)
     if not 1 <= write_quantity <= 121:
@@ -248,14 +264,15 @@ def _validate_read_write(pdu: bytes, name: str) -> None:
             ExceptionCode.ILLEGAL_DATA_VALUE,
             f"{name} write quantity {write_quantity} outside 1..121",
         )
-    if write_address + write_quantity > 0x10000:
-        raise _fail(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{name} write range passes 65535")
     byte_count = pdu[9]
     if byte_count != 2 * write_quantity or len(pdu) != 10 + byte_count:
         raise _fail(
             ExceptionCode.ILLEGAL_DATA_VALUE,
             f"{name} write byte count {byte_count} does not match quantity {write_quantity}",
         )
+    _check_address(pdu, name)
+    if write_address + write_quantity > 0x10000:
+        raise _fail(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{name} write range passes 65535")
 
 
 def is_exception(pdu: bytes) -> bool:
