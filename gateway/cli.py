@@ -14,6 +14,7 @@ from . import __version__
 from .app import Gateway, reloader, run_until_signalled
 from .config import ConfigError, build_config, parse_host_port, read_config_file
 from .logs import setup_logging
+from .sim.demo import DEMO_UNITS, DemoLine
 
 log = logging.getLogger("gateway")
 
@@ -161,16 +162,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _check_config(argv[1:])
     args = build_parser().parse_args(argv)
     raw: dict[str, Any] = {}
+    demo: DemoLine | None = None
     try:
         if args.config:
             raw = read_config_file(args.config)
         if args.demo:
-            from .sim.demo import demo_overrides
-
-            raw = demo_overrides(raw, listen=args.listen or DEMO_LISTEN)
+            demo = DemoLine()
+            raw = demo.configure(raw, listen=args.listen or DEMO_LISTEN)
         config = build_config(apply_overrides(raw, args), args.config or "<command line>")
     except ConfigError as error:
         print(f"modbus-gateway: {error}", file=sys.stderr)
+        if demo is not None:
+            demo.stop()
         return 2
     setup_logging(config.logging.level, config.logging.format)
     reload_source: Callable[[], Any] | None = None
@@ -178,22 +181,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))
 
     async def serve() -> None:
-        demo = None
-        if args.demo:
-            from .sim.demo import start_demo_line
+        await run_until_signalled(Gateway(config), reload_source, args.grace)
 
-            demo = start_demo_line(config)
-        try:
-            await run_until_signalled(Gateway(config), reload_source, args.grace)
-        finally:
-            if demo is not None:
-                demo.stop()
+    if demo is not None:
+        demo.start()
+        log.info("demo: simulated units %s on %s", DEMO_UNITS, demo.pty.path)
 
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)
     except OSError as error:
         log.error("cannot start: %s", error)
         return 1
+    finally:
+        if demo is not None:
+            demo.stop()
     return 0
 
 
