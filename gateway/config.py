@@ -69,6 +69,26 @@ class LoggingConfig:
 
 
 @dataclass(frozen=True)
+class CacheRule:
+    """Reads of ``unit`` in a range, answered from a response at most ``max_age`` seconds old."""
+
+    unit: int
+    function: int
+    start: int
+    count: int
+    max_age: float
+
+    def covers(self, unit: int, function: int, address: int, quantity: int) -> bool:
+        """True when the read lies wholly inside this rule's range."""
+        return (
+            unit == self.unit
+            and function == self.function
+            and self.start <= address
+            and address + quantity <= self.start + self.count
+        )
+
+
+@dataclass(frozen=True)
 class LineConfig:
     """One serial line (RS485 bus) and how to talk on it."""
 
@@ -91,6 +111,16 @@ class LineConfig:
     rs485_delay_before_tx: float = 0.0
     rs485_delay_after_tx: float = 0.0
     units: tuple[int, ...] = ()
+    dead_after: int = 3
+    probe_interval: float = 1.0
+    probe_max_interval: float = 30.0
+    slave_timeouts: Mapping[int, float] = field(default_factory=dict)
+    coalesce: bool = True
+    cache: tuple[CacheRule, ...] = ()
+
+    def timeout_for(self, slave: int) -> float:
+        """The response timeout of ``slave``: its override, else the line's."""
+        return self.slave_timeouts.get(slave, self.timeout)
 
     @property
     def is_url(self) -> bool:
@@ -369,6 +399,12 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
     return LineConfig(
+        dead_after=check.integer(table, "dead_after", prefix, 3, 0, 1000),
+        probe_interval=check.number(table, "probe_interval", prefix, 1.0, 0.01, 3600.0),
+        probe_max_interval=check.number(table, "probe_max_interval", prefix, 30.0, 0.01, 86_400.0),
+        slave_timeouts=_slave_timeouts(check, table, prefix),
+        coalesce=check.boolean(table, "coalesce", prefix, True),
+        cache=_cache_rules(check, table, prefix),
         name=name,
         device=device,
         baudrate=check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000),
@@ -389,6 +425,56 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         rs485_delay_after_tx=check.number(table, "rs485_delay_after_tx", prefix, 0.0, 0.0, 1.0),
         units=units,
     )
+
+
+def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[int, float]:
+    raw = table.get("slave_timeouts", {})
+    key = f"{prefix}slave_timeouts"
+    if not isinstance(raw, dict):
+        check.fail(key, 'write a table of slave = seconds, like { "5" = 0.3 }')
+        return {}
+    timeouts: dict[int, float] = {}
+    for slave_text in raw:
+        if not slave_text.isdigit() or not 1 <= int(slave_text) <= 247:
+            check.fail(f"{key}.{slave_text}", "the key must be a slave address 1..247, quoted")
+            continue
+        timeouts[int(slave_text)] = check.number(raw, slave_text, f"{key}.", 1.0, 0.001, 60.0)
+    return timeouts
+
+
+_CACHE_FUNCTIONS = (1, 2, 3, 4)
+
+
+def _cache_rules(check: _Checker, table: Mapping[str, Any], prefix: str) -> tuple[CacheRule, ...]:
+    raw = table.get("cache", [])
+    key = f"{prefix}cache"
+    if not isinstance(raw, list):
+        check.fail(
+            key, "write [[lines.NAME.cache]] tables with unit, function, start, count, max_age"
+        )
+        return ()
+    rules: list[CacheRule] = []
+    for index, entry in enumerate(raw):
+        entry_key = f"{key}[{index}]."
+        if not isinstance(entry, dict):
+            check.fail(
+                f"{key}[{index}]", "must be a table with unit, function, start, count, max_age"
+            )
+            continue
+        check.unknown_keys(entry, {"unit", "function", "start", "count", "max_age"}, entry_key)
+        function = check.integer(entry, "function", entry_key, 3, 1, 4)
+        if function not in _CACHE_FUNCTIONS:
+            continue
+        rules.append(
+            CacheRule(
+                unit=check.integer(entry, "unit", entry_key, 1, 1, 247),
+                function=function,
+                start=check.integer(entry, "start", entry_key, 0, 0, 65535),
+                count=check.integer(entry, "count", entry_key, 1, 1, 65536),
+                max_age=check.number(entry, "max_age", entry_key, 1.0, 0.0, 3600.0),
+            )
+        )
+    return tuple(rules)
 
 
 def _build_routes(

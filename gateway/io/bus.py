@@ -55,13 +55,35 @@ class Request:
     enqueued_at: float = 0.0
     broadcast: bool = False
     cancelled: bool = False
-    answered: bool = field(default=False)
+    answered: bool = False
+    probe: bool = False
+    epoch: int = 0
+    followers: list[Request] = field(default_factory=list)
 
     def answer(self, pdu: bytes, outcome: str) -> None:
-        """Deliver the answer exactly once."""
+        """Deliver the answer exactly once, to this request and those that joined it."""
         if not self.answered:
             self.answered = True
             self.reply(pdu, outcome)
+        for follower in self.followers:
+            follower.answer(pdu, outcome)
+        self.followers.clear()
+
+    @property
+    def wanted(self) -> bool:
+        """False when nobody is waiting for the answer any more."""
+        return not self.cancelled or any(not f.cancelled for f in self.followers)
+
+
+@dataclass(slots=True)
+class SlaveHealth:
+    """Dead-slave isolation state of one slave address."""
+
+    consecutive_timeouts: int = 0
+    down: bool = False
+    backoff: float = 0.0
+    next_probe_at: float = 0.0
+    probing: bool = False
 
 
 class FairQueue:
@@ -135,6 +157,10 @@ class Bus:
         self._char_time = character_time(
             config.baudrate, config.data_bits, config.parity, config.stop_bits
         )
+        self._health: dict[int, SlaveHealth] = {}
+        self._waiting_reads: dict[tuple[int, bytes], Request] = {}
+        self._write_epoch: dict[int, int] = {}
+        self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
         self.idle = asyncio.Event()
         self.idle.set()
         self._m_queue_depth = metrics.queue_depth.labels(self.name)
@@ -145,6 +171,7 @@ class Bus:
         self._m_written = metrics.bytes_written.labels(self.name)
         self._m_read = metrics.bytes_read.labels(self.name)
         self._m_line_up = metrics.line_up.labels(self.name)
+        self._m_coalesced = metrics.coalesced.labels(self.name)
         self._m_line_up.set(0)
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -169,7 +196,7 @@ class Bus:
     async def stop(self, grace: float) -> None:
         """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
         self._stopping = True
-        self._fail_queued("gateway stopping")
+        self._fail_queued()
         self._wakeup.set()
         if self._reopener is not None:
             self._reopener.cancel()
@@ -192,13 +219,55 @@ class Bus:
     # -- the master's side -------------------------------------------------------------
 
     def submit(self, request: Request) -> bool:
-        """Queue a request; ``False`` (answer 0x0A) when the line is down, stopping or full."""
+        """Queue a request; ``False`` (answer 0x0A) when the line is down, stopping or full.
+
+        A request may also be answered at once, before this returns: 0x0B for a slave
+        isolated as dead, a cached read, or a read joining an identical queued one.
+        """
         if self._stopping or not self.up or self._queue.size >= self.config.max_queue:
             return False
-        request.enqueued_at = time.monotonic()
+        now = time.monotonic()
+        request.enqueued_at = now
+        if not request.broadcast and not self._admit(request, now):
+            return True
         self._queue.push(request)
         self._m_queue_depth.set(self._queue.size)
         self._wakeup.set()
+        return True
+
+    def _admit(self, request: Request, now: float) -> bool:
+        """Isolation, cache and coalescing; ``False`` when the request is already answered."""
+        slave = request.slave
+        health = self._health.get(slave)
+        if health is not None and health.down:
+            if health.probing or now < health.next_probe_at:
+                request.answer(self._exception(request, ExceptionCode.GATEWAY_TARGET_FAILED),
+                               "target_failed")  # fmt: skip
+                return False
+            health.probing = True
+            request.probe = True
+        function = request.pdu[0]
+        if function not in fc.READ_FUNCTIONS:
+            # Anything but a plain read may change the slave: later reads must not be
+            # served by a response from before it.
+            self._write_epoch[slave] = self._write_epoch.get(slave, 0) + 1
+            self._invalidate_cache(slave)
+            return True
+        key = (slave, request.pdu)
+        if self.config.cache:
+            cached = self._cache.get(key)
+            if cached is not None and now <= cached[0]:
+                request.answer(cached[1], "cached")
+                return False
+        epoch = self._write_epoch.get(slave, 0)
+        if self.config.coalesce and not request.probe:
+            leader = self._waiting_reads.get(key)
+            if leader is not None and leader.epoch == epoch and not leader.answered:
+                leader.followers.append(request)
+                self._m_coalesced.inc()
+                return False
+            request.epoch = epoch
+            self._waiting_reads[key] = request
         return True
 
     # -- the worker --------------------------------------------------------------------
@@ -213,10 +282,19 @@ class Bus:
                 continue
             self.idle.clear()
             self._m_queue_depth.set(self._queue.size)
-            if request.cancelled:
+            key = (request.slave, request.pdu)
+            if self._waiting_reads.get(key) is request:
+                del self._waiting_reads[key]  # on the wire from now on: nobody joins it
+            if not request.wanted:
                 self._metrics.count_request(
                     self.name, self._unit_labels[request.slave], request.pdu[0], "dropped"
                 )
+                self._end_probe(request)
+                continue
+            health = self._health.get(request.slave)
+            if health is not None and health.down and not request.probe:
+                request.answer(self._exception(request, ExceptionCode.GATEWAY_TARGET_FAILED),
+                               "target_failed")  # fmt: skip
                 continue
             self._m_queue_wait.observe(time.monotonic() - request.enqueued_at)
             try:
@@ -234,7 +312,8 @@ class Bus:
     async def _transact(self, request: Request) -> None:
         config = self.config
         retry_allowed = request.pdu[0] not in fc.WRITE_FUNCTIONS or config.retry_writes
-        attempts = 1 + (config.retries if retry_allowed else 0)
+        attempts = 1 if request.probe else 1 + (config.retries if retry_allowed else 0)
+        timeout = config.timeout_for(request.slave)
         unit = self._unit_labels[request.slave]
         frame = encode_rtu(request.slave, request.pdu)
         transmit_time = len(frame) * self._char_time
@@ -255,7 +334,7 @@ class Bus:
             self._quiet_since = sent_at + transmit_time
             self._m_sent.inc()
             self._m_written.inc(len(frame))
-            timer = self._loop.call_later(transmit_time + config.timeout, self._on_timeout, waiter)
+            timer = self._loop.call_later(transmit_time + timeout, self._on_timeout, waiter)
             try:
                 result = await waiter
             finally:
@@ -266,10 +345,18 @@ class Bus:
                     self._silence_timer.cancel()
                     self._silence_timer = None
             if isinstance(result, RtuFrame):
-                self._m_wire.observe(time.monotonic() - sent_at)
+                done_at = time.monotonic()
+                self._m_wire.observe(done_at - sent_at)
                 self._m_received.inc()
-                outcome = "slave_exception" if fc.is_exception(result.pdu) else "ok"
-                request.answer(result.pdu, outcome)
+                self._slave_answered(request)
+                if fc.is_exception(result.pdu):
+                    request.answer(result.pdu, "slave_exception")
+                    return
+                if request.pdu[0] in fc.READ_FUNCTIONS:
+                    self._store_cache(request, result.pdu, done_at)
+                else:
+                    self._invalidate_cache(request.slave)
+                request.answer(result.pdu, "ok")
                 return
             if result is None:
                 self._metrics.timeouts.labels(self.name, unit).inc()
@@ -369,6 +456,63 @@ class Bus:
         self._metrics.discarded_frames.labels(self.name, reason).inc()
         log.debug("line %s: discarded %d %s byte(s)", self.name, count, reason)
 
+    # -- slave health and cache ---------------------------------------------------------
+
+    def _slave_answered(self, request: Request) -> None:
+        health = self._health.get(request.slave)
+        if health is None:
+            return
+        if health.down:
+            log.info("line %s: slave %d answers again", self.name, request.slave)
+            self._metrics.slave_up.labels(self.name, self._unit_labels[request.slave]).set(1)
+        del self._health[request.slave]
+
+    def _slave_timed_out(self, request: Request) -> None:
+        dead_after = self.config.dead_after
+        if dead_after <= 0:
+            return
+        health = self._health.setdefault(request.slave, SlaveHealth())
+        health.consecutive_timeouts += 1
+        now = time.monotonic()
+        if health.down:
+            health.probing = False
+            health.backoff = min(health.backoff * 2, self.config.probe_max_interval)
+            health.next_probe_at = now + health.backoff
+        elif health.consecutive_timeouts >= dead_after:
+            health.down = True
+            health.backoff = self.config.probe_interval
+            health.next_probe_at = now + health.backoff
+            self._metrics.slave_up.labels(self.name, self._unit_labels[request.slave]).set(0)
+            log.warning(
+                "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
+                "probing every %.1f s or more",
+                self.name, request.slave, health.consecutive_timeouts, health.backoff,
+            )  # fmt: skip
+
+    def _end_probe(self, request: Request) -> None:
+        """A probe ended without showing the slave dead or alive (garbled, dropped)."""
+        if request.probe:
+            health = self._health.get(request.slave)
+            if health is not None:
+                health.probing = False
+
+    def _store_cache(self, request: Request, response: bytes, now: float) -> None:
+        rules = self.config.cache
+        if not rules:
+            return
+        pdu = request.pdu
+        address = (pdu[1] << 8) | pdu[2]
+        quantity = (pdu[3] << 8) | pdu[4]
+        for rule in rules:
+            if rule.covers(request.slave, pdu[0], address, quantity):
+                self._cache[(request.slave, pdu)] = (now + rule.max_age, response)
+                return
+
+    def _invalidate_cache(self, slave: int) -> None:
+        if self._cache:
+            for key in [key for key in self._cache if key[0] == slave]:
+                del self._cache[key]
+
     # -- port state --------------------------------------------------------------------
 
     def _try_open(self) -> bool:
@@ -395,7 +539,7 @@ class Bus:
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
-        self._fail_queued("line down")
+        self._fail_queued()
         if not self._stopping:
             self._schedule_reopen()
 
@@ -413,8 +557,11 @@ class Bus:
                 return
             delay = min(delay * 2, _REOPEN_MAX_DELAY)
 
-    def _fail_queued(self, why: str) -> None:
+    def _fail_queued(self) -> None:
+        """Answer everything queued with 0x0A (the line is going away)."""
+        self._waiting_reads.clear()
         for request in self._queue.drain():
+            self._end_probe(request)
             request.answer(
                 self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
             )

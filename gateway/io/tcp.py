@@ -182,16 +182,17 @@ class MasterConnection(asyncio.Protocol):
             self._request_done()
 
         request = Request(target.slave, pdu, self, reply)
+        self._pending.add(request)
+        self._in_flight += 1
         if not bus.submit(request):
+            self._pending.discard(request)
+            self._in_flight -= 1
             self._send(
                 transaction_id,
                 unit,
                 fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
             )
             server.metrics.count_request(line, unit_label, function, "no_route")
-            return
-        self._pending.add(request)
-        self._in_flight += 1
 
     def _broadcast(self, transaction_id: int, pdu: bytes, arrived: float) -> None:
         server = self._server
