@@ -1,0 +1,358 @@
+"""Shared fixtures: a simulated RTU line on a real pty, a running gateway, a raw Modbus TCP client.
+
+Everything talks to real things: the gateway runs on its own event loop
+(uvloop) in a background thread and listens on 127.0.0.1 port 0, the slaves
+are ``gateway.sim.SimulatedLine`` on a pseudo-terminal, and tests speak bytes
+over a plain socket. Synchronisation is by events and data (``ready``, a reply
+arriving), never by sleeping.
+
+Helpers are importable by test modules (``from conftest import RawClient``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import socket
+import struct
+import threading
+from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import pytest
+
+from gateway.app import Gateway
+from gateway.config import build_config
+from gateway.sim import LineStats, PtyPair, SimulatedDevice, SimulatedLine, UnitFaults
+from gateway.sim import open_pty_pair as _open_pty_pair
+
+T = TypeVar("T")
+
+#: How long a test waits for anything that should happen at once (a reply, readiness, a stop).
+DEADLINE_S = 10.0
+#: Gateway baud rate used for an unpaced simulator: t3.5 is then the fixed 1.75 ms.
+UNPACED_BAUDRATE = 115200
+
+
+# --------------------------------------------------------------------------- external tools
+
+
+def require_tool(name: str) -> str:
+    """Path of an external program; skip when missing, but fail under CI (``CI`` is set)."""
+    path = shutil.which(name)
+    if path is None:
+        reason = f"{name} is not installed (apt-get install {name}; .ci/run installs it)"
+        if os.environ.get("CI"):
+            pytest.fail(f"{reason}; CI must run this test")
+        pytest.skip(reason)
+    return path
+
+
+# --------------------------------------------------------------------------- simulated line
+
+
+@dataclass
+class SimBus:
+    """A ``SimulatedLine`` serving devices on the simulator end of a pty pair."""
+
+    pty: PtyPair
+    line: SimulatedLine
+
+    @property
+    def path(self) -> str:
+        """The device path the gateway opens."""
+        return self.pty.path
+
+    @property
+    def devices(self) -> Mapping[int, SimulatedDevice]:
+        """The simulated devices by unit address."""
+        return self.line.devices
+
+    def device(self, unit: int) -> SimulatedDevice:
+        """The device answering at ``unit``."""
+        return self.line.devices[unit]
+
+    def faults(self, unit: int) -> UnitFaults:
+        """Live fault settings of ``unit``."""
+        return self.line.faults(unit)
+
+    def stats(self) -> LineStats:
+        """A snapshot of the line's counters."""
+        return self.line.stats()
+
+    def line_table(self, units: Sequence[int | str], **options: Any) -> dict[str, Any]:
+        """A ``[lines.NAME]`` table for this line: device, a matching baud rate, ``units``.
+
+        An unpaced simulator gets 115200 baud (t3.5 = 1.75 ms); ``options`` override anything.
+        """
+        table: dict[str, Any] = {
+            "device": self.path,
+            "baudrate": self.line.baudrate or UNPACED_BAUDRATE,
+            "units": list(units),
+        }
+        table.update(options)
+        return table
+
+
+SimFactory = Callable[..., SimBus]
+
+
+@pytest.fixture
+def make_sim() -> Iterator[SimFactory]:
+    """``make_sim({1: plc(1)}, baudrate=None, **SimulatedLine options)`` → a started ``SimBus``.
+
+    Lines are stopped (re-raising any error of the simulator thread) and ptys closed at teardown.
+    """
+    with ExitStack() as stack:
+
+        def factory(devices: Mapping[int, SimulatedDevice], **options: Any) -> SimBus:
+            pair = _open_pty_pair()
+            stack.callback(pair.close)
+            line = SimulatedLine(pair.sim_fd, devices, **options)
+            line.start()
+            stack.callback(line.stop)
+            return SimBus(pair, line)
+
+        yield factory
+
+
+# --------------------------------------------------------------------------- running gateway
+
+
+class RunningGateway:
+    """A ``Gateway`` started on its own uvloop event loop in a background thread."""
+
+    def __init__(self, raw: Mapping[str, Any]) -> None:
+        config = build_config(raw, "<test>")
+        try:
+            import uvloop
+
+            self.loop: asyncio.AbstractEventLoop = uvloop.new_event_loop()
+        except ImportError:  # pragma: no cover - uvloop is a dependency on Linux
+            self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._serve, name="gateway-loop", daemon=True)
+        self._thread.start()
+        self._stopped = False
+        try:
+            self.gateway: Gateway = self.run(self._start(config))
+        except BaseException:
+            self._stopped = True
+            self._end_loop()
+            raise
+
+    def _serve(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_forever()
+
+    @staticmethod
+    async def _start(config: Any) -> Gateway:
+        gateway = Gateway(config)
+        await gateway.start()
+        await asyncio.wait_for(gateway.ready.wait(), DEADLINE_S)
+        return gateway
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """Where the Modbus TCP listener is."""
+        host, port = self.gateway.address
+        return host, port
+
+    @property
+    def port(self) -> int:
+        """The Modbus TCP port."""
+        return self.address[1]
+
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float = DEADLINE_S) -> T:
+        """Run ``coro`` on the gateway's loop (e.g. ``gateway.reload(config)``) and wait for it."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def call(self, function: Callable[[], T], timeout: float = DEADLINE_S) -> T:
+        """Call ``function`` on the gateway's loop thread (to read state without races)."""
+
+        async def wrapper() -> T:
+            return function()
+
+        return self.run(wrapper(), timeout)
+
+    def connect(self, timeout: float = DEADLINE_S) -> RawClient:
+        """A new raw Modbus TCP connection to the gateway."""
+        return RawClient(self.address, timeout)
+
+    def stop(self, grace: float = 2.0) -> None:
+        """Graceful stop, then end the loop and its thread; safe to call twice."""
+        if self._stopped:
+            return
+        self._stopped = True
+        try:
+            self.run(self.gateway.stop(grace), DEADLINE_S + grace)
+        finally:
+            self._end_loop()
+
+    def _end_loop(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(DEADLINE_S)
+        if not self._thread.is_alive():
+            self.loop.close()
+
+
+GatewayFactory = Callable[[Mapping[str, Any]], RunningGateway]
+
+
+@pytest.fixture
+def make_gateway(make_sim: SimFactory) -> Iterator[GatewayFactory]:
+    """``make_gateway(raw_config_tables)`` → a ready ``RunningGateway``, stopped at teardown.
+
+    ``server.listen`` and ``metrics.listen`` default to 127.0.0.1:0. Depends on
+    ``make_sim`` so that gateways stop before the simulated lines they talk to.
+    """
+    gateways: list[RunningGateway] = []
+
+    def factory(raw: Mapping[str, Any]) -> RunningGateway:
+        tables = {
+            key: dict(value) if isinstance(value, dict) else value for key, value in raw.items()
+        }
+        tables.setdefault("server", {}).setdefault("listen", "127.0.0.1:0")
+        tables.setdefault("metrics", {}).setdefault("listen", "127.0.0.1:0")
+        running = RunningGateway(tables)
+        gateways.append(running)
+        return running
+
+    yield factory
+    for running in reversed(gateways):
+        running.stop()
+
+
+GatewayOnSim = Callable[..., tuple[SimBus, RunningGateway]]
+
+
+@pytest.fixture
+def gateway_with(make_sim: SimFactory, make_gateway: GatewayFactory) -> GatewayOnSim:
+    """The common case in one call: one simulated line (``a``) and a gateway in front of it.
+
+    ``gateway_with({1: plc(1)}, sim={"baudrate": 19200}, line={"timeout": 0.1},
+    server={"max_pipeline": 4}, routes=[...])`` routes every simulated unit to
+    line ``a`` and returns ``(sim, gateway)``.
+    """
+
+    def factory(
+        devices: Mapping[int, SimulatedDevice],
+        *,
+        sim: Mapping[str, Any] | None = None,
+        line: Mapping[str, Any] | None = None,
+        server: Mapping[str, Any] | None = None,
+        routes: list[dict[str, Any]] | None = None,
+    ) -> tuple[SimBus, RunningGateway]:
+        bus = make_sim(devices, **(sim or {}))
+        raw: dict[str, Any] = {
+            "server": dict(server or {}),
+            "lines": {"a": bus.line_table(sorted(devices), **(line or {}))},
+        }
+        if routes:
+            raw["routes"] = routes
+        return bus, make_gateway(raw)
+
+    return factory
+
+
+# --------------------------------------------------------------------------- raw Modbus TCP client
+
+
+def mbap(transaction_id: int, unit: int, pdu: bytes, protocol_id: int = 0) -> bytes:
+    """A Modbus TCP ADU built by hand (independent of ``gateway.core``)."""
+    return struct.pack(">HHHB", transaction_id, protocol_id, len(pdu) + 1, unit) + pdu
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One Modbus TCP reply as it came off the socket."""
+
+    transaction_id: int
+    unit: int
+    pdu: bytes
+
+
+class ConnectionClosedError(AssertionError):
+    """The gateway closed the connection while a reply was awaited."""
+
+
+class RawClient:
+    """A blocking Modbus TCP master on a plain socket: exact bytes out, exact bytes in."""
+
+    def __init__(self, address: tuple[str, int], timeout: float = DEADLINE_S) -> None:
+        self.sock = socket.create_connection(address, timeout=timeout)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.timeout = timeout
+        self._next_tid = 1
+
+    def __enter__(self) -> RawClient:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the socket."""
+        self.sock.close()
+
+    def next_tid(self) -> int:
+        """A fresh transaction id."""
+        tid = self._next_tid
+        self._next_tid = (tid + 1) & 0xFFFF
+        return tid
+
+    def send_raw(self, data: bytes) -> None:
+        """Write bytes as they are."""
+        self.sock.sendall(data)
+
+    def send(self, unit: int, pdu: bytes, tid: int | None = None) -> int:
+        """Send one request; return its transaction id."""
+        tid = self.next_tid() if tid is None else tid
+        self.sock.sendall(mbap(tid, unit, pdu))
+        return tid
+
+    def _read_exactly(self, count: int, timeout: float) -> bytes:
+        self.sock.settimeout(timeout)
+        data = bytearray()
+        while len(data) < count:
+            try:
+                chunk = self.sock.recv(count - len(data))
+            except ConnectionResetError:
+                chunk = b""
+            if not chunk:
+                raise ConnectionClosedError(f"connection closed after {bytes(data).hex(' ')!r}")
+            data += chunk
+        return bytes(data)
+
+    def receive(self, timeout: float | None = None) -> Reply:
+        """Read one reply, checking the MBAP header (protocol id 0, consistent length)."""
+        wait = self.timeout if timeout is None else timeout
+        header = self._read_exactly(7, wait)
+        tid, protocol_id, length, unit = struct.unpack(">HHHB", header)
+        assert protocol_id == 0, f"reply with protocol id {protocol_id}"
+        assert 2 <= length <= 254, f"reply with MBAP length {length}"
+        return Reply(tid, unit, self._read_exactly(length - 1, wait))
+
+    def request(self, unit: int, pdu: bytes, tid: int | None = None) -> bytes:
+        """Send a request and return the reply's PDU, checking it echoes tid and unit."""
+        tid = self.send(unit, pdu, tid)
+        reply = self.receive()
+        assert (reply.transaction_id, reply.unit) == (tid, unit), reply
+        return reply.pdu
+
+    def is_closed_by_peer(self, timeout: float | None = None) -> bool:
+        """True when the gateway closes the connection (EOF or reset) within ``timeout``.
+
+        Raises ``AssertionError`` if bytes arrive instead.
+        """
+        self.sock.settimeout(self.timeout if timeout is None else timeout)
+        try:
+            data = self.sock.recv(1)
+        except ConnectionResetError:
+            return True
+        except TimeoutError:
+            return False
+        assert not data, f"expected the connection to close, got {data.hex()}"
+        return True
