@@ -336,6 +336,12 @@ _LINE_KEYS = {
     "rs485_delay_before_tx",
     "rs485_delay_after_tx",
     "units",
+    "dead_after",
+    "probe_interval",
+    "probe_max_interval",
+    "slave_timeouts",
+    "coalesce",
+    "cache",
 }
 
 

@@ -366,6 +366,10 @@ class Bus:
                 self._metrics.discarded_frames.labels(self.name, result.kind).inc()
             if not self.up:
                 break
+        if result is None and self.up:
+            self._slave_timed_out(request)
+        else:
+            self._end_probe(request)
         request.answer(
             self._exception(request, ExceptionCode.GATEWAY_TARGET_FAILED), "target_failed"
         )
