@@ -24,6 +24,7 @@ from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.tcp import ModbusTcpServer, Router, Target
 from .metrics import GatewayMetrics
+from .trace import Tracer
 
 log = logging.getLogger("gateway")
 
@@ -40,14 +41,21 @@ def _port_changed(old: LineConfig, new: LineConfig) -> bool:
 class Gateway:
     """The running gateway."""
 
-    def __init__(self, config: GatewayConfig, registry: CollectorRegistry | None = None) -> None:
+    def __init__(
+        self,
+        config: GatewayConfig,
+        registry: CollectorRegistry | None = None,
+        tracer: Tracer | None = None,
+    ) -> None:
         self.config = config
+        self.tracer = tracer
         self.metrics = GatewayMetrics(registry)
         self.ready = asyncio.Event()
         self.stopped = asyncio.Event()
         self.buses: dict[str, Bus] = {}
         self.server: ModbusTcpServer | None = None
-        self._clock: PreciseClock | None = None
+        self._clocks: dict[str, PreciseClock] = {}  # one per bus: a clock has one sleeper
+        self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
         self._stopping = False
         self._unit_labels: dict[int, str] = {}
@@ -70,15 +78,13 @@ class Gateway:
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         loop = asyncio.get_running_loop()
-        self._clock = PreciseClock(loop)
         for line in self.config.lines:
-            bus = Bus(line, self.metrics, loop, self._clock)
-            self.buses[line.name] = bus
-            bus.start()
+            self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])
         self.server = ModbusTcpServer(
             self.config.server, self._build_router(), self.metrics, self._unit_label
         )
+        self.server.tracer = self.tracer
         await self.server.start()
         if self.config.metrics.enabled:
             self._http = await self._start_http()
@@ -115,20 +121,31 @@ class Gateway:
             await self.server.wait_closed()
         if self._http is not None:
             await self._http.close()
-        if self._clock is not None:
-            self._clock.close()
+        for clock in self._clocks.values():
+            clock.close()
+        self._clocks.clear()
         log.info("stopped")
         self.stopped.set()
 
     async def reload(self, config: GatewayConfig) -> None:
         """Apply a new configuration without dropping connections or in-flight transactions."""
+        async with self._reload_lock:  # SIGHUPs in a row: one reload after the other
+            if self._stopping or not self.ready.is_set():
+                log.warning(
+                    "reload ignored: the gateway is %s",
+                    "stopping" if self._stopping else "still starting",
+                )
+                return
+            await self._apply(config)
+
+    async def _apply(self, config: GatewayConfig) -> None:
         loop = asyncio.get_running_loop()
-        assert self._clock is not None and self.server is not None
+        assert self.server is not None
         new_names = {line.name for line in config.lines}
         for name in list(self.buses):
             if name not in new_names:
                 log.info("reload: line %s removed", name)
-                await self.buses.pop(name).stop(grace=5.0)
+                await self._close_bus(name, grace=5.0)
         for line in config.lines:
             bus = self.buses.get(line.name)
             if bus is not None and not _port_changed(bus.config, line):
@@ -136,12 +153,12 @@ class Gateway:
                 continue
             if bus is not None:
                 log.info("reload: line %s port settings changed, reopening", line.name)
-                await bus.stop(grace=5.0)
+                await self._close_bus(line.name, grace=5.0)
             else:
                 log.info("reload: line %s added", line.name)
-            bus = Bus(line, self.metrics, loop, self._clock)
-            self.buses[line.name] = bus
-            bus.start()
+            if self._stopping:  # a stop signal came while the old line finished its transaction
+                return
+            self._open_bus(line, loop)
         if (config.server.host, config.server.port) != (
             self.config.server.host,
             self.config.server.port,
@@ -165,6 +182,19 @@ class Gateway:
 
     # -- helpers -----------------------------------------------------------------------
 
+    def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> None:
+        """Start a bus for ``line`` with a clock of its own (a clock serves one sleeper)."""
+        clock = PreciseClock(loop)
+        bus = Bus(line, self.metrics, loop, clock)
+        self.buses[line.name] = bus
+        self._clocks[line.name] = clock
+        bus.start()
+
+    async def _close_bus(self, name: str, grace: float) -> None:
+        """Stop the bus of line ``name`` (see ``Bus.stop``) and release its clock."""
+        await self.buses.pop(name).stop(grace)
+        self._clocks.pop(name).close()
+
     def _build_router(self) -> Router:
         routes = {
             unit: Target(self.buses[route.line], route.slave)
@@ -172,6 +202,7 @@ class Gateway:
         }
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
         self._unit_labels = {unit: str(unit) for unit in self.config.routes}
+        self.metrics.prepare_units((r.line, r.slave) for r in self.config.routes.values())
         return Router(routes, broadcast)
 
     def _unit_label(self, unit: int) -> str:
@@ -207,9 +238,17 @@ async def run_until_signalled(
         except ConfigError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
             return
+        except Exception as error:  # e.g. the path became a directory: never fatal
+            log.error("reload rejected, the running configuration stays: %r", error)
+            return
         task = loop.create_task(gateway.reload(config))
         reloads.add(task)
-        task.add_done_callback(reloads.discard)
+        task.add_done_callback(reload_done)
+
+    def reload_done(task: asyncio.Task[None]) -> None:
+        reloads.discard(task)
+        if not task.cancelled() and (error := task.exception()) is not None:
+            log.error("reload failed: %r", error, exc_info=error)
 
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, on_stop_signal, signum)

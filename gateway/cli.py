@@ -15,6 +15,7 @@ from .app import Gateway, reloader, run_until_signalled
 from .config import ConfigError, build_config, parse_host_port, read_config_file
 from .logs import setup_logging
 from .sim.demo import DEMO_UNITS, DemoLine
+from .trace import Tracer, parse_function
 
 log = logging.getLogger("gateway")
 
@@ -33,11 +34,19 @@ def _metrics_address(text: str) -> str:
     return text if text.lower() == "off" else _host_port(text)
 
 
+def _function_code(text: str) -> int:
+    try:
+        return parse_function(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``modbus-gateway`` argument parser (run mode)."""
     parser = argparse.ArgumentParser(
         prog="modbus-gateway",
-        description="Modbus TCP to Modbus RTU gateway. Subcommand: 'check-config FILE'.",
+        description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
+        "'trace [OPTIONS]' (the same as --trace).",
     )
     parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
@@ -85,6 +94,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="serve a built-in simulated RTU line (no hardware needed)",
     )
+    parser.add_argument(
+        "--trace",
+        action="store_true",
+        help="log every request and reply, decoded, on the gateway.trace logger",
+    )
+    parser.add_argument(
+        "--trace-unit",
+        type=int,
+        action="append",
+        metavar="N",
+        help="trace only unit N (repeatable; implies --trace)",
+    )
+    parser.add_argument("--trace-function", type=_function_code, action="append", metavar="FC",
+                        help="trace only function FC: 3, 0x10 or read_holding_registers "
+                        "(repeatable; implies --trace)")  # fmt: skip
     parser.add_argument("--no-uvloop", action="store_true", help=argparse.SUPPRESS)
     return parser
 
@@ -160,6 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "check-config":
         return _check_config(argv[1:])
+    if argv and argv[0] == "trace":
+        argv = ["--trace", *argv[1:]]
     args = build_parser().parse_args(argv)
     raw: dict[str, Any] = {}
     demo: DemoLine | None = None
@@ -181,7 +207,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))
 
     async def serve() -> None:
-        await run_until_signalled(Gateway(config), reload_source, args.grace)
+        tracer = None
+        if args.trace or args.trace_unit or args.trace_function:
+            tracer = Tracer(args.trace_unit or (), args.trace_function or ())
+        await run_until_signalled(Gateway(config, tracer=tracer), reload_source, args.grace)
 
     if demo is not None:
         demo.start()

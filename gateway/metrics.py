@@ -6,9 +6,17 @@ in names, ``_total`` counters, and bounded label values only: ``line`` and
 ``outcome`` and ``reason`` from fixed lists. Never a client address or a
 transaction id. The hot path calls small methods that cache labelled children,
 so a request costs dictionary look-ups, not label resolution.
+
+``unit`` is always the slave address on the line (what goes on the wire), so
+``requests_total`` joins ``timeouts_total`` on ``(line, unit)``; with the usual
+one-to-one routes it is also the unit id the master sent. Requests answered
+without a line (no route, rejected locally) carry ``line="none", unit="other"``,
+broadcasts ``line="broadcast", unit="0"``. docs/metrics.md lists every metric.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info
 
@@ -27,9 +35,25 @@ OUTCOMES = (
     "cached",  # answered from the read cache
 )
 
+#: Why a TCP connection closed, the ``reason`` label's vocabulary.
+CLOSE_REASONS = ("peer_closed", "error", "protocol_error", "idle", "evicted", "shutdown")
+
+#: Why bytes from the line were thrown away: ``late`` (nobody was waiting), ``incomplete``
+#: (half an answer at the timeout), and the core's ``ResponseError`` kinds other than ``crc``
+#: (counted in ``crc_errors_total``).
+DISCARD_REASONS = (
+    "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
+    "short_frame", "oversize", "trailing_bytes",
+)  # fmt: skip
+
+#: Label values for units, made once: ``str(unit)`` per request would allocate.
+UNIT_LABELS = tuple(str(unit) for unit in range(256))
+
+# 1 ms (a short answer at 115200 baud) to 5 s (the longest sensible timeout with retries).
 _LATENCY_BUCKETS = (
     0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
 )  # fmt: skip
+# The same, with a 0 bucket: most requests find the line free and do not wait at all.
 _WAIT_BUCKETS = (0.0, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
 
@@ -65,13 +89,16 @@ class GatewayMetrics:
             p + "rtu_frames_sent", "RTU frames written to the line.", ["line"], registry=r
         )
         self.frames_received = Counter(
-            p + "rtu_frames_received", "Valid RTU frames received.", ["line"], registry=r
+            p + "rtu_frames_received",
+            "RTU frames received that answered a request.",
+            ["line"],
+            registry=r,
         )
         self.crc_errors = Counter(
-            p + "crc_errors", "Responses with a bad CRC.", ["line", "unit"], registry=r
+            p + "crc_errors", "Responses with a bad CRC, per slave.", ["line", "unit"], registry=r
         )
         self.timeouts = Counter(
-            p + "timeouts", "Requests the slave did not answer in time.", ["line", "unit"],
+            p + "timeouts", "Attempts the slave did not answer in time.", ["line", "unit"],
             registry=r,
         )  # fmt: skip
         self.retries = Counter(
@@ -80,7 +107,7 @@ class GatewayMetrics:
         )  # fmt: skip
         self.discarded_frames = Counter(
             p + "discarded_frames",
-            "Frames or bytes discarded: late, from another unit, for another function.",
+            "Answers or bytes thrown away: late, incomplete, from another unit or function.",
             ["line", "reason"], registry=r,
         )  # fmt: skip
         self.bytes_written = Counter(
@@ -103,7 +130,7 @@ class GatewayMetrics:
             ["line"], registry=r,
         )  # fmt: skip
         self.connections_open = Gauge(
-            p + "connections_open", "TCP connections open now.", registry=r
+            p + "connections_open", "TCP connections from masters open now.", registry=r
         )
         self.connections_accepted = Counter(
             p + "connections_accepted", "TCP connections accepted.", registry=r
@@ -122,13 +149,31 @@ class GatewayMetrics:
         self.info = Info(p + "build", "Version and configured lines.", registry=r)
         self.info.info({"version": __version__, "lines": ""})
         self._request_children: dict[tuple[str, str, int, str], Counter] = {}
+        for reason in CLOSE_REASONS:
+            self.connections_closed.labels(reason)
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
         self.info.info({"version": __version__, "lines": ",".join(names)})
 
+    def prepare_line(self, line: str) -> None:
+        """Create a line's series at 0, so that ``rate()`` and alerts see the first fault."""
+        for reason in DISCARD_REASONS:
+            self.discarded_frames.labels(line, reason)
+
+    def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
+        """Create the per-slave fault series at 0 for each routed ``(line, slave)``."""
+        for line, slave in targets:
+            unit = UNIT_LABELS[slave]
+            self.crc_errors.labels(line, unit)
+            self.timeouts.labels(line, unit)
+            self.retries.labels(line, unit)
+
     def count_request(self, line: str, unit: str, function: int, outcome: str) -> None:
-        """Count one request's outcome (children cached: this runs per request)."""
+        """Count one request's outcome (children cached: this runs per request).
+
+        ``outcome`` must be one of ``OUTCOMES``; ``function`` is the request's code.
+        """
         key = (line, unit, function, outcome)
         child = self._request_children.get(key)
         if child is None:

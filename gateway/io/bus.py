@@ -30,6 +30,7 @@ from ..core import pdu as fc
 from ..core.errors import ExceptionCode, ResponseError
 from ..core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
 from ..core.timing import character_time
+from ..logs import RateLimitedLogger
 from ..metrics import GatewayMetrics
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
@@ -173,6 +174,8 @@ class Bus:
         self._m_line_up = metrics.line_up.labels(self.name)
         self._m_coalesced = metrics.coalesced.labels(self.name)
         self._m_line_up.set(0)
+        metrics.prepare_line(self.name)
+        self._fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -211,6 +214,7 @@ class Bus:
             self._link.close()
             self._link = None
         self._m_line_up.set(0)
+        self._fault_log.flush()
 
     def reconfigure(self, config: LineConfig) -> None:
         """Take new timeouts, retries and limits; the port settings must be unchanged."""
@@ -286,9 +290,10 @@ class Bus:
             if self._waiting_reads.get(key) is request:
                 del self._waiting_reads[key]  # on the wire from now on: nobody joins it
             if not request.wanted:
-                self._metrics.count_request(
-                    self.name, self._unit_labels[request.slave], request.pdu[0], "dropped"
-                )
+                for dropped in (request, *request.followers):  # reads that joined it too
+                    self._metrics.count_request(
+                        self.name, self._unit_labels[dropped.slave], dropped.pdu[0], "dropped"
+                    )
                 self._end_probe(request)
                 continue
             health = self._health.get(request.slave)
@@ -358,12 +363,16 @@ class Bus:
                     self._invalidate_cache(request.slave)
                 request.answer(result.pdu, "ok")
                 return
+            subject = f"unit {unit} on line {self.name}"
             if result is None:
                 self._metrics.timeouts.labels(self.name, unit).inc()
+                self._fault_log.note(subject, "timeout", f"no answer within {timeout:g} s")
             elif result.kind == "crc":
                 self._metrics.crc_errors.labels(self.name, unit).inc()
+                self._fault_log.note(subject, "CRC error", result.reason)
             else:
                 self._metrics.discarded_frames.labels(self.name, result.kind).inc()
+                self._fault_log.note(subject, "garbled answer", result.reason)
             if not self.up:
                 break
         if result is None and self.up:
@@ -458,7 +467,9 @@ class Bus:
 
     def _note_discarded(self, reason: str, count: int) -> None:
         self._metrics.discarded_frames.labels(self.name, reason).inc()
-        log.debug("line %s: discarded %d %s byte(s)", self.name, count, reason)
+        self._fault_log.note(
+            f"line {self.name}", "discarded input", f"{count} {reason} byte(s)", level=logging.INFO
+        )
 
     # -- slave health and cache ---------------------------------------------------------
 

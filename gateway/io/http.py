@@ -1,8 +1,14 @@
 """The HTTP endpoint: /metrics (Prometheus text or OpenMetrics), /healthz and /readyz.
 
 A deliberately small asyncio HTTP/1.0-style server (one request per
-connection, GET only, bounded request size) on the gateway's own loop, so
-that scraping needs no thread and no web framework.
+connection, GET and HEAD only, bounded request size) on the gateway's own
+loop, so that scraping needs no thread and no web framework.
+
+``/healthz`` answers 200 while the event loop runs (liveness: restart me if
+this fails); ``/readyz`` answers 200 only while the TCP listener is up and
+every configured line is open, else 503 with the reason, naming the lines
+that are down (readiness: do not send me traffic). ``/metrics`` speaks
+OpenMetrics when the scraper's Accept header asks for it, else text 0.0.4.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ log = logging.getLogger("gateway.http")
 
 _MAX_REQUEST_HEAD = 8192
 _READ_TIMEOUT = 5.0
+_INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
 
 
 class HttpEndpoint:
@@ -45,7 +52,9 @@ class HttpEndpoint:
 
     async def start(self, host: str, port: int) -> None:
         """Bind and serve."""
-        self._server = await asyncio.start_server(self._serve, host, port, reuse_address=True)
+        self._server = await asyncio.start_server(
+            self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD
+        )
 
     async def close(self) -> None:
         """Stop serving."""
@@ -57,12 +66,11 @@ class HttpEndpoint:
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), _READ_TIMEOUT)
-        except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError,
-                ConnectionError):  # fmt: skip
-            writer.close()
-            return
-        if len(head) > _MAX_REQUEST_HEAD:
+        except asyncio.LimitOverrunError:
             await self._respond(writer, 431, "text/plain", b"request header too large\n")
+            return
+        except (asyncio.IncompleteReadError, TimeoutError, ConnectionError):
+            writer.close()
             return
         lines = head.decode("latin-1").split("\r\n")
         parts = lines[0].split()
@@ -83,6 +91,8 @@ class HttpEndpoint:
             ready, why = self._readiness()
             await self._respond(writer, 200 if ready else 503, "text/plain",
                                 (why + "\n").encode(), parts[0])  # fmt: skip
+        elif path == "/":
+            await self._respond(writer, 200, "text/plain", _INDEX, parts[0])
         else:
             await self._respond(writer, 404, "text/plain", b"not found\n", parts[0])
 

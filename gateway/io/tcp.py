@@ -24,7 +24,8 @@ from ..config import ServerConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode, FramingError, ModbusError
 from ..core.mbap import MbapDecoder, MbapFrame, encode_mbap
-from ..metrics import GatewayMetrics
+from ..metrics import UNIT_LABELS, GatewayMetrics
+from ..trace import Tracer
 from .bus import Bus, Request
 
 log = logging.getLogger("gateway.tcp")
@@ -142,6 +143,9 @@ class MasterConnection(asyncio.Protocol):
         arrived = time.monotonic()
         transaction_id, unit, pdu = frame
         function = pdu[0] if pdu else 0
+        tracer = server.tracer
+        if tracer is not None:
+            tracer.request(self.peer, transaction_id, unit, pdu)
         try:
             if function in server.config.refuse_functions:
                 raise ModbusError(
@@ -152,7 +156,7 @@ class MasterConnection(asyncio.Protocol):
                 raise ModbusError(ExceptionCode.ILLEGAL_FUNCTION, "only writes can be broadcast")
         except ModbusError as error:
             server.metrics.protocol_errors.labels("invalid_request").inc()
-            self._send(transaction_id, unit, fc.exception_pdu(function, error.code))
+            self._send(transaction_id, unit, fc.exception_pdu(function, error.code), "rejected")
             server.metrics.count_request("none", "other", function, "rejected")
             return
         if unit == 0:
@@ -169,14 +173,16 @@ class MasterConnection(asyncio.Protocol):
             return
         bus = target.bus
         line = bus.name
-        unit_label = server.unit_label(unit)
+        unit_label = UNIT_LABELS[target.slave]  # the slave address, as in the line's metrics
 
         def reply(response: bytes, outcome: str) -> None:
             self._pending.discard(request)
             if self._closed:
                 outcome = "dropped"
+                if server.tracer is not None:
+                    server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
-                self._send(transaction_id, unit, response)
+                self._send(transaction_id, unit, response, outcome)
                 server.metrics.request_duration.labels(line).observe(time.monotonic() - arrived)
             server.metrics.count_request(line, unit_label, function, outcome)
             self._request_done()
@@ -229,9 +235,12 @@ class MasterConnection(asyncio.Protocol):
         if self._paused and not self._closed:
             self._process_frames()
 
-    def _send(self, transaction_id: int, unit: int, pdu: bytes) -> None:
+    def _send(self, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None) -> None:
         if self._transport is not None and not self._closed:
             self._transport.write(encode_mbap(transaction_id, unit, pdu))
+            tracer = self._server.tracer
+            if tracer is not None:
+                tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     # -- closing -----------------------------------------------------------------------
 
@@ -281,6 +290,7 @@ class ModbusTcpServer:
         self.router = router
         self.metrics = metrics
         self.unit_label = unit_labels
+        self.tracer: Tracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._server: asyncio.Server | None = None
 

@@ -1,0 +1,138 @@
+"""The live frame trace for commissioning: every request and reply of the masters, decoded.
+
+The TCP server holds a ``Tracer`` only while tracing is on and calls it behind
+an ``if tracer is not None`` test, so a gateway that does not trace pays one
+attribute check per frame. Lines go to the ``gateway.trace`` logger at INFO,
+so they follow the log format (JSON lines carry every field separately) and
+never need a second output to be configured.
+
+A reply line shows the latency from the request's arrival, looked up by
+(master, transaction id, unit) in a bounded table: a master that leaves
+without its answers cannot make the table grow.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Collection
+
+from .core import pdu as fc
+from .core.errors import ExceptionCode
+
+#: Requests remembered for their reply's latency; the oldest are forgotten past this.
+MAX_PENDING = 4096
+
+#: Outcome shown for a reply when the caller does not name one, by exception code.
+_OUTCOME_BY_CODE: dict[int, str] = {
+    ExceptionCode.GATEWAY_PATH_UNAVAILABLE: "no_route",
+    ExceptionCode.GATEWAY_TARGET_FAILED: "target_failed",
+}
+
+
+def parse_function(text: str) -> int:
+    """A function code from ``3``, ``0x03`` or ``read_holding_registers``; ValueError if none."""
+    name = text.strip().lower()
+    for code, known in fc.FUNCTION_NAMES.items():
+        if known == name:
+            return code
+    try:
+        code = int(name, 0)
+    except ValueError:
+        raise ValueError(
+            f"{text!r} is not a function code (1..127) or a name like read_holding_registers"
+        ) from None
+    if not 1 <= code <= 127:
+        raise ValueError(f"function code {code} outside 1..127")
+    return code
+
+
+class Tracer:
+    """Writes one decoded line per frame to and from the masters, optionally filtered."""
+
+    def __init__(
+        self,
+        units: Collection[int] = (),
+        functions: Collection[int] = (),
+        logger: logging.Logger | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.units = frozenset(units)
+        self.functions = frozenset(functions)
+        self._log = logger if logger is not None else logging.getLogger("gateway.trace")
+        if self._log.level == logging.NOTSET or self._log.level > logging.INFO:
+            # Asking for a trace means wanting it, whatever the general log level.
+            self._log.setLevel(logging.INFO)
+        self._clock = clock
+        self._pending: dict[tuple[str, int, int], float] = {}
+
+    def wants(self, unit: int, function: int) -> bool:
+        """True when the filters let a frame for ``unit`` and ``function`` through."""
+        return (not self.units or unit in self.units) and (
+            not self.functions or (function & 0x7F) in self.functions
+        )
+
+    def request(self, peer: str, transaction_id: int, unit: int, pdu: bytes) -> None:
+        """A request arrived from ``peer``."""
+        function = pdu[0] if pdu else 0
+        if not self.wants(unit, function):
+            return
+        pending = self._pending
+        if len(pending) >= MAX_PENDING:
+            del pending[next(iter(pending))]
+        pending[(peer, transaction_id, unit)] = self._clock()
+        name = fc.function_name(function)
+        detail = fc.describe_request(pdu)
+        self._log.info(
+            "-> %s tid=%d unit=%d %s(%d) %s",
+            peer, transaction_id, unit, name, function, detail,
+            extra={"direction": "request", "peer": peer, "transaction_id": transaction_id,
+                   "unit": unit, "function": name, "function_code": function,
+                   "detail": detail},
+        )  # fmt: skip
+
+    def reply(
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
+    ) -> None:
+        """A reply is going out to ``peer``; ``outcome`` as in the request metric when known."""
+        function = pdu[0] & 0x7F if pdu else 0
+        if not self.wants(unit, function):
+            return
+        arrived = self._pending.pop((peer, transaction_id, unit), None)
+        latency_ms = None if arrived is None else (self._clock() - arrived) * 1000.0
+        if outcome is None:
+            outcome = _derive_outcome(pdu)
+        name = fc.function_name(function)
+        detail = fc.describe_response(pdu)
+        latency = "" if latency_ms is None else f" {latency_ms:.2f} ms"
+        self._log.info(
+            "<- %s tid=%d unit=%d %s(%d) %s %s%s",
+            peer, transaction_id, unit, name, function, detail, outcome, latency,
+            extra={"direction": "reply", "peer": peer, "transaction_id": transaction_id,
+                   "unit": unit, "function": name, "function_code": function,
+                   "detail": detail, "outcome": outcome, "latency_ms": latency_ms},
+        )  # fmt: skip
+
+    def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
+        """The answer to a request came after its master had left: nothing goes out."""
+        if not self.wants(unit, function):
+            return
+        arrived = self._pending.pop((peer, transaction_id, unit), None)
+        latency_ms = None if arrived is None else (self._clock() - arrived) * 1000.0
+        name = fc.function_name(function)
+        self._log.info(
+            "x  %s tid=%d unit=%d %s(%d) dropped: the master left",
+            peer, transaction_id, unit, name, function,
+            extra={"direction": "none", "peer": peer, "transaction_id": transaction_id,
+                   "unit": unit, "function": name, "function_code": function,
+                   "outcome": "dropped", "latency_ms": latency_ms},
+        )  # fmt: skip
+
+
+def _derive_outcome(pdu: bytes) -> str:
+    if not pdu:
+        return "broadcast"
+    if not fc.is_exception(pdu):
+        return "ok"
+    code = pdu[1] if len(pdu) > 1 else 0
+    return _OUTCOME_BY_CODE.get(code, "exception")
