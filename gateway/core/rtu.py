@@ -159,7 +159,7 @@ def request_length(prefix: bytes | bytearray) -> int | None:
 class RtuResponseDecoder:
     """Collects the bytes of one response and checks it against the request on the wire."""
 
-    __slots__ = ("_buffer", "_expected", "_function", "_request_pdu", "_unit")
+    __slots__ = ("_buffer", "_expected", "_function", "_request_pdu", "_unit", "leftover")
 
     def __init__(self, unit: int, request_pdu: bytes) -> None:
         self._unit = unit
@@ -167,6 +167,7 @@ class RtuResponseDecoder:
         self._function = request_pdu[0]
         self._buffer = bytearray()
         self._expected: int | None = NEED_MORE
+        self.leftover = b""
 
     @property
     def buffered(self) -> int:
@@ -181,24 +182,25 @@ class RtuResponseDecoder:
     def feed(self, data: bytes | bytearray | memoryview) -> RtuFrame | None:
         """Add received bytes; return the response once complete, ``None`` while incomplete.
 
+        Bytes past the end of the frame are not part of it: they are left in
+        ``leftover`` for the caller (the next frame on the line, or noise).
         Raises ``ResponseError`` for a frame that must not be passed on.
         """
         buffer = self._buffer
-        if len(buffer) + len(data) > MAX_RTU_FRAME:
-            # Bounded before buffering: the bytes that would overflow the frame are not kept.
-            raise ResponseError("oversize", f"response exceeds {MAX_RTU_FRAME} bytes")
-        buffer += data
+        room = MAX_RTU_FRAME - len(buffer)
+        rest = data[room:]
+        buffer += data[:room]  # bounded before buffering: never more than one RTU frame
         if self._expected == NEED_MORE:
             self._expected = response_length(self._request_pdu, buffer)
             if self._expected is not None and self._expected > MAX_RTU_FRAME:
                 raise ResponseError("oversize", f"response announces {self._expected} bytes")
         expected = self._expected
         if expected is None or expected == NEED_MORE or len(buffer) < expected:
+            if rest:
+                raise ResponseError("oversize", f"response exceeds {MAX_RTU_FRAME} bytes")
             return None
-        if len(buffer) > expected:
-            raise ResponseError(
-                "trailing_bytes", f"{len(buffer) - expected} bytes after the response"
-            )
+        self.leftover = bytes(buffer[expected:]) + bytes(rest)
+        del buffer[expected:]
         return self._check(bytes(buffer))
 
     def end_of_frame(self) -> RtuFrame:
@@ -209,6 +211,7 @@ class RtuResponseDecoder:
         """Forget a discarded frame and wait for the real answer."""
         self._buffer.clear()
         self._expected = NEED_MORE
+        self.leftover = b""
 
     def _check(self, frame: bytes) -> RtuFrame:
         if len(frame) < MIN_RTU_FRAME:

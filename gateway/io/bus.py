@@ -427,17 +427,26 @@ class Bus:
         if decoder is None or waiter is None or waiter.done():
             self._note_discarded("late", len(data))
             return
-        try:
-            frame = decoder.feed(data)
-        except ResponseError as error:
-            if error.kind in _DISCARD_KINDS:
+        while True:
+            try:
+                frame = decoder.feed(data)
+            except ResponseError as error:
+                if error.kind not in _DISCARD_KINDS:
+                    self._decoder = None  # the rest of this garbled answer is drained as late
+                    waiter.set_result(error)
+                    return
+                # Another unit's frame, or a late answer to an earlier request: drop it
+                # and keep decoding whatever followed it in the same read.
                 self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+                data = decoder.leftover
                 decoder.reset()
-            else:
-                self._decoder = None  # the rest of this garbled answer is drained as late
-                waiter.set_result(error)
-            return
+                if data:
+                    continue
+                return
+            break
         if frame is not None:
+            if decoder.leftover:
+                self._note_discarded("trailing", len(decoder.leftover))
             waiter.set_result(frame)
         elif decoder.waits_for_silence:
             if self._silence_timer is not None:

@@ -313,11 +313,24 @@ def test_decoder_rejects_fifo_count_past_a_frame() -> None:
     assert caught.value.kind == "oversize"
 
 
-def test_decoder_rejects_trailing_bytes() -> None:
+def test_decoder_leaves_trailing_bytes_to_the_caller() -> None:
     decoder = RtuResponseDecoder(1, h("06 0001 0003"))
+    frame = decoder.feed(encode_rtu(1, h("06 0001 0003")) + b"\x00\x01")
+    assert frame == RtuFrame(1, h("06 0001 0003"))
+    assert decoder.leftover == b"\x00\x01"
+
+
+def test_decoder_keeps_what_follows_a_discarded_frame() -> None:
+    request = h("03 0000 0001")
+    decoder = RtuResponseDecoder(1, request)
+    foreign = encode_rtu(2, h("03 02 0007"))
+    answer = encode_rtu(1, h("03 02 002A"))
     with pytest.raises(ResponseError) as caught:
-        decoder.feed(encode_rtu(1, h("06 0001 0003")) + b"\x00")
-    assert caught.value.kind == "trailing_bytes"
+        decoder.feed(foreign + answer)
+    assert caught.value.kind == "unexpected_unit"
+    leftover = decoder.leftover
+    decoder.reset()
+    assert decoder.feed(leftover) == RtuFrame(1, h("03 02 002A"))
 
 
 def test_silence_terminated_frame() -> None:
@@ -351,7 +364,7 @@ def test_silence_terminated_frame_may_fill_but_not_pass_256_bytes() -> None:
     with pytest.raises(ResponseError) as caught:
         decoder.feed(bytes(57))
     assert caught.value.kind == "oversize"
-    assert decoder.buffered == 200  # the overflowing chunk is not kept
+    assert decoder.buffered == MAX_RTU_FRAME  # never more than one frame is kept
 
 
 @pytest.mark.parametrize("collected", ["", "01", "01 03", "01 83 02"])
