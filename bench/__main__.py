@@ -1,0 +1,116 @@
+"""``python -m bench``: run the scenarios, print the tables, write the JSON results.
+
+    python -m bench                       # every scenario, ~3 minutes
+    python -m bench --quick               # shorter windows, ~1 minute
+    python -m bench --scenario paced      # one scenario (repeat the flag for more)
+    python -m bench --output /tmp/r.json  # results elsewhere than bench/results.json
+
+Exit status: 0 when every run completed with zero wrong answers and zero
+read-after-write violations (targets missed are reported, not failed), 1 when
+an answer was wrong, 2 when a process failed to start or report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from .procs import BenchError, environment_summary
+from .report import render_checks, render_table
+from .scenarios import SCENARIOS, Bench, ScenarioResult, Timing
+
+BENCH_DIR = Path(__file__).resolve().parent
+DEFAULT_OUTPUT = BENCH_DIR / "results.json"
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short windows (~1 minute in all)")
+    parser.add_argument(
+        "--scenario",
+        action="append",
+        choices=list(SCENARIOS),
+        metavar="NAME",
+        help=f"run only this scenario ({', '.join(SCENARIOS)}); repeat for more",
+    )
+    parser.add_argument(
+        "--output",
+        type=Path,
+        default=DEFAULT_OUTPUT,
+        help="JSON results file (default: bench/results.json)",
+    )
+    return parser
+
+
+def _progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the chosen scenarios; see the module docstring for the exit status."""
+    args = _parser().parse_args(argv)
+    # The child processes import ``bench`` and ``gateway`` from this checkout.
+    root = str(BENCH_DIR.parent)
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        [root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    )
+    os.chdir(root)
+    names = args.scenario or list(SCENARIOS)
+    bench = Bench(Timing.make(args.quick), _progress)
+    started = time.monotonic()
+    results: list[ScenarioResult] = []
+    failures: dict[str, str] = {}
+    for name in names:
+        _progress(f"scenario {name}:")
+        try:
+            results.append(SCENARIOS[name](bench))
+        except BenchError as error:
+            failures[name] = str(error)
+            _progress(f"scenario {name} FAILED: {error}")
+    elapsed = time.monotonic() - started
+
+    print()
+    for result in results:
+        for table in result.tables:
+            print(render_table(table))
+        for note in result.notes:
+            print(f"  note: {note}")
+        print()
+    checks = [check for result in results for check in result.checks]
+    if checks:
+        print(render_checks(checks))
+        print()
+    for name, reason in failures.items():
+        print(f"scenario {name} failed: {reason}")
+    wrong = sum(result.wrong_answers for result in results)
+    print(f"{len(results)} scenario(s) in {elapsed:.0f} s; wrong answers: {wrong}; "
+          f"targets met: {sum(c.met for c in checks)}/{len(checks)}")  # fmt: skip
+
+    document: dict[str, Any] = {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "quick": args.quick,
+        "elapsed_s": elapsed,
+        "environment": environment_summary(),
+        "wrong_answers": wrong,
+        "scenarios": {result.name: result.figures for result in results},
+        "checks": [check.__dict__ for check in checks],
+        "notes": {result.name: result.notes for result in results},
+        "failures": failures,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(document, indent=2) + "\n")
+    print(f"results written to {args.output}")
+    if failures:
+        return 2
+    return 1 if wrong else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

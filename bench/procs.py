@@ -1,0 +1,283 @@
+"""The processes of one benchmark run: simulator, gateway (or reference forwarder), load generator.
+
+Each runs as its own Python process, started with the interpreter running the
+benchmark. Readiness is waited for on what the process says (the simulator's
+``READY`` line, the server's "listening on" log line), never with a sleep.
+Logs go to files in the run's temporary directory, never to a pipe nobody
+reads (a full pipe would stall the gateway in the middle of a measurement).
+Every process is stopped by its own pid: SIGTERM first, SIGKILL after a grace.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from .loadgen import LoadResult, LoadSpec, result_from_json
+
+PYTHON = sys.executable
+READY_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = 8.0
+_POLL_S = 0.02
+_TAIL_CHARS = 2000
+
+
+class BenchError(RuntimeError):
+    """A process of the benchmark failed to start or to report."""
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+def read_status_kib(pid: int, key: str) -> int | None:
+    """A ``/proc/PID/status`` value in KiB (``VmHWM``, ``VmRSS``), None when unavailable."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def _tail(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")[-_TAIL_CHARS:]
+    except OSError:
+        return ""
+
+
+def _stop(process: subprocess.Popen[Any]) -> None:
+    """SIGTERM, then SIGKILL after the grace; returns once it is gone."""
+    if process.poll() is not None:
+        return
+    process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(STOP_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+@dataclass
+class SimOptions:
+    """How the simulated RTU line is run."""
+
+    units: Sequence[int] = (1, 2, 3, 4)
+    baudrate: int | None = None  #: None: unpaced (answers at once)
+    turnaround: float = 0.0  #: seconds from the request's end to the answer's start
+    silent: Sequence[int] = ()
+    crc_error_rates: dict[int, float] = field(default_factory=dict)
+    seed: int = 1
+    realtime: bool = False  #: SCHED_FIFO for the simulator's thread (a real slave has its own CPU)
+
+
+class Simulator:
+    """``python -m gateway.sim`` on a pty, reachable through a symlink."""
+
+    def __init__(self, options: SimOptions, workdir: Path) -> None:
+        self.options = options
+        self.link = workdir / "line"
+        self._log = workdir / "sim.log"
+        self._process: subprocess.Popen[str] | None = None
+        self.stats: dict[str, Any] = {}
+
+    @property
+    def pid(self) -> int:
+        """The simulator's pid."""
+        assert self._process is not None
+        return self._process.pid
+
+    def command(self) -> list[str]:
+        """The command line."""
+        options = self.options
+        command = [PYTHON, "-m", "gateway.sim", "--link", str(self.link)]
+        command += ["--seed", str(options.seed)]
+        for unit in options.units:
+            command += ["--profile", f"plc:{unit}"]
+        if options.baudrate is not None:
+            command += ["--baudrate", str(options.baudrate)]
+            command += ["--turnaround", f"{options.turnaround:.6f}"]
+        if options.realtime:
+            command.append("--realtime")
+        for unit in options.silent:
+            command += ["--silent", str(unit)]
+        for unit, rate in options.crc_error_rates.items():
+            command += ["--crc-error-rate", f"{unit}:{rate}"]
+        return command
+
+    def start(self) -> None:
+        """Start and wait for ``READY``."""
+        with open(self._log, "w") as log:
+            self._process = subprocess.Popen(
+                self.command(), stdout=subprocess.PIPE, stderr=log, text=True
+            )
+        assert self._process.stdout is not None
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._process.stdout, selectors.EVENT_READ)
+            if not selector.select(READY_TIMEOUT_S):
+                raise BenchError(f"simulator not ready in {READY_TIMEOUT_S} s: {_tail(self._log)}")
+        line = self._process.stdout.readline()
+        if not line.startswith("READY"):
+            self._process.wait(STOP_TIMEOUT_S)
+            raise BenchError(f"simulator did not start: {line!r} {_tail(self._log)}")
+
+    def stop(self) -> dict[str, Any]:
+        """SIGTERM; return the counters it prints on the way out."""
+        process = self._process
+        if process is None:
+            return self.stats
+        self._process = None
+        _stop(process)
+        assert process.stdout is not None
+        for line in process.stdout.read().splitlines():
+            if line.startswith("{"):
+                self.stats = json.loads(line)
+        process.stdout.close()
+        return self.stats
+
+
+class Server:
+    """A Modbus TCP server process (the gateway or the reference forwarder)."""
+
+    def __init__(self, command: list[str], workdir: Path, name: str) -> None:
+        self.command = command
+        self.name = name
+        self.log = workdir / f"{name}.log"
+        self._process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def pid(self) -> int:
+        """The server's pid."""
+        assert self._process is not None
+        return self._process.pid
+
+    def start(self, ready_text: str = "listening on") -> None:
+        """Start and wait for ``ready_text`` in its log."""
+        with open(self.log, "wb") as log:
+            self._process = subprocess.Popen(
+                self.command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+            )
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if ready_text in _tail(self.log) or ready_text in self.log.read_text(errors="replace"):
+                return
+            if self._process.poll() is not None:
+                raise BenchError(f"{self.name} exited at start: {_tail(self.log)}")
+            time.sleep(_POLL_S)
+        raise BenchError(f"{self.name} not ready in {READY_TIMEOUT_S} s: {_tail(self.log)}")
+
+    def memory_kib(self) -> dict[str, int | None]:
+        """Current and peak resident set (KiB)."""
+        return {
+            "rss_kib": read_status_kib(self.pid, "VmRSS"),
+            "peak_rss_kib": read_status_kib(self.pid, "VmHWM"),
+        }
+
+    def stop(self) -> int | None:
+        """SIGTERM (SIGKILL after the grace); the exit status."""
+        process = self._process
+        if process is None:
+            return None
+        self._process = None
+        _stop(process)
+        return process.returncode
+
+    def log_tail(self) -> str:
+        """The end of its log (for error reports)."""
+        return _tail(self.log)
+
+
+def run_loadgen(spec: LoadSpec, workdir: Path) -> LoadResult:
+    """Run the load generator process to completion and parse its result."""
+    budget = spec.warmup + spec.duration + spec.drain + spec.connect_timeout + 30.0
+    log = workdir / "loadgen.log"
+    with open(log, "w") as errors:
+        done = subprocess.run(
+            [PYTHON, "-m", "bench.loadgen", json.dumps(spec.__dict__)],
+            stdout=subprocess.PIPE,
+            stderr=errors,
+            text=True,
+            timeout=budget,
+            check=False,
+        )
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    if done.returncode != 0 or not lines:
+        raise BenchError(f"load generator failed ({done.returncode}): {_tail(log)}")
+    return result_from_json(lines[-1])
+
+
+class Stack:
+    """Simulator + server, started together and always stopped (context manager)."""
+
+    def __init__(self, simulator: Simulator, server: Server) -> None:
+        self.simulator = simulator
+        self.server = server
+        self.sim_stats: dict[str, Any] = {}
+
+    def __enter__(self) -> Stack:
+        self.simulator.start()
+        try:
+            self.server.start()
+        except BaseException:
+            self.simulator.stop()
+            raise
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        try:
+            self.server.stop()
+        finally:
+            self.sim_stats = self.simulator.stop()
+
+
+def environment_summary() -> dict[str, Any]:
+    """What machine and code produced the figures."""
+    summary: dict[str, Any] = {"python": sys.version.split()[0], "cpus": os.cpu_count()}
+    try:
+        summary["uvloop"] = metadata.version("uvloop")
+    except metadata.PackageNotFoundError:
+        summary["uvloop"] = None
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=False,
+            cwd=Path(__file__).resolve().parent,
+        )
+        summary["commit"] = commit.stdout.strip() or None
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "gateway"],
+            capture_output=True,
+            text=True,
+            check=False,
+            cwd=Path(__file__).resolve().parent,
+        )
+        summary["gateway_tree_modified"] = bool(dirty.stdout.strip())
+    except OSError:
+        summary["commit"] = None
+    return summary
