@@ -35,12 +35,13 @@ class SerialPortError(OSError):
     """A serial line that cannot be opened or configured, with the setting to blame."""
 
 
-def _apply(line: LineConfig, port: Any, setting: str, value: Any) -> None:
+def _apply(line: LineConfig, port: Any, setting: str, value: Any, shown: object = None) -> None:
     try:
         setattr(port, setting, value)
     except (ValueError, serial.SerialException, termios.error, OSError) as error:
+        shown = value if shown is None else shown
         raise SerialPortError(
-            f"line {line.name!r} ({line.device}): cannot set {setting}={value!r}: {error}; "
+            f"line {line.name!r} ({line.device}): cannot set {setting}={shown!r}: {error}; "
             f"check lines.{line.name}.{_CONFIG_KEY.get(setting, setting)} against what the "
             "adapter supports"
         ) from error
@@ -82,6 +83,7 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
                     delay_before_tx=line.rs485_delay_before_tx or None,
                     delay_before_rx=line.rs485_delay_after_tx or None,
                 ),
+                shown=True,
             )
     except SerialPortError:
         port.close()
@@ -138,9 +140,9 @@ class SerialLink:
             # adapter is stuck (flow control, a hung USB device). Treat the line as lost.
             self._lost(error)
             raise SerialPortError(f"{self._port.name}: output buffer full, line stuck") from error
-        except OSError as error:
+        except OSError as error:  # the adapter went away (EIO, ENODEV): the worker answers 0x0A
             self._lost(error)
-            raise
+            raise SerialPortError(f"{self._port.name}: write failed: {error}") from error
 
     def discard_input(self) -> int:
         """Read and drop whatever is waiting in the input buffer; return how many bytes."""
