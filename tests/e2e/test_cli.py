@@ -1,0 +1,233 @@
+"""The real command line in a subprocess: ``python -m gateway ...`` answering a real client.
+
+Readiness is the gateway's own log line ("listening on HOST:PORT"), read from
+its stderr with a deadline; the port is 0 wherever the test can, and taken
+from that line. Stops are SIGTERM, and the exit code is checked.
+"""
+
+from __future__ import annotations
+
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from conftest import DEADLINE_S, RawClient, Reply, SimFactory
+
+from gateway import __version__
+from gateway.sim import plc, zl69x
+from gateway.sim.device import pack_registers
+
+LISTENING = re.compile(r"listening on ([0-9.]+):(\d+)")
+
+
+def h(text: str) -> bytes:
+    return bytes.fromhex(text)
+
+
+def gateway_command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "gateway", *args]
+
+
+class GatewayProcess:
+    """``modbus-gateway`` running in a subprocess, its stderr collected line by line."""
+
+    def __init__(self, *args: str) -> None:
+        self.process = subprocess.Popen(
+            gateway_command(*args),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.log: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.process.stderr is not None
+        for line in self.process.stderr:
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def wait_for(self, pattern: re.Pattern[str], timeout: float = DEADLINE_S) -> re.Match[str]:
+        """The first stderr line matching ``pattern``, within ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError(f"no {pattern.pattern!r} on stderr: {''.join(self.log)}")
+            try:
+                line = self.lines.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            if line is None:
+                code = self.process.wait(DEADLINE_S)
+                raise AssertionError(f"exited with {code} before {pattern.pattern!r}: {self.log}")
+            self.log.append(line)
+            match = pattern.search(line)
+            if match:
+                return match
+
+    def address(self) -> tuple[str, int]:
+        """Wait for the gateway to listen; return where."""
+        match = self.wait_for(LISTENING)
+        return match.group(1), int(match.group(2))
+
+    def terminate(self) -> int:
+        """SIGTERM, then the exit code."""
+        self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(DEADLINE_S)
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(DEADLINE_S)
+
+
+RunGateway = Callable[..., GatewayProcess]
+
+
+@pytest.fixture
+def run_gateway() -> Iterator[RunGateway]:
+    """``run_gateway(*args)`` → a started ``GatewayProcess``, killed at teardown if still alive."""
+    processes: list[GatewayProcess] = []
+
+    def start(*args: str) -> GatewayProcess:
+        process = GatewayProcess(*args)
+        processes.append(process)
+        return process
+
+    yield start
+    for process in processes:
+        process.kill()
+
+
+def test_config_file_serves_a_simulated_line(
+    tmp_path: Path, make_sim: SimFactory, run_gateway: RunGateway
+) -> None:
+    sim = make_sim({1: plc(1), 2: zl69x(2)}, baudrate=19200)
+    config = tmp_path / "gateway.toml"
+    config.write_text(
+        f"""
+[server]
+listen = "127.0.0.1:0"
+max_pipeline = 4
+
+[metrics]
+listen = "off"
+
+[lines.field]
+device = "{sim.path}"
+baudrate = 19200
+timeout = 0.3
+units = [1, 2]
+
+[[routes]]
+unit = 100
+line = "field"
+slave = 2
+"""
+    )
+    gateway = run_gateway("--config", str(config))
+    with RawClient(gateway.address()) as client:
+        tid = client.send(1, h("03 0000 000A"), tid=0x2A2A)
+        assert client.receive() == Reply(
+            tid, 1, h("03 14") + pack_registers([0, 2, 4, 6, 8, 10, 0, 0, 0, 0])
+        )
+        assert client.request(100, h("03 0000 0002")) == h("03 04 0113 FF9D")
+        assert client.request(2, h("06 0008 00F0")) == h("06 0008 00F0")
+        assert client.request(3, h("03 0000 0001")) == h("83 0A")
+    assert sim.device(2).holding[8] == 0xF0
+    assert gateway.terminate() == 0
+    stats = sim.stats()
+    assert (stats.requests, stats.early_requests, stats.collisions) == (3, 0, 0)
+
+
+def test_demo_answers_a_client_and_stops_on_sigterm(run_gateway: RunGateway) -> None:
+    gateway = run_gateway("--demo", "--listen", "127.0.0.1:0", "--metrics", "off")
+    host, port = gateway.address()
+    assert host == "127.0.0.1" and port > 0
+    with RawClient((host, port)) as client:
+        # The PLC's manual example, the ZL-69X's temperatures, the power controller's current.
+        assert client.request(1, h("03 0000 000A")) == h("03 14") + pack_registers(
+            [0, 2, 4, 6, 8, 10, 0, 0, 0, 0]
+        )
+        assert client.request(2, h("03 0000 0002")) == h("03 04 0113 FF9D")
+        assert client.request(3, h("03 0003 0003")) == h("03 06 0000 00B7 0000")
+        assert client.request(3, h("03 0000 0006")) == h("83 03")
+    assert gateway.terminate() == 0
+
+
+def test_serial_flag_without_config_routes_every_unit(
+    make_sim: SimFactory, run_gateway: RunGateway
+) -> None:
+    sim = make_sim({1: plc(1), 17: plc(17), 247: zl69x(247)})
+    gateway = run_gateway(
+        "--serial", sim.path, "--baudrate", "115200", "--timeout", "0.2", "--retries", "0",
+        "--listen", "127.0.0.1:0", "--metrics", "off",
+    )  # fmt: skip
+    with RawClient(gateway.address()) as client:
+        assert client.request(1, h("03 03E8 0002")) == h("03 04 03E8 03E9")
+        assert client.request(17, h("06 0005 0011")) == h("06 0005 0011")
+        assert client.request(247, h("03 0000 0001")) == h("03 02 0113")
+        # Routed, but nobody answers at 200: the gateway tried (0x0B), it did not refuse (0x0A).
+        assert client.request(200, h("03 0000 0001")) == h("83 0B")
+        assert client.request(255, h("03 0000 0001")) == h("83 0A")
+    assert sim.device(17).holding[5] == 0x11
+    assert sim.stats().foreign_frames == 1  # the request to 200 went on the line
+    assert gateway.terminate() == 0
+
+
+def test_check_config_lists_every_problem_with_its_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        """
+[server]
+listen = "127.0.0.1:502"
+max_pipeline = 0
+
+[lines.a]
+baudrate = "fast"
+parity = "X"
+units = [1, 300]
+"""
+    )
+    done = subprocess.run(
+        gateway_command("check-config", str(bad)),
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+    assert done.returncode == 2, done
+    for key in (
+        "server.max_pipeline",
+        "lines.a.device",
+        "lines.a.baudrate",
+        "lines.a.parity",
+        "lines.a.units",
+    ):
+        assert key in done.stderr, (key, done.stderr)
+    assert str(bad) in done.stderr
+
+    good = tmp_path / "good.toml"
+    good.write_text('[lines.a]\ndevice = "/dev/ttyUSB0"\nunits = ["1-10"]\n')
+    done = subprocess.run(
+        gateway_command("check-config", str(good)),
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done
+    assert "OK" in done.stdout and "10 routed unit(s)" in done.stdout
+
+
+def test_version() -> None:
+    done = subprocess.run(
+        gateway_command("--version"), capture_output=True, text=True, timeout=30, check=False
+    )
+    assert done.returncode == 0
+    assert done.stdout.strip() == f"modbus-gateway {__version__}"
