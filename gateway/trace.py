@@ -23,6 +23,12 @@ from .core.errors import ExceptionCode
 #: Requests remembered for their reply's latency; the oldest are forgotten past this.
 MAX_PENDING = 4096
 
+#: Writes whose normal answer echoes the request's address and value or quantity.
+_ECHOES = frozenset(
+    {fc.WRITE_SINGLE_COIL, fc.WRITE_SINGLE_REGISTER, fc.WRITE_MULTIPLE_COILS,
+     fc.WRITE_MULTIPLE_REGISTERS}
+)  # fmt: skip
+
 #: Outcome shown for a reply when the caller does not name one, by exception code.
 _OUTCOME_BY_CODE: dict[int, str] = {
     ExceptionCode.GATEWAY_PATH_UNAVAILABLE: "no_route",
@@ -103,7 +109,10 @@ class Tracer:
         if outcome is None:
             outcome = _derive_outcome(pdu)
         name = fc.function_name(function)
-        detail = fc.describe_response(pdu)
+        if function in _ECHOES and not fc.is_exception(pdu):
+            detail = fc.describe_request(pdu)  # same layout: address, then value or quantity
+        else:
+            detail = fc.describe_response(pdu)
         latency = "" if latency_ms is None else f" {latency_ms:.2f} ms"
         self._log.info(
             "<- %s tid=%d unit=%d %s(%d) %s %s%s",

@@ -1,0 +1,169 @@
+"""The frame trace's lines, filters and bounded memory, with a clock the test moves by hand."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+
+import pytest
+
+from gateway.cli import build_parser
+from gateway.logs import JsonFormatter
+from gateway.trace import MAX_PENDING, Tracer, parse_function
+
+READ_10 = bytes.fromhex("03 0000 000A")
+READ_10_ANSWER = bytes.fromhex("03 14") + bytes(20)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 50.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class Collect(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    @property
+    def messages(self) -> list[str]:
+        return [record.getMessage() for record in self.records]
+
+
+@pytest.fixture
+def traced(request: pytest.FixtureRequest) -> Iterator[tuple[logging.Logger, Collect]]:
+    log = logging.getLogger(f"test.trace.{request.node.name}")
+    log.propagate = False
+    handler = Collect()
+    log.addHandler(handler)
+    yield log, handler
+    log.removeHandler(handler)
+
+
+def test_request_and_reply_lines_with_latency(traced: tuple[logging.Logger, Collect]) -> None:
+    log, seen = traced
+    clock = Clock()
+    tracer = Tracer(logger=log, clock=clock)
+    tracer.request("10.0.0.7:50432", 17, 5, READ_10)
+    clock.now += 0.02261
+    tracer.reply("10.0.0.7:50432", 17, 5, READ_10_ANSWER, "ok")
+    assert seen.messages == [
+        "-> 10.0.0.7:50432 tid=17 unit=5 read_holding_registers(3) address=0 quantity=10",
+        "<- 10.0.0.7:50432 tid=17 unit=5 read_holding_registers(3) byte_count=20 ok 22.61 ms",
+    ]
+    assert all(record.levelno == logging.INFO for record in seen.records)
+
+
+def test_tracing_is_on_whatever_the_log_level(traced: tuple[logging.Logger, Collect]) -> None:
+    log, seen = traced
+    log.setLevel(logging.ERROR)
+    Tracer(logger=log).request("m", 1, 1, READ_10)
+    assert len(seen.records) == 1
+
+
+def test_outcome_from_the_reply_when_the_caller_does_not_say(
+    traced: tuple[logging.Logger, Collect],
+) -> None:
+    log, seen = traced
+    tracer = Tracer(logger=log)
+    tracer.reply("m", 1, 1, bytes((0x83, 0x0A)))
+    tracer.reply("m", 2, 1, bytes((0x83, 0x0B)))
+    tracer.reply("m", 3, 1, bytes((0x83, 0x02)))
+    tracer.reply("m", 4, 1, bytes((0x83, 0x03)), "rejected")
+    tracer.reply("m", 5, 1, bytes.fromhex("06 0001 0007"))
+    assert [message.split(" ", 5)[-1] for message in seen.messages] == [
+        "exception=0x0A no_route",
+        "exception=0x0B target_failed",
+        "exception=0x02 exception",
+        "exception=0x03 rejected",
+        "address=1 value=0x0007 ok",
+    ]
+
+
+def test_filters_by_unit_and_function(traced: tuple[logging.Logger, Collect]) -> None:
+    log, seen = traced
+    tracer = Tracer(units=[5], functions=[3, 16], logger=log)
+    tracer.request("m", 1, 5, READ_10)
+    tracer.request("m", 2, 6, READ_10)  # other unit
+    tracer.request("m", 3, 5, bytes.fromhex("06 0001 0007"))  # other function
+    tracer.reply("m", 1, 5, bytes((0x83, 0x0B)))  # an exception to a traced function
+    tracer.reply("m", 2, 6, READ_10_ANSWER)
+    tracer.dropped("m", 3, 5, 6)
+    tracer.dropped("m", 4, 5, 16)
+    assert [message.split()[:3] for message in seen.messages] == [
+        ["->", "m", "tid=1"],
+        ["<-", "m", "tid=1"],
+        ["x", "m", "tid=4"],
+    ]
+    assert seen.messages[2].endswith("write_multiple_registers(16) dropped: the master left")
+
+
+def test_requests_without_reply_are_forgotten_past_the_bound(
+    traced: tuple[logging.Logger, Collect],
+) -> None:
+    log, seen = traced
+    log.disabled = True  # the formatting is not what this test is about
+    tracer = Tracer(logger=log)
+    for tid in range(MAX_PENDING + 100):
+        tracer.request("gone", tid, 1, READ_10)
+    log.disabled = False
+    tracer.reply("gone", 0, 1, READ_10_ANSWER)  # the oldest: forgotten, so no latency
+    tracer.reply("gone", MAX_PENDING + 99, 1, READ_10_ANSWER)
+    first, last = seen.records
+    assert first.__dict__["latency_ms"] is None and first.getMessage().endswith(" ok")
+    assert last.__dict__["latency_ms"] is not None
+
+
+def test_json_lines_give_every_field(traced: tuple[logging.Logger, Collect]) -> None:
+    log, seen = traced
+    clock = Clock()
+    tracer = Tracer(logger=log, clock=clock)
+    tracer.request("10.0.0.7:50432", 9, 1, READ_10)
+    clock.now += 0.5
+    tracer.reply("10.0.0.7:50432", 9, 1, READ_10_ANSWER, "ok")
+    entry = json.loads(JsonFormatter().format(seen.records[1]))
+    assert {key: entry[key] for key in entry if key not in ("time", "message")} == {
+        "level": "info",
+        "logger": log.name,
+        "direction": "reply",
+        "peer": "10.0.0.7:50432",
+        "transaction_id": 9,
+        "unit": 1,
+        "function": "read_holding_registers",
+        "function_code": 3,
+        "detail": "byte_count=20",
+        "outcome": "ok",
+        "latency_ms": 500.0,
+    }
+
+
+@pytest.mark.parametrize(
+    ("text", "code"),
+    [("3", 3), ("0x10", 16), ("read_holding_registers", 3), (" Read_Coils ", 1), ("127", 127)],
+)
+def test_function_codes_by_number_or_name(text: str, code: int) -> None:
+    assert parse_function(text) == code
+
+
+@pytest.mark.parametrize("text", ["0", "128", "readholding", ""])
+def test_function_codes_that_are_not(text: str) -> None:
+    with pytest.raises(ValueError):
+        parse_function(text)
+
+
+def test_trace_flags_on_the_command_line() -> None:
+    args = build_parser().parse_args(
+        ["--trace-unit", "5", "--trace-unit", "6", "--trace-function", "read_coils",
+         "--trace-function", "0x10"]
+    )  # fmt: skip
+    assert (args.trace, args.trace_unit, args.trace_function) == (False, [5, 6], [1, 16])
+    assert build_parser().parse_args(["--trace"]).trace
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--trace-function", "nope"])
