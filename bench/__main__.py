@@ -89,6 +89,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print()
     for name, reason in failures.items():
         print(f"scenario {name} failed: {reason}")
+    if bench.runs:
+        busiest = max(bench.runs, key=lambda run: run.background_cores)
+        print(
+            f"other load on the machine during the measurement windows: up to "
+            f"{busiest.background_cores:.2f} CPU cores ({busiest.label}); figures taken while "
+            "other work runs are pessimistic"
+        )
     wrong = sum(result.wrong_answers for result in results)
     print(f"{len(results)} scenario(s) in {elapsed:.0f} s; wrong answers: {wrong}; "
           f"targets met: {sum(c.met for c in checks)}/{len(checks)}")  # fmt: skip
@@ -99,6 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "elapsed_s": elapsed,
         "environment": environment_summary(),
         "wrong_answers": wrong,
+        "max_background_cores": max((run.background_cores for run in bench.runs), default=0.0),
         "scenarios": {result.name: result.figures for result in results},
         "checks": [check.__dict__ for check in checks],
         "notes": {result.name: result.notes for result in results},

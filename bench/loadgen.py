@@ -107,6 +107,7 @@ class LoadResult:
     latency_ms: dict[str, float] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)  #: per watched process, in the window
     loadgen_cpu_s: float = 0.0
+    machine_cpu_s: float = 0.0  #: busy CPU time of the whole machine in the window (all CPUs)
     connected: int = 0
 
     @property
@@ -136,6 +137,14 @@ def process_cpu_seconds(pid: int) -> float | None:
     fields = raw[raw.rindex(b")") + 2 :].split()
     # fields[0] is field 3 (state): utime and stime are fields 14 and 15.
     return (int(fields[11]) + int(fields[12])) / _clock_ticks()
+
+
+def machine_busy_seconds() -> float:
+    """Busy CPU time of every CPU since boot (``/proc/stat``: all but idle and iowait)."""
+    with open("/proc/stat", "rb") as stat:
+        fields = stat.readline().split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(f) for f in fields[:8])
+    return (user + nice + system + irq + softirq + steal) / _clock_ticks()
 
 
 def percentile(sorted_values: list[float], fraction: float) -> float:
@@ -535,6 +544,7 @@ async def run(spec: LoadSpec) -> LoadResult:
     await asyncio.sleep(spec.warmup)
     cpu_before = _cpu_snapshot(spec.watch_pids)
     own_before = time.process_time()
+    machine_before = machine_busy_seconds()
     recorder.window_start = time.perf_counter()
     recorder.measuring = True
     await asyncio.sleep(spec.duration)
@@ -542,6 +552,7 @@ async def run(spec: LoadSpec) -> LoadResult:
     recorder.window_end = time.perf_counter()
     cpu_after = _cpu_snapshot(spec.watch_pids)
     own_cpu = time.process_time() - own_before
+    machine_cpu = machine_busy_seconds() - machine_before
     recorder.stopping = True
     for task in tasks:
         task.cancel()
@@ -555,7 +566,9 @@ async def run(spec: LoadSpec) -> LoadResult:
     if masters:
         await asyncio.wait([master.closed for master in masters], timeout=2.0)
     await asyncio.gather(*tasks, reaper_task, return_exceptions=True)
-    return _result(spec, recorder, len(masters), cpu_before, cpu_after, own_cpu)
+    result = _result(spec, recorder, len(masters), cpu_before, cpu_after, own_cpu)
+    result.machine_cpu_s = machine_cpu
+    return result
 
 
 def _result(
