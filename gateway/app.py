@@ -174,6 +174,9 @@ class Gateway:
                     config.server, host=self.config.server.host, port=self.config.server.port
                 ),
             )
+        if (config.metrics, config.logging) != (self.config.metrics, self.config.logging):
+            log.warning("reload: [metrics] and [logging] changes need a restart; keeping them")
+            config = replace(config, metrics=self.config.metrics, logging=self.config.logging)
         self.config = config
         self.server.config = config.server
         self.server.router = self._build_router()

@@ -102,16 +102,24 @@ SimFactory = Callable[..., SimBus]
 
 @pytest.fixture
 def make_sim() -> Iterator[SimFactory]:
-    """``make_sim({1: plc(1)}, baudrate=None, **SimulatedLine options)`` → a started ``SimBus``.
+    """``make_sim({1: plc(1)}, faults={1: UnitFaults(silent=True)}, baudrate=None, ...)``.
 
-    Lines are stopped (re-raising any error of the simulator thread) and ptys closed at teardown.
+    Returns a started ``SimBus``; other keywords go to ``SimulatedLine``. Lines are
+    stopped (re-raising any error of the simulator thread) and ptys closed at teardown.
     """
     with ExitStack() as stack:
 
-        def factory(devices: Mapping[int, SimulatedDevice], **options: Any) -> SimBus:
+        def factory(
+            devices: Mapping[int, SimulatedDevice],
+            *,
+            faults: Mapping[int, UnitFaults] | None = None,
+            **options: Any,
+        ) -> SimBus:
             pair = _open_pty_pair()
             stack.callback(pair.close)
             line = SimulatedLine(pair.sim_fd, devices, **options)
+            for unit, unit_faults in (faults or {}).items():
+                line.set_faults(unit, unit_faults)
             line.start()
             stack.callback(line.stop)
             return SimBus(pair, line)

@@ -32,7 +32,7 @@ from conftest import (
 
 from gateway.config import build_config
 from gateway.core.rtu import encode_rtu
-from gateway.sim import PtyPair, open_pty_pair, plc, power_controller, zl69x
+from gateway.sim import PtyPair, UnitFaults, open_pty_pair, plc, power_controller, zl69x
 from gateway.sim.device import pack_bits, pack_registers
 
 
@@ -308,8 +308,11 @@ def test_unrouted_unit_is_answered_0x0a_locally(gateway_with: GatewayOnSim) -> N
 
 
 def test_silent_slave_is_answered_0x0b_after_the_retries(gateway_with: GatewayOnSim) -> None:
-    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line={"timeout": 0.1, "retries": 1})
-    sim.faults(1).silent = True
+    sim, gw = gateway_with(
+        {1: plc(1), 2: plc(2)},
+        sim={"faults": {1: UnitFaults(silent=True)}},
+        line={"timeout": 0.1, "retries": 1},
+    )
     with gw.connect() as client:
         assert client.request(1, read_pdu(3, 0, 2)) == h("83 0B")
         assert sim.stats().silent_drops == 2  # the request and one retry
