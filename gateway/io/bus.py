@@ -207,7 +207,17 @@ class Bus:
             try:
                 await asyncio.wait_for(asyncio.shield(self._worker), grace)
             except TimeoutError:
-                self._worker.cancel()
+                # Grace over: give up the transaction on the wire so its master still gets
+                # an answer (0x0B, as for a lost line) rather than a closed connection.
+                if self._link is not None:
+                    self._link.close()  # nothing more goes out
+                waiter = self._waiter
+                if waiter is not None and not waiter.done():
+                    waiter.set_result(None)
+                try:
+                    await asyncio.wait_for(asyncio.shield(self._worker), 0.1)
+                except TimeoutError:
+                    self._worker.cancel()
             except asyncio.CancelledError:
                 pass
         if self._link is not None:

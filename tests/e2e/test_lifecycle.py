@@ -525,6 +525,30 @@ def test_second_stop_signal_exits_at_once(lab: Lab) -> None:
     print(f"\nsecond SIGTERM: exit 1 after {exited_at - again_at:.3f} s")
 
 
+def test_a_grace_shorter_than_the_wire_transaction_still_answers_it(lab: Lab) -> None:
+    """When the grace runs out the transaction on the wire is given up and answered 0x0B."""
+    pair, sim = lab.sim([1])
+    sim.faults(1).silent = True
+    write_config(lab.config, {"a": line_table(pair.path, [1], timeout=5.0, retries=0)})
+    grace = 0.3
+    gateway = lab.gateway(grace=grace)
+    master = lab.master(gateway, 1, window=3)
+    deadline = time.monotonic() + DEADLINE_S
+    while sim.stats().silent_drops < 1:  # the first request is on the wire
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+
+    signalled_at = gateway.signal(signal.SIGTERM)
+    code, exited_at = gateway.wait_exit(DEADLINE_S)
+    master.join(DEADLINE_S)
+    assert code == 0, gateway.log
+    assert grace <= exited_at - signalled_at < grace + 1.0
+    master.check(PATH_UNAVAILABLE, TARGET_FAILED, before=signalled_at)
+    answers = sorted(a for a in master.answers_sent_before(signalled_at).values() if a)
+    assert answers == [PATH_UNAVAILABLE] * 2 + [TARGET_FAILED], answers
+    print(f"\ngrace {grace} s over: exit 0 after {exited_at - signalled_at:.3f} s")
+
+
 # --------------------------------------------------------------------------- SIGHUP reload
 
 
