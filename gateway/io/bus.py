@@ -154,10 +154,14 @@ class Bus:
         self._decoder: RtuResponseDecoder | None = None
         self._waiter: asyncio.Future[RtuFrame | ResponseError | None] | None = None
         self._silence_timer: asyncio.TimerHandle | None = None
+        self._garbled: ResponseError | None = None
+        self._garbled_timer: asyncio.TimerHandle | None = None
+        self._current_unit = "0"
         self._unit_labels = {unit: str(unit) for unit in range(256)}
         self._char_time = character_time(
             config.baudrate, config.data_bits, config.parity, config.stop_bits
         )
+        self._garbled_wait = max(3 * config.silence, 0.005)
         self._health: dict[int, SlaveHealth] = {}
         self._waiting_reads: dict[tuple[int, bytes], Request] = {}
         self._write_epoch: dict[int, int] = {}
@@ -342,6 +346,8 @@ class Bus:
                 )
                 return
             self._decoder = RtuResponseDecoder(request.slave, request.pdu)
+            self._current_unit = unit
+            self._garbled = None
             waiter: asyncio.Future[RtuFrame | ResponseError | None] = self._loop.create_future()
             self._waiter = waiter
             link.write(frame)
@@ -359,6 +365,10 @@ class Bus:
                 if self._silence_timer is not None:
                     self._silence_timer.cancel()
                     self._silence_timer = None
+                if self._garbled_timer is not None:
+                    self._garbled_timer.cancel()
+                    self._garbled_timer = None
+                self._garbled = None
             if isinstance(result, RtuFrame):
                 done_at = time.monotonic()
                 self._m_wire.observe(done_at - sent_at)
@@ -377,11 +387,9 @@ class Bus:
             if result is None:
                 self._metrics.timeouts.labels(self.name, unit).inc()
                 self._fault_log.note(subject, "timeout", f"no answer within {timeout:g} s")
-            elif result.kind == "crc":
-                self._metrics.crc_errors.labels(self.name, unit).inc()
+            elif result.kind == "crc":  # counted when it arrived
                 self._fault_log.note(subject, "CRC error", result.reason)
             else:
-                self._metrics.discarded_frames.labels(self.name, result.kind).inc()
                 self._fault_log.note(subject, "garbled answer", result.reason)
             if not self.up:
                 break
@@ -437,17 +445,18 @@ class Bus:
         if decoder is None or waiter is None or waiter.done():
             self._note_discarded("late", len(data))
             return
+        if self._garbled is not None:
+            self._arm_garbled_timer(waiter)  # the line is not quiet yet
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
-                if error.kind not in _DISCARD_KINDS:
-                    self._decoder = None  # the rest of this garbled answer is drained as late
-                    waiter.set_result(error)
-                    return
-                # Another unit's frame, or a late answer to an earlier request: drop it
-                # and keep decoding whatever followed it in the same read.
-                self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+                if error.kind in _DISCARD_KINDS:
+                    # Another unit's frame, or a late answer to an earlier request: drop
+                    # it and keep decoding whatever followed it in the same read.
+                    self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+                else:
+                    self._note_garbled(error, waiter)
                 data = decoder.leftover
                 decoder.reset()
                 if data:
@@ -463,6 +472,37 @@ class Bus:
                 self._silence_timer.cancel()
             self._silence_timer = self._loop.call_later(self.config.silence, self._on_silence)
 
+    def _note_garbled(
+        self, error: ResponseError, waiter: asyncio.Future[RtuFrame | ResponseError | None]
+    ) -> None:
+        """A garbled frame: count it, then listen a little longer before giving up.
+
+        The garbled frame may have been noise in front of the slave's real answer;
+        retrying at once would put the retry on the wire while that answer comes,
+        and the slave's answer to the retry would then be left over for the next
+        request. So the attempt fails only after the line has stayed quiet for
+        ``_garbled_wait`` (3 x t3.5, at least 5 ms), and a valid answer arriving
+        meanwhile is taken.
+        """
+        if error.kind == "crc":
+            self._metrics.crc_errors.labels(self.name, self._current_unit).inc()
+        else:
+            self._metrics.discarded_frames.labels(self.name, error.kind).inc()
+        self._garbled = error
+        self._arm_garbled_timer(waiter)
+
+    def _arm_garbled_timer(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:
+        if self._garbled_timer is not None:
+            self._garbled_timer.cancel()
+        self._garbled_timer = self._loop.call_later(
+            self._garbled_wait, self._on_garbled_silence, waiter
+        )
+
+    def _on_garbled_silence(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:
+        self._garbled_timer = None
+        if not waiter.done() and self._garbled is not None:
+            waiter.set_result(self._garbled)
+
     def _on_silence(self) -> None:
         self._silence_timer = None
         decoder = self._decoder
@@ -474,15 +514,15 @@ class Bus:
         except ResponseError as error:
             if error.kind in _DISCARD_KINDS:
                 self._metrics.discarded_frames.labels(self.name, error.kind).inc()
-                decoder.reset()
             else:
-                waiter.set_result(error)
+                self._note_garbled(error, waiter)
+            decoder.reset()
 
     def _on_timeout(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:
         if not waiter.done():
             if self._decoder is not None and self._decoder.buffered:
                 self._note_discarded("incomplete", self._decoder.buffered)
-            waiter.set_result(None)
+            waiter.set_result(self._garbled)  # None: a plain timeout
 
     def _note_discarded(self, reason: str, count: int) -> None:
         self._metrics.discarded_frames.labels(self.name, reason).inc()
