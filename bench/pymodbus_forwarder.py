@@ -5,9 +5,9 @@ forwards every read and write through one ``AsyncModbusSerialClient`` (the
 pattern of pymodbus's own "forwarder" example and of the ``RemoteSlaveContext``
 older releases shipped). pymodbus serialises the client's transactions with
 its own lock, so one request is on the line at a time; a timeout becomes
-exception 0x0B and a slave's exception is passed on. Run with the same event
-loop as the gateway (uvloop when importable) so the comparison is of the code,
-not of the loop.
+exception 0x0B and a slave's exception is passed on. It runs on the default
+asyncio loop, as pymodbus's documentation and a typical user do; ``--uvloop``
+runs it on uvloop like the gateway, to compare the code alone.
 
     python -m bench.pymodbus_forwarder --serial /dev/pts/5 --listen 127.0.0.1:5020
 
@@ -147,19 +147,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--baudrate", type=int, default=115200)
     parser.add_argument("--timeout", type=float, default=1.0)
     parser.add_argument("--retries", type=int, default=1)
-    parser.add_argument("--no-uvloop", action="store_true", help="use the default event loop")
+    parser.add_argument("--uvloop", action="store_true", help="run on uvloop (default: asyncio)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     try:
-        if args.no_uvloop:
-            asyncio.run(serve(args))
+        if args.uvloop:
+            import uvloop
+
+            uvloop.run(serve(args))
         else:
-            try:
-                import uvloop
-            except ImportError:
-                asyncio.run(serve(args))
-            else:
-                uvloop.run(serve(args))
+            asyncio.run(serve(args))
     except KeyboardInterrupt:
         pass
     return 0
