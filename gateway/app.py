@@ -236,6 +236,7 @@ async def run_until_signalled(
         if reload_source is None:
             log.warning("SIGHUP: no configuration file to reload")
             return
+        log.info("SIGHUP received: reloading the configuration file")
         try:
             config = reload_source()
         except ConfigError as error:

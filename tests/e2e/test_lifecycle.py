@@ -618,6 +618,43 @@ def test_reload_of_a_baud_rate_reopens_only_that_line(lab: Lab) -> None:
     assert gateway.count(r"line b port settings") == 0
 
 
+def test_a_sighup_during_a_reload_waits_for_it(lab: Lab) -> None:
+    """Reloads never overlap: a line reopened by one is not opened a second time by the next."""
+    pair, sim = lab.sim([1, 2])
+    sim.faults(2).silent = True  # its requests hold the wire, so the reopen has to wait
+    lines = {"a": line_table(pair.path, [1, 2], timeout=0.3, retries=0, dead_after=0)}
+    write_config(lab.config, lines)
+    gateway = lab.gateway()
+    master = lab.master(gateway, 1, window=2)
+    master.wait_answers(5)
+    slow = lab.master(gateway, 2, window=1)
+    deadline = time.monotonic() + DEADLINE_S
+    while sim.stats().silent_drops < 1:  # unit 2's request is on the wire
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+
+    lines["a"]["baudrate"] = 57600
+    write_config(lab.config, lines)
+    mark = gateway.mark()
+    gateway.signal(signal.SIGHUP)
+    gateway.wait_for(r"line a port settings changed, reopening", start=mark)
+    gateway.signal(signal.SIGHUP)  # while the first reload waits for the wire
+    gateway.wait_for(r"configuration from .* applied", start=mark)
+    applied = [i for i, line in enumerate(gateway.lines) if i >= mark and "applied" in line]
+    gateway.wait_for(r"configuration from .* applied", start=applied[0] + 1)
+    slow.finish()
+    master.wait_answers(len(master.answers) + 5)
+    master.finish()
+    master.check(PATH_UNAVAILABLE)
+    slow.check(PATH_UNAVAILABLE, TARGET_FAILED)
+    log = gateway.lines[mark:]
+    second = [i for i, line in enumerate(log) if "SIGHUP received" in line][1]
+    reopened = next(i for i, line in enumerate(log) if "open at 57600" in line)
+    assert second < reopened, "the second SIGHUP came after the first reload: nothing tested"
+    assert gateway.count(r"line a: .* open at") == 2, gateway.log  # at start, and once again
+    assert gateway.count(r"reopening|line a added") == 1, gateway.log
+
+
 def test_invalid_reload_is_rejected_and_the_old_configuration_keeps_serving(lab: Lab) -> None:
     pair, _ = lab.sim([1])
     write_config(lab.config, {"a": line_table(pair.path, [1])})
