@@ -35,6 +35,10 @@ HEALTHY_UNITS = (1, 2, 3, 4)
 DEAD_UNIT = 5
 DEAD_SLAVE_TIMEOUT_S = 0.2  # ~8 transaction times at 19200 baud: a tuned, realistic timeout
 BAD_CRC_RATE = 0.05
+#: The simulator draws one number per answer; with this seed the share of bad answers it
+#: sends stays within 0.047..0.053 over the first 150..700 answers (the quick and full runs),
+#: so the run injects the issue's 5 % rather than a random 4 % or 7 %. It is printed anyway.
+BAD_CRC_SEED = 6
 MANY_MASTERS = 1000
 MANY_MASTERS_QUICK = 1000
 SLOW_PERIOD_S = 2.0
@@ -527,7 +531,11 @@ class Bench:
         spec.duration = self.timing.fault_window
         run = self._run(
             f"{FAULT_BAUDRATE} baud, {BAD_CRC_RATE:.0%} bad CRC",
-            paced_sim(FAULT_BAUDRATE, crc_error_rates=dict.fromkeys(HEALTHY_UNITS, BAD_CRC_RATE)),
+            paced_sim(
+                FAULT_BAUDRATE,
+                crc_error_rates=dict.fromkeys(HEALTHY_UNITS, BAD_CRC_RATE),
+                seed=BAD_CRC_SEED,
+            ),
             gateway_server(FAULT_BAUDRATE),
             spec,
         )
@@ -562,8 +570,8 @@ class Bench:
         ]
         notes = [
             "each bad response costs one retry (a whole transaction), so the ceiling is 1 - the "
-            "share of bad answers the simulator actually sent (seeded: ~0.95); a retry that fails "
-            "again is answered 0x0B (~0.25 % of requests)",
+            "share of bad answers the simulator actually sent (seeded for ~5 %); a retry that "
+            "fails again is answered 0x0B (~0.25 % of requests)",
         ]
         return ScenarioResult("bad-crc", figures, [table], checks, load.wrong_answers, notes)
 
