@@ -116,6 +116,11 @@ class GatewayMetrics:
         self.bytes_read = Counter(
             p + "serial_read_bytes", "Bytes read from the serial line.", ["line"], registry=r
         )
+        self.line_lost = Counter(
+            p + "line_lost",
+            "Times the serial port went away (unplugged, I/O error), however briefly.",
+            ["line"], registry=r,
+        )  # fmt: skip
         self.line_up = Gauge(
             p + "line_up", "1 when the serial line is open, 0 when it is down.", ["line"],
             registry=r,
@@ -160,6 +165,7 @@ class GatewayMetrics:
         """Create a line's series at 0, so that ``rate()`` and alerts see the first fault."""
         for reason in DISCARD_REASONS:
             self.discarded_frames.labels(line, reason)
+        self.line_lost.labels(line)
 
     def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
         """Create the per-slave fault series at 0 for each routed ``(line, slave)``."""

@@ -157,6 +157,7 @@ class Bus:
         self._garbled: ResponseError | None = None
         self._garbled_timer: asyncio.TimerHandle | None = None
         self._current_unit = "0"
+        self._open_error = ""
         self._unit_labels = {unit: str(unit) for unit in range(256)}
         self._char_time = character_time(
             config.baudrate, config.data_bits, config.parity, config.stop_bits
@@ -198,7 +199,25 @@ class Bus:
         self._try_open()
         if not self.up:
             self._schedule_reopen()
+        self._start_worker()
+
+    def _start_worker(self) -> None:
         self._worker = self._loop.create_task(self._run(), name=f"bus-{self.name}")
+        self._worker.add_done_callback(self._worker_ended)
+
+    def _worker_ended(self, worker: asyncio.Task[None]) -> None:
+        """A worker only ends when the line stops; anything else is a bug to report loudly."""
+        if worker.cancelled() or self._stopping:
+            return
+        error = worker.exception()
+        log.critical("line %s: worker failed, restarting it", self.name, exc_info=error)
+        self._fail_queued()
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+        self._decoder = None
+        self._waiter = None
+        self._start_worker()
 
     async def stop(self, grace: float) -> None:
         """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
@@ -212,7 +231,7 @@ class Bus:
                 await asyncio.wait_for(asyncio.shield(self._worker), grace)
             except TimeoutError:
                 # Grace over: give up the transaction on the wire so its master still gets
-                # an answer (0x0B, as for a lost line) rather than a closed connection.
+                # an answer (0x0A, as for a lost line) rather than a closed connection.
                 if self._link is not None:
                     self._link.close()  # nothing more goes out
                 waiter = self._waiter
@@ -383,6 +402,8 @@ class Bus:
                     self._invalidate_cache(request.slave)
                 request.answer(result.pdu, "ok")
                 return
+            if not self.up:
+                break  # the port went away under this transaction: not the slave's fault
             subject = f"unit {unit} on line {self.name}"
             if result is None:
                 self._metrics.timeouts.labels(self.name, unit).inc()
@@ -393,7 +414,13 @@ class Bus:
                 self._fault_log.note(subject, "garbled answer", result.reason)
             if not self.up:
                 break
-        if result is None and self.up:
+        if not self.up:
+            self._end_probe(request)
+            request.answer(
+                self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+            )
+            return
+        if result is None:
             self._slave_timed_out(request)
         else:
             self._end_probe(request)
@@ -593,9 +620,12 @@ class Bus:
         try:
             port = open_serial(self.config)
         except SerialPortError as error:
-            if self._reopener is None:
-                log.error("%s", error)
+            reason = str(error)
+            if reason != self._open_error:  # first failure, or a new reason: say it once
+                self._open_error = reason
+                log.error("%s; retrying", reason)
             return False
+        self._open_error = ""
         self._link = SerialLink(port, self._loop, self._on_data, self._on_lost)
         self._quiet_since = time.monotonic()
         self._m_line_up.set(1)
@@ -610,6 +640,7 @@ class Bus:
             error,
         )
         self._m_line_up.set(0)
+        self._metrics.line_lost.labels(self.name).inc()
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)

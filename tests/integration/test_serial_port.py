@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import select
 import socket
 import threading
 from collections.abc import Iterator
@@ -98,3 +100,37 @@ def test_a_serial_server_reached_by_url(
         assert master.request(1, bytes.fromhex("06 0003 0309")) == bytes.fromhex("06 0003 0309")
     assert serial_server.line is not None
     assert serial_server.line.devices[1].holding[3] == 0x0309
+
+
+def test_a_port_lost_under_a_transaction_answers_0x0a_not_a_timeout(
+    make_gateway: GatewayFactory,
+) -> None:
+    """The adapter disappears while a request waits for its answer: the gateway left, not
+    the slave, so the master gets 0x0A at once and the slave gets no timeout on its record."""
+    pair = open_pty_pair()
+    try:
+        gw = make_gateway({"lines": {"a": {"device": pair.path, "units": [1], "timeout": 30.0}}})
+        with gw.connect() as master:
+            tid = master.send(1, READ_10)
+            # Nothing answers; unplug: the simulator's end goes away under the transaction.
+            assert _read_request(pair.sim_fd) == bytes.fromhex("01 03 0000 000A C5CD")
+            pair.close()
+            reply = master.receive(timeout=5.0)
+            assert (reply.transaction_id, reply.pdu) == (tid, bytes([0x83, 0x0A]))
+        registry = gw.gateway.metrics.registry
+        assert registry.get_sample_value("modbus_gateway_line_lost_total", {"line": "a"}) == 1
+        timeouts = registry.get_sample_value(
+            "modbus_gateway_timeouts_total", {"line": "a", "unit": "1"}
+        )
+        assert timeouts == 0
+    finally:
+        pair.close()
+
+
+def _read_request(fd: int) -> bytes:
+    """The 8 bytes of one request written by the gateway, with a deadline."""
+    data = b""
+    while len(data) < 8:
+        assert select.select([fd], [], [], DEADLINE_S)[0], "no request reached the line"
+        data += os.read(fd, 8 - len(data))
+    return data
