@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import resource
 import signal
 from collections.abc import Callable
 from dataclasses import replace
@@ -36,6 +37,29 @@ _PORT_SETTINGS = ("device", "baudrate", "data_bits", "parity", "stop_bits", "rs4
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:
     return any(getattr(old, key) != getattr(new, key) for key in _PORT_SETTINGS)
+
+
+#: File descriptors needed besides one per master: lines, timers, listeners, logs, scrapes.
+_FDS_BESIDES_MASTERS = 64
+
+
+def ensure_file_descriptors(needed: int) -> None:
+    """Raise the soft open-file limit towards ``needed`` (up to the hard limit).
+
+    Each master costs one descriptor; the common soft limit of 1024 would refuse
+    connections well before a ``max_connections`` of 1000 plus lines and scrapes.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= needed:
+        return
+    target = needed if hard == resource.RLIM_INFINITY else min(needed, hard)
+    if target > soft:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    if target < needed:
+        log.warning(
+            "open-file limit %d is below the %d that server.max_connections needs; "
+            "raise it (systemd: LimitNOFILE=, docker: --ulimit nofile=)", target, needed,
+        )  # fmt: skip
 
 
 class Gateway:
@@ -78,6 +102,7 @@ class Gateway:
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         loop = asyncio.get_running_loop()
+        ensure_file_descriptors(self.config.server.max_connections + _FDS_BESIDES_MASTERS)
         for line in self.config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])
