@@ -169,13 +169,9 @@ class Bus:
         self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
         self.idle = asyncio.Event()
         self.idle.set()
-        self._m_queue_depth = metrics.queue_depth.labels(self.name)
+        self._counters = metrics.line_counters(self.name)
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
         self._m_wire = metrics.wire_duration.labels(self.name)
-        self._m_sent = metrics.frames_sent.labels(self.name)
-        self._m_received = metrics.frames_received.labels(self.name)
-        self._m_written = metrics.bytes_written.labels(self.name)
-        self._m_read = metrics.bytes_read.labels(self.name)
         self._m_line_up = metrics.line_up.labels(self.name)
         self._m_coalesced = metrics.coalesced.labels(self.name)
         self._m_line_up.set(0)
@@ -268,7 +264,7 @@ class Bus:
         if not request.broadcast and not self._admit(request, now):
             return True
         self._queue.push(request)
-        self._m_queue_depth.set(self._queue.size)
+        self._counters.queue_depth = self._queue.size
         self._wakeup.set()
         return True
 
@@ -318,11 +314,9 @@ class Bus:
                 await self._wakeup.wait()
                 continue
             self.idle.clear()
-            self._m_queue_depth.set(self._queue.size)
-            key = (request.slave, request.pdu)
-            if self._waiting_reads.get(key) is request:
-                del self._waiting_reads[key]  # on the wire from now on: nobody joins it
+            self._counters.queue_depth = self._queue.size
             if not request.wanted:
+                self._close_to_joiners(request)
                 for dropped in (request, *request.followers):  # reads that joined it too
                     self._metrics.count_request(
                         self.name, self._unit_labels[dropped.slave], dropped.pdu[0], "dropped"
@@ -331,6 +325,7 @@ class Bus:
                 continue
             health = self._health.get(request.slave)
             if health is not None and health.down and not request.probe:
+                self._close_to_joiners(request)
                 request.answer(self._exception(request, ExceptionCode.GATEWAY_TARGET_FAILED),
                                "target_failed")  # fmt: skip
                 continue
@@ -360,6 +355,7 @@ class Bus:
                 self._metrics.retries.labels(self.name, unit).inc()
             link = await self._ready_to_send()
             if link is None:
+                self._close_to_joiners(request)
                 request.answer(
                     self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
                 )
@@ -369,11 +365,14 @@ class Bus:
             self._garbled = None
             waiter: asyncio.Future[RtuFrame | ResponseError | None] = self._loop.create_future()
             self._waiter = waiter
+            if not attempt:
+                self._close_to_joiners(request)
             link.write(frame)
             sent_at = time.monotonic()
             self._quiet_since = sent_at + transmit_time
-            self._m_sent.inc()
-            self._m_written.inc(len(frame))
+            counters = self._counters
+            counters.frames_sent += 1
+            counters.bytes_written += len(frame)
             timer = self._loop.call_later(transmit_time + timeout, self._on_timeout, waiter)
             try:
                 result = await waiter
@@ -391,16 +390,19 @@ class Bus:
             if isinstance(result, RtuFrame):
                 done_at = time.monotonic()
                 self._m_wire.observe(done_at - sent_at)
-                self._m_received.inc()
+                self._counters.frames_received += 1
                 self._slave_answered(request)
                 if fc.is_exception(result.pdu):
-                    request.answer(result.pdu, "slave_exception")
-                    return
-                if request.pdu[0] in fc.READ_FUNCTIONS:
+                    outcome = "slave_exception"
+                elif request.pdu[0] in fc.READ_FUNCTIONS:
                     self._store_cache(request, result.pdu, done_at)
+                    outcome = "ok"
                 else:
                     self._invalidate_cache(request.slave)
-                request.answer(result.pdu, "ok")
+                    outcome = "ok"
+                # The line is the bottleneck: put the next request on the wire first
+                # (when no gap has to be waited for), then send this answer to its masters.
+                self._loop.call_soon(request.answer, result.pdu, outcome)
                 return
             if not self.up:
                 break  # the port went away under this transaction: not the slave's fault
@@ -438,8 +440,8 @@ class Bus:
         frame = encode_rtu(0, request.pdu)
         link.write(frame)
         sent_at = time.monotonic()
-        self._m_sent.inc()
-        self._m_written.inc(len(frame))
+        self._counters.frames_sent += 1
+        self._counters.bytes_written += len(frame)
         end = sent_at + len(frame) * self._char_time + self.config.broadcast_turnaround
         self._quiet_since = end
         request.answer(b"", "broadcast")
@@ -466,7 +468,7 @@ class Bus:
     def _on_data(self, data: bytes) -> None:
         now = time.monotonic()
         self._quiet_since = now
-        self._m_read.inc(len(data))
+        self._counters.bytes_read += len(data)
         decoder = self._decoder
         waiter = self._waiter
         if decoder is None or waiter is None or waiter.done():
@@ -558,6 +560,16 @@ class Bus:
         )
 
     # -- slave health and cache ---------------------------------------------------------
+
+    def _close_to_joiners(self, request: Request) -> None:
+        """From now on (its frame goes on the wire) no other read may join ``request``.
+
+        Identical reads keep joining while it waits for the frame gap: that is
+        consistent (nothing was sent yet) and is where most of the sharing happens.
+        """
+        key = (request.slave, request.pdu)
+        if self._waiting_reads.get(key) is request:
+            del self._waiting_reads[key]
 
     def _slave_answered(self, request: Request) -> None:
         health = self._health.get(request.slave)
@@ -670,7 +682,7 @@ class Bus:
             request.answer(
                 self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
             )
-        self._m_queue_depth.set(0)
+        self._counters.queue_depth = 0
 
     @staticmethod
     def _exception(request: Request, code: ExceptionCode) -> bytes:

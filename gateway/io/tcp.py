@@ -174,6 +174,7 @@ class MasterConnection(asyncio.Protocol):
         bus = target.bus
         line = bus.name
         unit_label = UNIT_LABELS[target.slave]  # the slave address, as in the line's metrics
+        duration = server.metrics.request_duration_for(line)
 
         def reply(response: bytes, outcome: str) -> None:
             self._pending.discard(request)
@@ -183,7 +184,7 @@ class MasterConnection(asyncio.Protocol):
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
                 self._send(transaction_id, unit, response, outcome)
-                server.metrics.request_duration.labels(line).observe(time.monotonic() - arrived)
+                duration.observe(time.monotonic() - arrived)
             server.metrics.count_request(line, unit_label, function, outcome)
             self._request_done()
 
