@@ -8,6 +8,7 @@ import copy
 import logging
 import sys
 from collections.abc import Callable, Coroutine, Sequence
+from importlib import resources
 from typing import Any
 
 from . import __version__
@@ -45,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``modbus-gateway`` argument parser (run mode)."""
     parser = argparse.ArgumentParser(
         prog="modbus-gateway",
-        description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
+        description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', 'example-config', "
         "'trace [OPTIONS]' (the same as --trace).",
     )
     parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
@@ -149,6 +150,11 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
     return raw
 
 
+def example_config() -> str:
+    """The example configuration shipped in the package, every key with its default."""
+    return resources.files("gateway").joinpath("data/gateway.example.toml").read_text("utf-8")
+
+
 def _check_config(argv: Sequence[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="modbus-gateway check-config", description="Validate a configuration file."
@@ -184,6 +190,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "check-config":
         return _check_config(argv[1:])
+    if argv == ["example-config"]:
+        sys.stdout.write(example_config())
+        return 0
     if argv and argv[0] == "trace":
         argv = ["--trace", *argv[1:]]
     args = build_parser().parse_args(argv)

@@ -1,0 +1,59 @@
+"""The wheel: it installs the ``modbus-gateway`` command and carries the example configuration."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A wheel built from this checkout (no network: the build backend is already installed)."""
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+         "-w", str(out), str(ROOT)],
+        check=True, timeout=120,
+    )  # fmt: skip
+    (built,) = out.glob("modbus_gateway-*.whl")
+    return built
+
+
+def test_the_wheel_carries_the_example_configuration(wheel: Path) -> None:
+    with zipfile.ZipFile(wheel) as archive:
+        names = archive.namelist()
+        example = archive.read("gateway/data/gateway.example.toml").decode()
+    assert "gateway/py.typed" in names
+    assert example == (ROOT / "conf" / "gateway.example.toml").read_text()
+    assert not any(name.startswith(("tests/", "bench/")) for name in names)
+
+
+def test_the_installed_command(wheel: Path, tmp_path: Path) -> None:
+    """Installed into a fresh environment (dependencies from this one), the command runs."""
+    env_dir = tmp_path / "venv"
+    venv.create(env_dir, system_site_packages=True, with_pip=False)
+    python = env_dir / "bin" / "python"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "-q",
+         str(wheel)],
+        check=True, timeout=120,
+    )  # fmt: skip
+    command = env_dir / "bin" / "modbus-gateway"
+    version = subprocess.run([command, "--version"], capture_output=True, text=True, check=True)
+    assert version.stdout.strip().startswith("modbus-gateway ")
+    example = subprocess.run(
+        [command, "example-config"], capture_output=True, text=True, check=True
+    ).stdout
+    config = tmp_path / "gateway.toml"
+    config.write_text(example)
+    checked = subprocess.run(
+        [command, "check-config", str(config)], capture_output=True, text=True, check=True
+    )
+    assert "OK" in checked.stdout
