@@ -162,7 +162,7 @@ class Bus:
         self._char_time = character_time(
             config.baudrate, config.data_bits, config.parity, config.stop_bits
         )
-        self._garbled_wait = max(3 * config.silence, 0.005)
+        self._garbled_wait = max(2 * config.silence, 0.003)
         self._health: dict[int, SlaveHealth] = {}
         self._waiting_reads: dict[tuple[int, bytes], Request] = {}
         self._write_epoch: dict[int, int] = {}
@@ -510,7 +510,7 @@ class Bus:
         retrying at once would put the retry on the wire while that answer comes,
         and the slave's answer to the retry would then be left over for the next
         request. So the attempt fails only after the line has stayed quiet for
-        ``_garbled_wait`` (3 x t3.5, at least 5 ms), and a valid answer arriving
+        ``_garbled_wait`` (2 x t3.5, at least 3 ms), and a valid answer arriving
         meanwhile is taken.
         """
         if error.kind == "crc":
