@@ -46,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``modbus-gateway`` argument parser (run mode)."""
     parser = argparse.ArgumentParser(
         prog="modbus-gateway",
-        description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', 'example-config', "
-        "'trace [OPTIONS]' (the same as --trace).",
+        description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
+        "'example-config', 'trace [OPTIONS]' (the same as --trace).",
     )
     parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
