@@ -12,6 +12,7 @@ Helpers are importable by test modules (``from conftest import RawClient``).
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import shutil
 import socket
@@ -35,6 +36,25 @@ T = TypeVar("T")
 DEADLINE_S = 10.0
 #: Gateway baud rate used for an unpaced simulator: t3.5 is then the fixed 1.75 ms.
 UNPACED_BAUDRATE = 115200
+
+
+# --------------------------------------------------------------------------- log records
+
+
+class LogCollector(logging.Handler):
+    """Keeps every record handed to it, for tests that check what was logged."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    @property
+    def messages(self) -> list[str]:
+        """The records' messages, formatted."""
+        return [record.getMessage() for record in self.records]
 
 
 # --------------------------------------------------------------------------- external tools

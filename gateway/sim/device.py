@@ -21,30 +21,8 @@ from gateway.core import pdu as fc
 from gateway.core.errors import ExceptionCode, ModbusError
 from gateway.core.pdu import exception_pdu, validate_request
 
-#: Every function code the simulator implements.
-ALL_FUNCTIONS = frozenset(
-    {
-        fc.READ_COILS,
-        fc.READ_DISCRETE_INPUTS,
-        fc.READ_HOLDING_REGISTERS,
-        fc.READ_INPUT_REGISTERS,
-        fc.WRITE_SINGLE_COIL,
-        fc.WRITE_SINGLE_REGISTER,
-        fc.READ_EXCEPTION_STATUS,
-        fc.DIAGNOSTICS,
-        fc.GET_COMM_EVENT_COUNTER,
-        fc.GET_COMM_EVENT_LOG,
-        fc.WRITE_MULTIPLE_COILS,
-        fc.WRITE_MULTIPLE_REGISTERS,
-        fc.REPORT_SERVER_ID,
-        fc.READ_FILE_RECORD,
-        fc.WRITE_FILE_RECORD,
-        fc.MASK_WRITE_REGISTER,
-        fc.READ_WRITE_MULTIPLE_REGISTERS,
-        fc.READ_FIFO_QUEUE,
-        fc.ENCAPSULATED_INTERFACE,
-    }
-)
+#: Every function code the simulator implements: all those the core knows by name.
+ALL_FUNCTIONS = frozenset(fc.FUNCTION_NAMES)
 
 # Device identification object ids (basic category) and access codes.
 VENDOR_NAME = 0x00

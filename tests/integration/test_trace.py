@@ -6,7 +6,7 @@ import logging
 from collections.abc import Iterator
 
 import pytest
-from conftest import GatewayOnSim, RunningGateway
+from conftest import GatewayOnSim, LogCollector, RunningGateway
 from metrics_harness import http_get, wait_until
 
 from gateway.sim import plc
@@ -15,14 +15,7 @@ from gateway.trace import Tracer
 READ_10 = bytes.fromhex("03 0000 000A")
 
 
-class Collect(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
+class Collect(LogCollector):
     def fields(self) -> list[tuple[str, int, int, str | None]]:
         return [
             (r.__dict__["direction"], r.__dict__["transaction_id"], r.__dict__["unit"],

@@ -15,6 +15,7 @@ import logging
 from collections.abc import Callable, Iterator
 
 import pytest
+from conftest import LogCollector
 
 from gateway.logs import JsonFormatter, RateLimitedLogger, setup_logging
 
@@ -52,32 +53,19 @@ class ManualTimer:
         self.cancelled = True
 
 
-class Collect(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-    @property
-    def messages(self) -> list[str]:
-        return [record.getMessage() for record in self.records]
-
-
 @pytest.fixture
-def logger(request: pytest.FixtureRequest) -> Iterator[tuple[logging.Logger, Collect]]:
+def logger(request: pytest.FixtureRequest) -> Iterator[tuple[logging.Logger, LogCollector]]:
     log = logging.getLogger(f"test.logs.{request.node.name}")
     log.setLevel(logging.DEBUG)
     log.propagate = False
-    handler = Collect()
+    handler = LogCollector()
     log.addHandler(handler)
     yield log, handler
     log.removeHandler(handler)
 
 
 def test_first_occurrence_at_once_then_one_summary_with_the_count(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
     scheduler = ManualScheduler()
@@ -95,7 +83,7 @@ def test_first_occurrence_at_once_then_one_summary_with_the_count(
 
 
 def test_a_quiet_window_ends_silently_and_the_next_fault_is_a_first_again(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
     scheduler = ManualScheduler()
@@ -114,7 +102,7 @@ def test_a_quiet_window_ends_silently_and_the_next_fault_is_a_first_again(
 
 
 def test_subjects_and_faults_are_limited_separately(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
     scheduler = ManualScheduler()
@@ -139,7 +127,7 @@ def test_subjects_and_faults_are_limited_separately(
 
 
 def test_flush_writes_pending_summaries_and_cancels_the_timers(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
     scheduler = ManualScheduler()
@@ -158,7 +146,7 @@ def test_flush_writes_pending_summaries_and_cancels_the_timers(
 
 
 def test_nothing_is_remembered_while_the_level_is_off(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
     log.setLevel(logging.ERROR)
@@ -170,7 +158,7 @@ def test_nothing_is_remembered_while_the_level_is_off(
 
 
 def test_on_a_real_event_loop_the_summary_comes_when_the_window_ends(
-    logger: tuple[logging.Logger, Collect],
+    logger: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = logger
 

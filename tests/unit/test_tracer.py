@@ -7,6 +7,7 @@ import logging
 from collections.abc import Iterator
 
 import pytest
+from conftest import LogCollector
 
 from gateway.cli import build_parser
 from gateway.logs import JsonFormatter
@@ -24,30 +25,17 @@ class Clock:
         return self.now
 
 
-class Collect(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-    @property
-    def messages(self) -> list[str]:
-        return [record.getMessage() for record in self.records]
-
-
 @pytest.fixture
-def traced(request: pytest.FixtureRequest) -> Iterator[tuple[logging.Logger, Collect]]:
+def traced(request: pytest.FixtureRequest) -> Iterator[tuple[logging.Logger, LogCollector]]:
     log = logging.getLogger(f"test.trace.{request.node.name}")
     log.propagate = False
-    handler = Collect()
+    handler = LogCollector()
     log.addHandler(handler)
     yield log, handler
     log.removeHandler(handler)
 
 
-def test_request_and_reply_lines_with_latency(traced: tuple[logging.Logger, Collect]) -> None:
+def test_request_and_reply_lines_with_latency(traced: tuple[logging.Logger, LogCollector]) -> None:
     log, seen = traced
     clock = Clock()
     tracer = Tracer(logger=log, clock=clock)
@@ -61,7 +49,7 @@ def test_request_and_reply_lines_with_latency(traced: tuple[logging.Logger, Coll
     assert all(record.levelno == logging.INFO for record in seen.records)
 
 
-def test_tracing_is_on_whatever_the_log_level(traced: tuple[logging.Logger, Collect]) -> None:
+def test_tracing_is_on_whatever_the_log_level(traced: tuple[logging.Logger, LogCollector]) -> None:
     log, seen = traced
     log.setLevel(logging.ERROR)
     Tracer(logger=log).request("m", 1, 1, READ_10)
@@ -69,7 +57,7 @@ def test_tracing_is_on_whatever_the_log_level(traced: tuple[logging.Logger, Coll
 
 
 def test_outcome_from_the_reply_when_the_caller_does_not_say(
-    traced: tuple[logging.Logger, Collect],
+    traced: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = traced
     tracer = Tracer(logger=log)
@@ -87,7 +75,7 @@ def test_outcome_from_the_reply_when_the_caller_does_not_say(
     ]
 
 
-def test_filters_by_unit_and_function(traced: tuple[logging.Logger, Collect]) -> None:
+def test_filters_by_unit_and_function(traced: tuple[logging.Logger, LogCollector]) -> None:
     log, seen = traced
     tracer = Tracer(units=[5], functions=[3, 16], logger=log)
     tracer.request("m", 1, 5, READ_10)
@@ -106,7 +94,7 @@ def test_filters_by_unit_and_function(traced: tuple[logging.Logger, Collect]) ->
 
 
 def test_requests_without_reply_are_forgotten_past_the_bound(
-    traced: tuple[logging.Logger, Collect],
+    traced: tuple[logging.Logger, LogCollector],
 ) -> None:
     log, seen = traced
     log.disabled = True  # the formatting is not what this test is about
@@ -121,7 +109,7 @@ def test_requests_without_reply_are_forgotten_past_the_bound(
     assert last.__dict__["latency_ms"] is not None
 
 
-def test_json_lines_give_every_field(traced: tuple[logging.Logger, Collect]) -> None:
+def test_json_lines_give_every_field(traced: tuple[logging.Logger, LogCollector]) -> None:
     log, seen = traced
     clock = Clock()
     tracer = Tracer(logger=log, clock=clock)
