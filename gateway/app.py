@@ -82,7 +82,6 @@ class Gateway:
         self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
         self._stopping = False
-        self._unit_labels: dict[int, str] = {}
 
     # -- addresses ---------------------------------------------------------------------
 
@@ -106,9 +105,7 @@ class Gateway:
         for line in self.config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])
-        self.server = ModbusTcpServer(
-            self.config.server, self._build_router(), self.metrics, self._unit_label
-        )
+        self.server = ModbusTcpServer(self.config.server, self._build_router(), self.metrics)
         self.server.tracer = self.tracer
         await self.server.start()
         if self.config.metrics.enabled:
@@ -229,12 +226,8 @@ class Gateway:
             for unit, route in self.config.routes.items()
         }
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
-        self._unit_labels = {unit: str(unit) for unit in self.config.routes}
         self.metrics.prepare_units((r.line, r.slave) for r in self.config.routes.values())
         return Router(routes, broadcast)
-
-    def _unit_label(self, unit: int) -> str:
-        return self._unit_labels.get(unit, "other")
 
 
 async def run_until_signalled(
@@ -266,9 +259,6 @@ async def run_until_signalled(
             config = reload_source()
         except ConfigError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
-            return
-        except Exception as error:  # e.g. the path became a directory: never fatal
-            log.error("reload rejected, the running configuration stays: %r", error)
             return
         task = loop.create_task(gateway.reload(config))
         reloads.add(task)

@@ -578,6 +578,10 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         ) from None
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(source, [f"TOML syntax: {error}"]) from None
+    except UnicodeDecodeError:
+        raise ConfigError(source, ["not UTF-8 text; save the file as UTF-8"]) from None
+    except OSError as error:  # a directory, an I/O error on the medium, ...
+        raise ConfigError(source, [f"cannot read: {error.strerror or error}"]) from None
 
 
 def load_config(path: str | Path) -> GatewayConfig:

@@ -16,7 +16,7 @@ import asyncio
 import logging
 import socket
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import cast
 
@@ -285,12 +285,10 @@ class ModbusTcpServer:
         config: ServerConfig,
         router: Router,
         metrics: GatewayMetrics,
-        unit_labels: Callable[[int], str],
     ) -> None:
         self.config = config
         self.router = router
         self.metrics = metrics
-        self.unit_label = unit_labels
         self.tracer: Tracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._server: asyncio.Server | None = None

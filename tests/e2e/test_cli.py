@@ -231,3 +231,24 @@ def test_version() -> None:
     )
     assert done.returncode == 0
     assert done.stdout.strip() == f"modbus-gateway {__version__}"
+
+
+@pytest.mark.parametrize(
+    ("content", "expected"),
+    [(None, "cannot read"), (b"\xff\xfe[server]\n", "not UTF-8")],
+    ids=["a_directory", "not_utf8"],
+)
+def test_check_config_on_an_unreadable_file_names_the_fault(
+    tmp_path: Path, content: bytes | None, expected: str
+) -> None:
+    path = tmp_path / "gateway.toml"
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_bytes(content)
+    checked = subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config", str(path)],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert checked.returncode == 2
+    assert str(path) in checked.stderr and expected in checked.stderr
