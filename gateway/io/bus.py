@@ -31,7 +31,7 @@ from ..core.errors import ExceptionCode, ResponseError
 from ..core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
 from ..core.timing import character_time
 from ..logs import RateLimitedLogger
-from ..metrics import GatewayMetrics
+from ..metrics import UNIT_LABELS, GatewayMetrics
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
 
@@ -158,7 +158,6 @@ class Bus:
         self._garbled_timer: asyncio.TimerHandle | None = None
         self._current_unit = "0"
         self._open_error = ""
-        self._unit_labels = {unit: str(unit) for unit in range(256)}
         self._char_time = character_time(
             config.baudrate, config.data_bits, config.parity, config.stop_bits
         )
@@ -319,7 +318,7 @@ class Bus:
                 self._close_to_joiners(request)
                 for dropped in (request, *request.followers):  # reads that joined it too
                     self._metrics.count_request(
-                        self.name, self._unit_labels[dropped.slave], dropped.pdu[0], "dropped"
+                        self.name, UNIT_LABELS[dropped.slave], dropped.pdu[0], "dropped"
                     )
                 self._end_probe(request)
                 continue
@@ -347,7 +346,7 @@ class Bus:
         retry_allowed = request.pdu[0] not in fc.WRITE_FUNCTIONS or config.retry_writes
         attempts = 1 if request.probe else 1 + (config.retries if retry_allowed else 0)
         timeout = config.timeout_for(request.slave)
-        unit = self._unit_labels[request.slave]
+        unit = UNIT_LABELS[request.slave]
         frame = encode_rtu(request.slave, request.pdu)
         transmit_time = len(frame) * self._char_time
         for attempt in range(attempts):
@@ -577,7 +576,7 @@ class Bus:
             return
         if health.down:
             log.info("line %s: slave %d answers again", self.name, request.slave)
-            self._metrics.slave_up.labels(self.name, self._unit_labels[request.slave]).set(1)
+            self._metrics.slave_up.labels(self.name, UNIT_LABELS[request.slave]).set(1)
         del self._health[request.slave]
 
     def _slave_timed_out(self, request: Request) -> None:
@@ -595,7 +594,7 @@ class Bus:
             health.down = True
             health.backoff = self.config.probe_interval
             health.next_probe_at = now + health.backoff
-            self._metrics.slave_up.labels(self.name, self._unit_labels[request.slave]).set(0)
+            self._metrics.slave_up.labels(self.name, UNIT_LABELS[request.slave]).set(0)
             log.warning(
                 "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
                 "probing every %.1f s or more",

@@ -30,8 +30,6 @@ from .bus import Bus, Request
 
 log = logging.getLogger("gateway.tcp")
 
-_READ_LIMIT_CHUNK = 65536
-
 
 @dataclass(frozen=True, slots=True)
 class Target:
