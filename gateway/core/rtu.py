@@ -203,6 +203,22 @@ class RtuResponseDecoder:
         del buffer[expected:]
         return self._check(bytes(buffer))
 
+    @property
+    def looks_like_answer(self) -> bool:
+        """True when the frame collected starts like the awaited answer, at its full length.
+
+        Its unit, its function (or that function's exception) and the length those
+        imply: with a bad CRC, that is the answer itself damaged on the line, not noise
+        in front of it, so no other answer is coming.
+        """
+        buffer = self._buffer
+        return (
+            len(buffer) >= 2
+            and buffer[0] == self._unit
+            and buffer[1] & 0x7F == self._function
+            and self._expected == len(buffer)
+        )
+
     def end_of_frame(self) -> RtuFrame:
         """The line went silent: whatever was collected is the whole frame."""
         return self._check(bytes(self._buffer))

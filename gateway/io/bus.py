@@ -484,7 +484,10 @@ class Bus:
                     # it and keep decoding whatever followed it in the same read.
                     self._metrics.discarded_frames.labels(self.name, error.kind).inc()
                 else:
-                    self._note_garbled(error, waiter)
+                    self._note_garbled(error, waiter, decoder.looks_like_answer)
+                    if waiter.done():  # the attempt failed: the rest is drained as late
+                        self._decoder = None
+                        return
                 data = decoder.leftover
                 decoder.reset()
                 if data:
@@ -501,23 +504,30 @@ class Bus:
             self._silence_timer = self._loop.call_later(self.config.silence, self._on_silence)
 
     def _note_garbled(
-        self, error: ResponseError, waiter: asyncio.Future[RtuFrame | ResponseError | None]
+        self,
+        error: ResponseError,
+        waiter: asyncio.Future[RtuFrame | ResponseError | None],
+        damaged_answer: bool,
     ) -> None:
-        """A garbled frame: count it, then listen a little longer before giving up.
+        """A garbled frame: count it; fail the attempt, or listen a little longer first.
 
-        The garbled frame may have been noise in front of the slave's real answer;
-        retrying at once would put the retry on the wire while that answer comes,
-        and the slave's answer to the retry would then be left over for the next
-        request. So the attempt fails only after the line has stayed quiet for
-        ``_garbled_wait`` (2 x t3.5, at least 3 ms), and a valid answer arriving
-        meanwhile is taken.
+        A frame with the awaited unit, function and length is the answer itself,
+        damaged: the attempt fails at once and the retry follows after the frame gap.
+        Anything else may be noise in front of the slave's real answer; retrying at
+        once would put the retry on the wire while that answer comes, and the slave's
+        answer to the retry would be left over for the next request. So then the
+        attempt fails only after the line has stayed quiet for ``_garbled_wait``
+        (2 x t3.5, at least 3 ms), and a valid answer arriving meanwhile is taken.
         """
         if error.kind == "crc":
             self._metrics.crc_errors.labels(self.name, self._current_unit).inc()
         else:
             self._metrics.discarded_frames.labels(self.name, error.kind).inc()
         self._garbled = error
-        self._arm_garbled_timer(waiter)
+        if damaged_answer:
+            waiter.set_result(error)
+        else:
+            self._arm_garbled_timer(waiter)
 
     def _arm_garbled_timer(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:
         if self._garbled_timer is not None:
@@ -543,7 +553,7 @@ class Bus:
             if error.kind in _DISCARD_KINDS:
                 self._metrics.discarded_frames.labels(self.name, error.kind).inc()
             else:
-                self._note_garbled(error, waiter)
+                self._note_garbled(error, waiter, decoder.looks_like_answer)
             decoder.reset()
 
     def _on_timeout(self, waiter: asyncio.Future[RtuFrame | ResponseError | None]) -> None:

@@ -417,3 +417,16 @@ def test_decoder_rejects_a_response_to_another_request(request_pdu: str, respons
     with pytest.raises(ResponseError) as caught:
         decoder.feed(encode_rtu(1, h(response)))
     assert caught.value.kind == "mismatch"
+
+
+def test_a_damaged_answer_is_told_from_noise() -> None:
+    request = h("03 0000 0002")
+    answer = encode_rtu(1, h("03 04 0001 0002"))
+    damaged = RtuResponseDecoder(1, request)
+    with pytest.raises(ResponseError):
+        damaged.feed(answer[:-1] + bytes((answer[-1] ^ 0xFF,)))
+    assert damaged.looks_like_answer  # the answer itself, its CRC broken on the line
+    noise = RtuResponseDecoder(1, request)
+    with pytest.raises(ResponseError):
+        noise.feed(h("02 03 02 0000 0000"))
+    assert not noise.looks_like_answer  # another unit's address: noise before the answer
