@@ -164,7 +164,8 @@ class Bus:
         self._garbled_wait = max(2 * config.silence, 0.003)
         self._health: dict[int, SlaveHealth] = {}
         self._waiting_reads: dict[tuple[int, bytes], Request] = {}
-        self._write_epoch: dict[int, int] = {}
+        self._write_epoch: dict[int, int] = {}  # per slave: writes queued so far
+        self._broadcast_epoch = 0  # broadcasts queued so far (they write to every slave)
         self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
         self.idle = asyncio.Event()
         self.idle.set()
@@ -260,7 +261,12 @@ class Bus:
             return False
         now = time.monotonic()
         request.enqueued_at = now
-        if not request.broadcast and not self._admit(request, now):
+        if request.broadcast:
+            # A broadcast writes to every slave: no later read may share a transaction
+            # queued before it, and nothing cached may survive it.
+            self._broadcast_epoch += 1
+            self._cache.clear()
+        elif not self._admit(request, now):
             return True
         self._queue.push(request)
         self._counters.queue_depth = self._queue.size
@@ -291,7 +297,7 @@ class Bus:
             if cached is not None and now <= cached[0]:
                 request.answer(cached[1], "cached")
                 return False
-        epoch = self._write_epoch.get(slave, 0)
+        epoch = self._write_epoch.get(slave, 0) + self._broadcast_epoch
         if self.config.coalesce and not request.probe:
             leader = self._waiting_reads.get(key)
             if leader is not None and leader.epoch == epoch and not leader.answered:
@@ -443,6 +449,7 @@ class Bus:
         self._counters.bytes_written += len(frame)
         end = sent_at + len(frame) * self._char_time + self.config.broadcast_turnaround
         self._quiet_since = end
+        self._cache.clear()  # what was read while it waited in the queue is stale now
         request.answer(b"", "broadcast")
         await asyncio.sleep(max(0.0, end - time.monotonic()))
 

@@ -170,3 +170,20 @@ def test_a_per_slave_timeout_overrides_the_lines(gateway_with: GatewayOnSim) -> 
         started = time.monotonic()
         assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert time.monotonic() - started < 1.5  # the line's 3 s would be twice this
+
+
+def test_a_broadcast_write_empties_the_cache(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with(
+        {1: plc(1), 2: plc(2)},
+        line={"cache": [{"unit": 1, "function": 3, "start": 0, "count": 100, "max_age": 60.0}],
+              "broadcast_turnaround": 0.01},
+        server={"broadcast_reply": True},
+    )  # fmt: skip
+    with gw.connect() as master:
+        assert registers(master.request(1, READ_10))[:3] == [0, 2, 4]
+        assert registers(master.request(1, READ_10))[:3] == [0, 2, 4]  # cached
+        before = sim.stats().requests
+        assert master.request(0, bytes.fromhex("06 0002 0777")) == bytes.fromhex("06 0002 0777")
+        assert registers(master.request(1, READ_10))[:3] == [0, 2, 0x0777]
+        assert sim.stats().requests == before + 2  # the broadcast, then a real read
+    assert sim.device(2).holding[2] == 0x0777
