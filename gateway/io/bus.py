@@ -248,6 +248,12 @@ class Bus:
     def reconfigure(self, config: LineConfig) -> None:
         """Take new timeouts, retries and limits; the port settings must be unchanged."""
         self.config = config
+        if config.dead_after <= 0:  # isolation switched off: every slave is served again
+            for slave in [slave for slave, health in self._health.items() if health.down]:
+                self._metrics.slave_up.labels(self.name, UNIT_LABELS[slave]).set(1)
+            self._health.clear()
+        if not config.cache:
+            self._cache.clear()
 
     # -- the master's side -------------------------------------------------------------
 
