@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 from conftest import DEADLINE_S, GatewayOnSim, RawClient, RunningGateway
 
+from gateway.config import build_config
 from gateway.sim import plc
 
 READ_10 = bytes.fromhex("03 0000 000A")
@@ -187,3 +188,24 @@ def test_a_broadcast_write_empties_the_cache(gateway_with: GatewayOnSim) -> None
         assert registers(master.request(1, READ_10))[:3] == [0, 2, 0x0777]
         assert sim.stats().requests == before + 2  # the broadcast, then a real read
     assert sim.device(2).holding[2] == 0x0777
+
+
+def test_switching_isolation_off_on_reload_serves_the_slave_again(
+    gateway_with: GatewayOnSim,
+) -> None:
+    line = {"timeout": 0.05, "retries": 0, "dead_after": 1, "probe_interval": 60.0}
+    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line=line)
+    sim.faults(2).silent = True
+    with gw.connect() as master:
+        assert master.request(2, READ_10) == bytes([0x83, 0x0B])
+        assert master.request(2, READ_10) == bytes([0x83, 0x0B])  # isolated: not sent
+        assert sim.stats().silent_drops == 1
+        raw = {
+            "server": {"listen": "127.0.0.1:0"},
+            "metrics": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1, 2], **{**line, "dead_after": 0})},
+        }
+        gw.run(gw.gateway.reload(build_config(raw, "<reload>")))
+        sim.faults(2).silent = False
+        assert registers(master.request(2, READ_10))[:3] == [0, 2, 4]
+    assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 1
