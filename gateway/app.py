@@ -20,7 +20,7 @@ from typing import Any
 from prometheus_client import CollectorRegistry
 
 from .config import ConfigError, GatewayConfig, LineConfig, build_config, read_config_file
-from .io.bus import Bus
+from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.tcp import ModbusTcpServer, Router, Target
@@ -173,14 +173,17 @@ class Gateway:
             if bus is not None and not _port_changed(bus.config, line):
                 bus.reconfigure(line)
                 continue
+            queued: list[Request] = []
             if bus is not None:
                 log.info("reload: line %s port settings changed, reopening", line.name)
+                queued = bus.take_queued()  # they wait for the reopened line, not 0x0A
                 await self._close_bus(line.name, grace=5.0)
             else:
                 log.info("reload: line %s added", line.name)
             if self._stopping:  # a stop signal came while the old line finished its transaction
+                Bus.answer_unavailable(queued)
                 return
-            self._open_bus(line, loop)
+            self._open_bus(line, loop).adopt(queued)
         if (config.server.host, config.server.port) != (
             self.config.server.host,
             self.config.server.port,
@@ -207,13 +210,14 @@ class Gateway:
 
     # -- helpers -----------------------------------------------------------------------
 
-    def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> None:
+    def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> Bus:
         """Start a bus for ``line`` with a clock of its own (a clock serves one sleeper)."""
         clock = PreciseClock(loop)
         bus = Bus(line, self.metrics, loop, clock)
         self.buses[line.name] = bus
         self._clocks[line.name] = clock
         bus.start()
+        return bus
 
     async def _close_bus(self, name: str, grace: float) -> None:
         """Stop the bus of line ``name`` (see ``Bus.stop``) and release its clock."""

@@ -696,15 +696,31 @@ class Bus:
                 return
             delay = min(delay * 2, _REOPEN_MAX_DELAY)
 
+    def take_queued(self) -> list[Request]:
+        """Hand over every queued request unanswered: a reload moves them to the reopened line."""
+        self._waiting_reads.clear()
+        requests = self._queue.drain()
+        for request in requests:
+            self._end_probe(request)
+            request.probe = False
+        self._counters.queue_depth = 0
+        return requests
+
+    def adopt(self, requests: list[Request]) -> None:
+        """Queue requests taken from this line's previous incarnation (0x0A if it cannot)."""
+        self.answer_unavailable([request for request in requests if not self.submit(request)])
+
+    @staticmethod
+    def answer_unavailable(requests: list[Request]) -> None:
+        """Answer each request 0x0A (gateway path unavailable)."""
+        for request in requests:
+            request.answer(
+                Bus._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
+            )
+
     def _fail_queued(self) -> None:
         """Answer everything queued with 0x0A (the line is going away)."""
-        self._waiting_reads.clear()
-        for request in self._queue.drain():
-            self._end_probe(request)
-            request.answer(
-                self._exception(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE), "no_route"
-            )
-        self._counters.queue_depth = 0
+        self.answer_unavailable(self.take_queued())
 
     @staticmethod
     def _exception(request: Request, code: ExceptionCode) -> bytes:

@@ -209,3 +209,24 @@ def test_switching_isolation_off_on_reload_serves_the_slave_again(
         sim.faults(2).silent = False
         assert registers(master.request(2, READ_10))[:3] == [0, 2, 4]
     assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 1
+
+
+def test_a_reload_that_reopens_the_line_keeps_its_queue(gateway_with: GatewayOnSim) -> None:
+    """Requests queued on a line whose port settings change wait for the reopened line
+    instead of being answered 0x0A."""
+    sim, gw = gateway_with({1: plc(1)}, sim={"baudrate": 4800})
+    with gw.connect() as master:
+        tids = [master.send(1, bytes.fromhex(f"03 {1000 + 10 * i:04X} 0001")) for i in range(6)]
+        first = master.receive()
+        assert first.transaction_id == tids[0]
+        raw = {
+            "server": {"listen": "127.0.0.1:0"},
+            "metrics": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1], baudrate=9600)},  # a port setting: reopen
+        }
+        gw.run(gw.gateway.reload(build_config(raw, "<reload>")))
+        assert gw.gateway.buses["a"].config.baudrate == 9600
+        for index, tid in enumerate(tids[1:], start=1):
+            reply = master.receive()
+            assert reply.transaction_id == tid
+            assert registers(reply.pdu) == [1000 + 10 * index]
