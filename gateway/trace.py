@@ -23,12 +23,6 @@ from .core.errors import ExceptionCode
 #: Requests remembered for their reply's latency; the oldest are forgotten past this.
 MAX_PENDING = 4096
 
-#: Writes whose normal answer echoes the request's address and value or quantity.
-_ECHOES = frozenset(
-    {fc.WRITE_SINGLE_COIL, fc.WRITE_SINGLE_REGISTER, fc.WRITE_MULTIPLE_COILS,
-     fc.WRITE_MULTIPLE_REGISTERS}
-)  # fmt: skip
-
 #: Outcome shown for a reply when the caller does not name one, by exception code.
 _OUTCOME_BY_CODE: dict[int, str] = {
     ExceptionCode.GATEWAY_PATH_UNAVAILABLE: "no_route",
@@ -104,13 +98,12 @@ class Tracer:
         function = pdu[0] & 0x7F if pdu else 0
         if not self.wants(unit, function):
             return
-        arrived = self._pending.pop((peer, transaction_id, unit), None)
-        latency_ms = None if arrived is None else (self._clock() - arrived) * 1000.0
+        latency_ms = self._latency_ms(peer, transaction_id, unit)
         if outcome is None:
             outcome = _derive_outcome(pdu)
         name = fc.function_name(function)
-        if function in _ECHOES and not fc.is_exception(pdu):
-            detail = fc.describe_request(pdu)  # same layout: address, then value or quantity
+        if function in fc.ECHOED_WRITES and not fc.is_exception(pdu):
+            detail = fc.describe_request(pdu)  # an echo: address, then value or quantity
         else:
             detail = fc.describe_response(pdu)
         latency = "" if latency_ms is None else f" {latency_ms:.2f} ms"
@@ -126,8 +119,7 @@ class Tracer:
         """The answer to a request came after its master had left: nothing goes out."""
         if not self.wants(unit, function):
             return
-        arrived = self._pending.pop((peer, transaction_id, unit), None)
-        latency_ms = None if arrived is None else (self._clock() - arrived) * 1000.0
+        latency_ms = self._latency_ms(peer, transaction_id, unit)
         name = fc.function_name(function)
         self._log.info(
             "x  %s tid=%d unit=%d %s(%d) dropped: the master left",
@@ -136,6 +128,11 @@ class Tracer:
                    "unit": unit, "function": name, "function_code": function,
                    "outcome": "dropped", "latency_ms": latency_ms},
         )  # fmt: skip
+
+    def _latency_ms(self, peer: str, transaction_id: int, unit: int) -> float | None:
+        """Milliseconds since the request arrived (``None`` if it was not traced)."""
+        arrived = self._pending.pop((peer, transaction_id, unit), None)
+        return None if arrived is None else (self._clock() - arrived) * 1000.0
 
 
 def _derive_outcome(pdu: bytes) -> str:

@@ -275,6 +275,27 @@ def _validate_read_write(pdu: bytes, name: str) -> None:
         raise _fail(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{name} write range passes 65535")
 
 
+#: Writes whose normal response is fixed by the request (see ``write_response``).
+ECHOED_WRITES = frozenset(
+    {
+        WRITE_SINGLE_COIL,
+        WRITE_SINGLE_REGISTER,
+        WRITE_MULTIPLE_COILS,
+        WRITE_MULTIPLE_REGISTERS,
+        WRITE_FILE_RECORD,
+        MASK_WRITE_REGISTER,
+    }
+)
+
+
+def write_response(request: bytes) -> bytes:
+    """The normal response to a write in ``ECHOED_WRITES``: the request echoed, or for
+    FC 15/16 its function, address and quantity."""
+    if request[0] in (WRITE_MULTIPLE_COILS, WRITE_MULTIPLE_REGISTERS):
+        return request[:5]
+    return request
+
+
 def is_exception(pdu: bytes) -> bool:
     """True for an exception response PDU."""
     return bool(pdu) and bool(pdu[0] & EXCEPTION_FLAG)

@@ -267,10 +267,10 @@ def _mismatch(request: bytes, response: bytes) -> str:
         expected = (((request[3] << 8) | request[4]) + 7) // 8
     elif function in _REGISTER_READS and len(request) >= 5:
         expected = 2 * ((request[3] << 8) | request[4])
-    elif function in (fc.WRITE_SINGLE_COIL, fc.WRITE_SINGLE_REGISTER, fc.MASK_WRITE_REGISTER):
-        return "" if response == request else "response does not echo the request"
-    elif function in (fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS):
-        return "" if response[:5] == request[:5] else "response does not echo address and quantity"
+    elif function in fc.ECHOED_WRITES:
+        if response == fc.write_response(request):
+            return ""
+        return "response does not echo the request"
     else:
         return ""
     if len(response) < 2 or response[1] != expected:

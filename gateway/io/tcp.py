@@ -51,13 +51,6 @@ class Router:
         return self.routes.get(unit)
 
 
-def _broadcast_reply(pdu: bytes) -> bytes:
-    """What a slave would have answered to a write that was broadcast instead."""
-    if pdu[0] in (fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS):
-        return pdu[:5]
-    return pdu
-
-
 class MasterConnection(asyncio.Protocol):
     """One TCP master."""
 
@@ -216,7 +209,8 @@ class MasterConnection(asyncio.Protocol):
             if remaining:
                 return
             if server.config.broadcast_reply and not self._closed:
-                self._send(transaction_id, 0, _broadcast_reply(pdu))
+                # What a single slave would have answered to the write.
+                self._send(transaction_id, 0, fc.write_response(pdu))
             server.metrics.count_request("broadcast", "0", pdu[0], outcome)
             self._request_done()
 

@@ -16,6 +16,7 @@ from gateway.core.pdu import (
     function_name,
     is_exception,
     validate_request,
+    write_response,
 )
 
 ILLEGAL_FUNCTION = ExceptionCode.ILLEGAL_FUNCTION
@@ -339,3 +340,9 @@ def test_describe() -> None:
     assert describe_response(h("83 02")) == "exception=0x02"
     assert describe_response(h("06 0007 1234")) == "bytes=4"
     assert describe_response(b"") == "empty"
+
+
+def test_the_normal_response_to_a_write() -> None:
+    assert write_response(h("06 0007 1234")) == h("06 0007 1234")
+    assert write_response(h("10 0001 0002 04 000A 0102")) == h("10 0001 0002")
+    assert write_response(h("0F 0013 000A 02 CD01")) == h("0F 0013 000A")

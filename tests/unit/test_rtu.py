@@ -430,3 +430,14 @@ def test_a_damaged_answer_is_told_from_noise() -> None:
     with pytest.raises(ResponseError):
         noise.feed(h("02 03 02 0000 0000"))
     assert not noise.looks_like_answer  # another unit's address: noise before the answer
+
+
+def test_a_write_file_record_answer_must_echo_the_request() -> None:
+    request = h("15 0D 06 0004 0007 0003 06AF 04BE 100D")
+    decoder = RtuResponseDecoder(1, request)
+    other = h("15 0D 06 0004 0008 0003 06AF 04BE 100D")  # another record's late echo
+    with pytest.raises(ResponseError) as caught:
+        decoder.feed(encode_rtu(1, other))
+    assert caught.value.kind == "mismatch"
+    decoder.reset()
+    assert decoder.feed(encode_rtu(1, request)) == RtuFrame(1, request)
