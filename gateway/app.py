@@ -24,6 +24,7 @@ from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.tcp import ModbusTcpServer, Router, Target
+from .live import LiveView
 from .metrics import GatewayMetrics
 from .trace import Tracer
 
@@ -81,6 +82,7 @@ class Gateway:
         self._clocks: dict[str, PreciseClock] = {}  # one per bus: a clock has one sleeper
         self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
+        self.live: LiveView | None = None  # trace stream, /status and the status page
         self._stopping = False
 
     # -- addresses ---------------------------------------------------------------------
@@ -107,6 +109,7 @@ class Gateway:
         self.metrics.describe_lines([line.name for line in self.config.lines])
         self.server = ModbusTcpServer(self.config.server, self._build_router(), self.metrics)
         self.server.tracer = self.tracer
+        self.live = LiveView(self)
         await self.server.start()
         if self.config.metrics.enabled:
             self._http = await self._start_http()
@@ -118,7 +121,8 @@ class Gateway:
         self.ready.set()
 
     async def _start_http(self) -> HttpEndpoint:
-        return await start_http(self.config.metrics, self.metrics.registry, self.is_ready)
+        routes = self.live.routes if self.live is not None else None
+        return await start_http(self.config.metrics, self.metrics.registry, self.is_ready, routes)
 
     def is_ready(self) -> tuple[bool, str]:
         """Readiness for /readyz: the listener is up and every line is open."""
@@ -141,6 +145,8 @@ class Gateway:
         if self.server is not None:
             self.server.close_all("shutdown")
             await self.server.wait_closed()
+        if self.live is not None:
+            self.live.close()
         if self._http is not None:
             await self._http.close()
         for clock in self._clocks.values():

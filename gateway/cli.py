@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="modbus-gateway",
         description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
-        "'example-config', 'trace [OPTIONS]' (the same as --trace).",
+        "'example-config', 'trace [OPTIONS]' (the same as --trace), 'trace --url "
+        "http://HOST:PORT' (attach to a running gateway).",
     )
     parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
@@ -194,6 +195,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(example_config())
         return 0
     if argv and argv[0] == "trace":
+        if any(arg == "--url" or arg.startswith("--url=") for arg in argv[1:]):
+            from .trace_client import main as trace_client
+
+            return trace_client(argv[1:])
         argv = ["--trace", *argv[1:]]
     args = build_parser().parse_args(argv)
     raw: dict[str, Any] = {}

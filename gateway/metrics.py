@@ -124,6 +124,11 @@ class LoopHistogram:
         self.counts = [0] * (len(upper_bounds) + 1)  # the last one is +Inf
         self.sum = 0.0
 
+    @property
+    def upper_bounds(self) -> tuple[float, ...]:
+        """The finite bucket bounds (``counts`` has one more entry, for +Inf)."""
+        return self._upper_bounds
+
     def observe(self, value: float) -> None:
         """Record one observation (``le`` is inclusive, as Prometheus defines it)."""
         self.counts[bisect_left(self._upper_bounds, value)] += 1
@@ -236,6 +241,13 @@ class GatewayMetrics:
             p + "protocol_errors", "Malformed input from TCP masters, by kind.", ["kind"],
             registry=r,
         )  # fmt: skip
+        self.trace_dropped = Counter(
+            p + "trace_dropped_events",
+            "Live trace events not sent because the client read too slowly.", registry=r,
+        )  # fmt: skip
+        self.trace_streams = Gauge(
+            p + "trace_streams", "Live trace streams open now (GET /trace).", registry=r
+        )
         self.info = Info(p + "build", "Version and configured lines.", registry=r)
         self.info.info({"version": __version__, "lines": ""})
         self._line_counters: dict[str, LineCounters] = {}

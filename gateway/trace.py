@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Collection
+from typing import Protocol
 
 from .core import pdu as fc
 from .core.errors import ExceptionCode
@@ -45,6 +46,21 @@ def parse_function(text: str) -> int:
     if not 1 <= code <= 127:
         raise ValueError(f"function code {code} outside 1..127")
     return code
+
+
+class FrameTracer(Protocol):
+    """What the TCP server calls per frame while tracing: the logger, or the live trace hub."""
+
+    def request(self, peer: str, transaction_id: int, unit: int, pdu: bytes) -> None:
+        """A request arrived from ``peer``."""
+
+    def reply(
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
+    ) -> None:
+        """A reply is going out to ``peer``."""
+
+    def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
+        """The answer to a request came after its master had left."""
 
 
 class Tracer:

@@ -22,7 +22,7 @@ import asyncio
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from ..config import LineConfig
@@ -32,6 +32,7 @@ from ..core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
 from ..core.timing import character_time
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
+from ..status import LineState, LineStatus, SlaveState, SlaveStatus
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
 
@@ -725,3 +726,27 @@ class Bus:
     @staticmethod
     def _exception(request: Request, code: ExceptionCode) -> bytes:
         return fc.exception_pdu(request.pdu[0], code)
+
+    # -- status: the status page's only view of a line --------------------------------
+
+    def status(self, slaves: Iterable[int] = ()) -> LineStatus:
+        """A snapshot of this line and of ``slaves`` (plus any slave it keeps health for)."""
+        config = self.config
+        listed = []
+        for slave in sorted(set(slaves) | set(self._health)):
+            health = self._health.get(slave)
+            if health is not None and health.down:
+                state = SlaveState.DOWN
+            elif health is not None and health.consecutive_timeouts:
+                state = SlaveState.SUSPECT
+            else:
+                state = SlaveState.UP
+            listed.append(SlaveStatus(self.name, slave, state))
+        return LineStatus(
+            name=self.name,
+            kind="url" if config.is_url else "serial",
+            device=config.device,
+            state=LineState.UP if self.up else LineState.DOWN,
+            queued=self.queued,
+            slaves=tuple(listed),
+        )

@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Mapping
 from http import HTTPStatus
 
 from prometheus_client import CollectorRegistry
@@ -30,6 +30,11 @@ _MAX_REQUEST_HEAD = 8192
 _READ_TIMEOUT = 5.0
 _INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
 
+#: An extra route (gateway.live): method, target with query, lower-case headers, the streams.
+Route = Callable[
+    [str, str, Mapping[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]
+]
+
 
 class HttpEndpoint:
     """A running HTTP endpoint."""
@@ -38,9 +43,11 @@ class HttpEndpoint:
         self,
         registry: CollectorRegistry,
         readiness: Callable[[], tuple[bool, str]],
+        routes: Mapping[str, Route] | None = None,
     ) -> None:
         self._registry = registry
         self._readiness = readiness
+        self._routes = dict(routes or {})
         self._server: asyncio.Server | None = None
 
     @property
@@ -82,7 +89,10 @@ class HttpEndpoint:
             await self._respond(writer, 405, "text/plain", b"only GET is served\n")
             return
         path = parts[1].split("?", 1)[0]
-        if path == "/metrics":
+        route = self._routes.get(path)
+        if route is not None:
+            await route(parts[0], parts[1], headers, reader, writer)
+        elif path == "/metrics":
             encoder, content_type = choose_encoder(headers.get("accept", ""))
             await self._respond(writer, 200, content_type, encoder(self._registry), parts[0])
         elif path == "/healthz":
@@ -117,8 +127,9 @@ async def start_http(
     config: MetricsConfig,
     registry: CollectorRegistry,
     readiness: Callable[[], tuple[bool, str]],
+    routes: Mapping[str, Route] | None = None,
 ) -> HttpEndpoint:
     """Start the endpoint on the configured address."""
-    endpoint = HttpEndpoint(registry, readiness)
+    endpoint = HttpEndpoint(registry, readiness, routes)
     await endpoint.start(config.host, config.port)
     return endpoint

@@ -25,7 +25,8 @@ from ..core import pdu as fc
 from ..core.errors import ExceptionCode, FramingError, ModbusError
 from ..core.mbap import MbapDecoder, MbapFrame, encode_mbap
 from ..metrics import UNIT_LABELS, GatewayMetrics
-from ..trace import Tracer
+from ..status import MasterStatus
+from ..trace import FrameTracer
 from .bus import Bus, Request
 
 log = logging.getLogger("gateway.tcp")
@@ -63,6 +64,7 @@ class MasterConnection(asyncio.Protocol):
         self._paused = False
         self._closed = False
         self.peer = "?"
+        self.requests = 0  # frames received, for the status page
         self.last_activity = time.monotonic()
         self._idle_timer: asyncio.TimerHandle | None = None
 
@@ -103,6 +105,11 @@ class MasterConnection(asyncio.Protocol):
     # -- requests ----------------------------------------------------------------------
 
     @property
+    def in_flight(self) -> int:
+        """Requests of this master queued or on the wire."""
+        return self._in_flight
+
+    @property
     def busy(self) -> bool:
         """True while requests of this master are queued or on the wire."""
         return self._in_flight > 0
@@ -132,6 +139,7 @@ class MasterConnection(asyncio.Protocol):
     def _handle(self, frame: MbapFrame) -> None:
         server = self._server
         arrived = time.monotonic()
+        self.requests += 1
         transaction_id, unit, pdu = frame
         function = pdu[0] if pdu else 0
         tracer = server.tracer
@@ -281,7 +289,7 @@ class ModbusTcpServer:
         self.config = config
         self.router = router
         self.metrics = metrics
-        self.tracer: Tracer | None = None  # only while tracing: the frame path tests for None
+        self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._server: asyncio.Server | None = None
 
@@ -319,6 +327,15 @@ class ModbusTcpServer:
         """Wait for the listening sockets to close."""
         if self._server is not None:
             await self._server.wait_closed()
+
+    def masters(self) -> list[MasterStatus]:
+        """A snapshot of the connected masters, for the status page."""
+        host, port = self.sockets[0] if self.sockets else (self.config.host, self.config.port)
+        listener = f"{host}:{port}"
+        return [
+            MasterStatus(connection.peer, listener, connection.in_flight, connection.requests)
+            for connection in self._connections
+        ]
 
     def admit(self, connection: MasterConnection) -> bool:
         """Accept a new master, or make room (or refuse) at the limit."""

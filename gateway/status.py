@@ -1,0 +1,119 @@
+"""Typed snapshots of the gateway's state for the status page and ``GET /status``.
+
+The line, the TCP server and the metrics each hand out one of these small
+frozen records instead of having their private fields read: the status page
+depends on this vocabulary, not on how a line or a connection keeps its books.
+``to_json`` turns a snapshot into the plain dictionaries the page fetches.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+
+class LineState(enum.Enum):
+    """How a serial line is doing."""
+
+    UP = "up"  # the port is open and answers come back clean
+    DOWN = "down"  # the port is closed (unplugged, wrong device): requests get 0x0A
+    NOISY = "noisy"  # open, but garbled frames were seen recently
+
+
+class SlaveState(enum.Enum):
+    """How one slave address on a line is doing."""
+
+    UP = "up"  # answered its last transaction
+    SUSPECT = "suspect"  # silent lately, not yet isolated
+    DOWN = "down"  # isolated as dead: answered 0x0B at once, probed now and then
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveStatus:
+    """One slave address on a line; latency and errors are filled from the metrics."""
+
+    line: str
+    unit: int
+    state: SlaveState
+    p50: float | None = None  # seconds, over the recent answers; None before any
+    p99: float | None = None
+    errors: int = 0  # timeouts and CRC errors since start
+
+
+@dataclass(frozen=True, slots=True)
+class LineStatus:
+    """One serial line and the slaves routed to it."""
+
+    name: str
+    kind: str  # "serial" for a device node, "url" for a serial server (socket://, rfc2217://)
+    device: str
+    state: LineState
+    queued: int  # requests waiting for the line now
+    utilisation: float | None = None  # share of the last interval the wire was busy, 0..1
+    slaves: tuple[SlaveStatus, ...] = ()
+    p50: float | None = None  # request latency as masters see it, seconds, since start
+    p99: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MasterStatus:
+    """One connected TCP master."""
+
+    peer: str
+    listener: str
+    in_flight: int
+    requests: int
+
+
+@dataclass(frozen=True, slots=True)
+class GatewayStatus:
+    """Everything ``GET /status`` reports."""
+
+    version: str
+    uptime: float
+    lines: tuple[LineStatus, ...]
+    masters: tuple[MasterStatus, ...]
+    listen: str = ""  # the Modbus TCP address
+    trace_clients: int = 0
+    trace_dropped: int = 0
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(item) for item in value]
+    return value
+
+
+def to_json(status: GatewayStatus) -> dict[str, Any]:
+    """The snapshot as JSON-ready dictionaries (enums as their string values)."""
+    plain: dict[str, Any] = _plain(asdict(status))
+    return plain
+
+
+def quantile(upper_bounds: Sequence[float], counts: Sequence[int], q: float) -> float | None:
+    """The ``q`` quantile of a histogram, interpolated within its bucket as Prometheus does.
+
+    ``counts`` are per bucket (not cumulative), one more than ``upper_bounds`` (+Inf last).
+    ``None`` when the histogram is empty; the highest finite bound when the quantile
+    falls in +Inf.
+    """
+    total = sum(counts)
+    if total == 0:
+        return None
+    rank = q * total
+    seen = 0
+    for index, count in enumerate(counts):
+        if seen + count >= rank and count:
+            if index >= len(upper_bounds):
+                return upper_bounds[-1]
+            lower = upper_bounds[index - 1] if index else 0.0
+            upper = upper_bounds[index]
+            return lower + (upper - lower) * (rank - seen) / count
+        seen += count
+    return upper_bounds[-1]

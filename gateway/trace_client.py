@@ -1,0 +1,217 @@
+"""``modbus-gateway trace --url http://HOST:PORT``: watch a running gateway's traffic.
+
+Attaches to the gateway's ``GET /trace`` stream (newline-delimited JSON), so
+nothing is restarted and no serial port or TCP port is taken. Prints one line
+per frame (or the JSON itself with ``--json``) and, with ``--pcap FILE``,
+writes a pcapng capture Wireshark opens as it is (see ``gateway.pcap``).
+Filters are applied by the gateway, so a busy gateway sends only what is asked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import ipaddress
+import json
+import signal
+import socket
+import sys
+import time
+from collections.abc import Sequence
+from types import FrameType
+from typing import Any
+from urllib.parse import urlencode, urlsplit
+
+from .pcap import IpAddress, PcapngWriter
+from .trace import parse_function
+
+
+def _function_code(text: str) -> str:
+    try:
+        return str(parse_function(text))
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``modbus-gateway trace --url`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="modbus-gateway trace",
+        description="Attach to a running gateway's live trace (its HTTP endpoint). Without "
+        "--url, 'trace' runs a gateway with the trace logged instead (see modbus-gateway -h).",
+    )
+    parser.add_argument("--url", required=True, metavar="http://HOST:PORT",
+                        help="the gateway's HTTP endpoint ([metrics] listen)")  # fmt: skip
+    parser.add_argument("--line", action="append", default=[], help="only this line (repeatable)")
+    parser.add_argument("--unit", action="append", type=int, default=[], metavar="N",
+                        help="only TCP unit id N (repeatable)")  # fmt: skip
+    parser.add_argument("--function", action="append", type=_function_code, default=[],
+                        metavar="FC", help="only function FC: 3, 0x10 or read_holding_registers "
+                        "(repeatable)")  # fmt: skip
+    parser.add_argument("--outcome", action="append", default=[],
+                        help="only replies with this outcome: ok, target_failed, no_route, ... "
+                        "(repeatable)")  # fmt: skip
+    parser.add_argument("--master", action="append", default=[], metavar="HOST[:PORT]",
+                        help="only this master (repeatable)")  # fmt: skip
+    parser.add_argument("--pcap", metavar="FILE",
+                        help="also write a pcapng capture (Modbus/TCP and Modbus RTU)")  # fmt: skip
+    parser.add_argument("--json", action="store_true", help="print the events as JSON lines")
+    parser.add_argument("--count", type=int, metavar="N", help="stop after N events")
+    parser.add_argument("--connect-timeout", type=float, default=5.0, metavar="SECONDS",
+                        help=argparse.SUPPRESS)  # fmt: skip
+    return parser
+
+
+def format_event(event: dict[str, Any]) -> str:
+    """One human-readable line per event."""
+    if event.get("type") == "gap":
+        return f"... {event['dropped']} event(s) dropped: this client read too slowly"
+    clock = time.strftime("%H:%M:%S", time.localtime(event["time"]))
+    millis = int((event["time"] % 1) * 1000)
+    arrow = {"request": "->", "reply": "<-"}.get(event["type"], "x ")
+    where = ""
+    if event.get("line") is not None:
+        where = f" [line {event['line']} slave {event['slave']}]"
+    text = (
+        f"{clock}.{millis:03d} {arrow} {event['master']} tid={event['tid']} "
+        f"unit={event['unit']}{where} {event['function']}({event['fc']}) {event.get('detail', '')}"
+    )
+    if event.get("outcome"):
+        text += f" {event['outcome']}"
+    if event.get("latency_ms") is not None:
+        text += f" {event['latency_ms']:.2f} ms"
+    if event["type"] == "request":
+        text += f"  [{event['hex']}]"
+    return text
+
+
+def _gateway_address(host: str) -> IpAddress:
+    """The gateway's IP for the capture: the URL's host, resolved when it is a name."""
+    try:
+        return ipaddress.ip_address(host)
+    except ValueError:
+        try:
+            return ipaddress.ip_address(socket.gethostbyname(host))
+        except (OSError, ValueError):
+            return ipaddress.IPv4Address("127.0.0.1")
+
+
+class TraceCapture:
+    """Turns trace events into capture frames: TCP at once, the line's once the outcome is known.
+
+    A request reaches the line only if its reply says so (an answer from the slave or its
+    silence); requests answered by the gateway itself (rejected, no route, cached) are not
+    put on the line side.
+    """
+
+    #: Outcomes whose request was sent on the line, and those whose answer came from it.
+    SENT = frozenset({"ok", "slave_exception", "target_failed"})
+    ANSWERED = frozenset({"ok", "slave_exception"})
+    MAX_PENDING = 4096
+
+    def __init__(self, writer: PcapngWriter) -> None:
+        self.writer = writer
+        self._pending: dict[tuple[str, int, int], dict[str, Any]] = {}
+
+    def add(self, event: dict[str, Any]) -> None:
+        """Put one trace event in the capture."""
+        kind = event.get("type")
+        if kind not in ("request", "reply"):
+            return
+        pdu = bytes.fromhex(event["hex"])
+        key = (event["master"], event["tid"], event["unit"])
+        if kind == "request":
+            self.writer.tcp(event["time"], event["master"], True, event["tid"], event["unit"], pdu)
+            if event.get("line") is not None:
+                if len(self._pending) >= self.MAX_PENDING:
+                    del self._pending[next(iter(self._pending))]
+                self._pending[key] = event
+            return
+        if pdu:  # a broadcast without a reply has nothing on the TCP side
+            self.writer.tcp(event["time"], event["master"], False, event["tid"], event["unit"], pdu)
+        request = self._pending.pop(key, None)
+        outcome = event.get("outcome")
+        if request is None or outcome not in self.SENT:
+            return
+        line, slave = request["line"], request["slave"]
+        self.writer.rtu(request["time"], line, True, slave, bytes.fromhex(request["hex"]))
+        if outcome in self.ANSWERED:
+            self.writer.rtu(event["time"], line, False, slave, pdu)
+
+
+_STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+
+
+class _StopRequestedError(Exception):
+    """SIGTERM or SIGINT: finish the capture and exit 0."""
+
+
+def _on_signal(_signum: int, _frame: FrameType | None) -> None:
+    raise _StopRequestedError
+
+
+def main(argv: Sequence[str]) -> int:
+    """Run the client; 0 on a clean stop, 1 when the gateway went away, 2 on bad input."""
+    args = build_parser().parse_args(argv)
+    url = urlsplit(args.url)
+    if url.scheme != "http" or not url.hostname:
+        print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
+    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
+    query += [("master", v) for v in args.master]
+    path = (url.path.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
+    connection = http.client.HTTPConnection(url.hostname, url.port or 80,
+                                            timeout=args.connect_timeout)  # fmt: skip
+    pcap_file = None
+    seen = 0
+    try:
+        try:
+            connection.request("GET", path, headers={"Accept": "application/x-ndjson"})
+            response = connection.getresponse()
+        except OSError as error:
+            print(f"modbus-gateway trace: cannot reach {args.url}: {error}; is the gateway "
+                  "running with its HTTP endpoint ([metrics] listen) there?",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+        if response.status != 200:
+            body = response.read().decode(errors="replace").strip()
+            print(f"modbus-gateway trace: {args.url} answered {response.status}: {body}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        if connection.sock is not None:
+            connection.sock.settimeout(None)  # a quiet line may send nothing for hours
+        capture = None
+        if args.pcap:
+            pcap_file = open(args.pcap, "wb")  # noqa: SIM115 - closed in the finally below
+            capture = TraceCapture(PcapngWriter(pcap_file, _gateway_address(url.hostname)))
+        print(f"tracing {args.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        while args.count is None or seen < args.count:
+            raw = response.readline()
+            if not raw:
+                print("modbus-gateway trace: the gateway closed the stream", file=sys.stderr)
+                return 1
+            if not raw.strip():
+                continue
+            # A stop signal lands between events, never inside a capture block.
+            signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+            event = json.loads(raw)
+            seen += 1
+            if capture is not None:
+                capture.add(event)
+            print(json.dumps(event) if args.json else format_event(event), flush=True)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    except _StopRequestedError:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        connection.close()
+        if pcap_file is not None:
+            pcap_file.close()
+            print(f"wrote {args.pcap}: open it with wireshark or 'tshark -r {args.pcap}'",
+                  file=sys.stderr)  # fmt: skip
+    return 0

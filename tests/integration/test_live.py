@@ -1,0 +1,208 @@
+"""The live trace stream and ``GET /status`` on a running gateway, over real HTTP on loopback."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway
+from metrics_harness import http_get, metrics_address, samples, series
+
+from gateway.live import QUEUE_LIMIT
+from gateway.sim import plc
+
+READ_10 = bytes.fromhex("03 0000 000A")
+
+
+class Stream:
+    """A raw HTTP client on ``GET /trace``: reads events only when asked."""
+
+    def __init__(self, gw: RunningGateway, query: str = "", receive_buffer: int = 0) -> None:
+        self.sock = socket.socket()
+        if receive_buffer:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
+        self.sock.settimeout(DEADLINE_S)
+        self.sock.connect(metrics_address(gw))
+        self.sock.sendall(f"GET /trace{query} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+        self.buffer = b""
+        head = self._until(b"\r\n\r\n")
+        self.status = int(head.split()[1])
+        self.head = head.decode("latin-1")
+
+    def _until(self, marker: bytes) -> bytes:
+        while marker not in self.buffer:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise AssertionError(f"stream closed; had {self.buffer[-200:]!r}")
+            self.buffer += chunk
+        data, _, self.buffer = self.buffer.partition(marker)
+        return data
+
+    def event(self) -> dict[str, Any]:
+        """The next event."""
+        event: dict[str, Any] = json.loads(self._until(b"\n"))
+        return event
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@contextmanager
+def stream(gw: RunningGateway, query: str = "", receive_buffer: int = 0) -> Iterator[Stream]:
+    client = Stream(gw, query, receive_buffer)
+    try:
+        assert client.status == 200, client.head
+        # The stream is registered before its head is sent: events from now on reach it.
+        yield client
+    finally:
+        client.close()
+
+
+def status(gw: RunningGateway) -> dict[str, Any]:
+    code, headers, body = http_get(gw, "/status")
+    assert code == 200 and headers["content-type"] == "application/json"
+    result: dict[str, Any] = json.loads(body)
+    return result
+
+
+def test_the_stream_shows_hex_and_where_a_remapped_unit_went(gateway_with: GatewayOnSim) -> None:
+    _sim, gw = gateway_with({1: plc(1), 2: plc(2)}, routes=[{"unit": 100, "line": "a", "slave": 2}])
+    with stream(gw, "?unit=100") as trace, gw.connect() as master:
+        master.request(1, READ_10)  # another unit: filtered out by the gateway
+        tid = master.send(100, READ_10)
+        reply = master.receive()
+        request_event, reply_event = trace.event(), trace.event()
+        peer = "{}:{}".format(*master.sock.getsockname())
+    assert request_event == {
+        **request_event,
+        "type": "request", "tid": tid, "unit": 100, "line": "a", "slave": 2,
+        "function": "read_holding_registers", "fc": 3, "hex": "03 00 00 00 0a",
+        "detail": "address=0 quantity=10",
+    }  # fmt: skip
+    assert request_event["master"] == peer
+    assert reply_event["type"] == "reply" and reply_event["tid"] == tid
+    assert (reply_event["line"], reply_event["slave"], reply_event["outcome"]) == ("a", 2, "ok")
+    assert bytes.fromhex(reply_event["hex"]) == reply.pdu
+    assert reply_event["latency_ms"] > 0
+
+
+def test_filters_by_line_function_outcome_and_master(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line={"timeout": 0.05, "retries": 0})
+    sim.faults(2).silent = True
+    with (
+        stream(gw, "?outcome=target_failed") as failed,
+        stream(gw, "?function=write_single_register&line=a") as writes,
+        stream(gw, "?master=127.0.0.2") as other_master,
+        gw.connect() as master,
+    ):
+        master.request(1, READ_10)
+        master.request(1, bytes.fromhex("06 0001 0007"))
+        master.request(2, READ_10)
+        event = failed.event()
+        assert (event["type"], event["unit"], event["outcome"]) == ("reply", 2, "target_failed")
+        request, reply = writes.event(), writes.event()
+        assert (request["fc"], reply["fc"], reply["outcome"]) == (6, 6, "ok")
+        assert reply["detail"] == "address=1 value=0x0007"
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.2", 0))
+            sock.settimeout(DEADLINE_S)
+            sock.connect(gw.address)
+            sock.sendall(bytes.fromhex("0009 0000 0006 01") + READ_10)
+            sock.recv(256)
+        event = other_master.event()
+        assert event["tid"] == 9 and event["master"].startswith("127.0.0.2:")
+
+
+def test_a_bad_filter_is_refused_with_the_reason(gateway_with: GatewayOnSim) -> None:
+    _sim, gw = gateway_with({1: plc(1)})
+    code, _headers, body = http_get(gw, "/trace?unit=abc")
+    assert code == 400 and b"unit='abc'" in body
+    code, _headers, body = http_get(gw, "/trace?outcome=fine")
+    assert code == 400 and b"expected one of" in body and b"target_failed" in body
+
+
+def test_a_client_that_does_not_read_loses_events_not_the_gateways_time(
+    gateway_with: GatewayOnSim,
+) -> None:
+    _sim, gw = gateway_with({1: plc(1)})
+    dropped = series("modbus_gateway_trace_dropped_events_total")
+    with stream(gw, receive_buffer=4096) as slow, gw.connect() as master:
+        # Every request makes two events of ~250 bytes: far more than the kernel and
+        # process buffers plus the stream's queue of QUEUE_LIMIT events can hold.
+        answered = 0
+        started = time.monotonic()
+        while samples(gw).get(dropped, 0.0) == 0.0:
+            assert time.monotonic() - started < 3 * DEADLINE_S, "no events were dropped"
+            for _ in range(8):  # pipelined, as a busy master would
+                master.send(1, READ_10)
+            for _ in range(8):
+                assert master.receive().pdu[:2] == b"\x03\x14"
+                answered += 1
+        assert answered >= QUEUE_LIMIT // 2
+        # The slow client finally reads: it is told how much it lost, then gets new events.
+        slow.sock.settimeout(DEADLINE_S)
+        gap = None
+        while gap is None:
+            event = slow.event()
+            if event["type"] == "gap":
+                gap = event
+        assert gap["dropped"] > 0
+        assert samples(gw)[dropped] >= gap["dropped"]
+    assert status(gw)["trace_dropped"] >= gap["dropped"]
+
+
+def test_status_reports_lines_slaves_and_masters(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with(
+        {1: plc(1), 2: plc(2)},
+        line={"timeout": 0.05, "retries": 0, "dead_after": 2, "probe_interval": 60},
+    )
+    first = status(gw)
+    (line,) = first["lines"]
+    assert (line["name"], line["kind"], line["device"], line["state"]) == (
+        "a", "serial", sim.path, "up",
+    )  # fmt: skip
+    assert [(s["unit"], s["state"], s["errors"]) for s in line["slaves"]] == [
+        (1, "up", 0), (2, "up", 0),
+    ]  # fmt: skip
+    assert first["masters"] == []
+    with gw.connect() as master:
+        for _ in range(5):
+            master.request(1, READ_10)
+        sim.faults(2).silent = True
+        master.request(2, READ_10)  # one timeout: suspect
+        now = status(gw)
+        slaves = {s["unit"]: s for s in now["lines"][0]["slaves"]}
+        assert slaves[2]["state"] == "suspect" and slaves[2]["errors"] == 1
+        assert slaves[1]["state"] == "up"
+        assert 0 < slaves[1]["p50"] <= slaves[1]["p99"] < 1.0
+        assert now["lines"][0]["utilisation"] is not None
+        assert now["lines"][0]["p50"] is not None
+        (entry,) = now["masters"]
+        assert entry["peer"] == "{}:{}".format(*master.sock.getsockname())
+        assert entry["requests"] == 6 and entry["in_flight"] == 0
+        assert entry["listener"].endswith(f":{gw.port}")
+        master.request(2, READ_10)  # the second timeout in a row: isolated
+        slaves = {s["unit"]: s for s in status(gw)["lines"][0]["slaves"]}
+        assert slaves[2]["state"] == "down" and slaves[2]["errors"] == 2
+
+
+def test_status_shows_a_line_down(make_gateway: GatewayFactory, tmp_path: Path) -> None:
+    device = str(tmp_path / "ttyUSB9")  # an adapter that is not plugged in
+    gw = make_gateway({"lines": {"a": {"device": device, "units": [1]}}})
+    (line,) = status(gw)["lines"]
+    assert (line["name"], line["device"], line["state"]) == ("a", device, "down")
+
+
+def test_the_page_is_self_contained(gateway_with: GatewayOnSim) -> None:
+    _sim, gw = gateway_with({1: plc(1)})
+    code, headers, body = http_get(gw, "/")
+    assert code == 200 and headers["content-type"].startswith("text/html")
+    page = body.decode()
+    assert "<script>" in page and "fetch(" in page and "EventSource(" in page
+    for external in ("http://", "https://", "//cdn", "@import", "src=", '<link rel="style'):
+        assert external not in page, external
