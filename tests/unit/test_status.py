@@ -94,7 +94,7 @@ def test_trace_filters_from_the_query_string() -> None:
 
 
 def _ones_complement_sum(data: bytes) -> int:
-    total = sum(struct.unpack(f"!{len(data) // 2}H", data))
+    total: int = sum(struct.unpack(f"!{len(data) // 2}H", data))
     while total >> 16:
         total = (total & 0xFFFF) + (total >> 16)
     return total
