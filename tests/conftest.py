@@ -60,11 +60,16 @@ class LogCollector(logging.Handler):
 # --------------------------------------------------------------------------- external tools
 
 
+#: Debian packages of the programs whose package has another name.
+_PACKAGE_OF = {"promtool": "prometheus", "systemd-analyze": "systemd"}
+
+
 def require_tool(name: str) -> str:
     """Path of an external program; skip when missing, but fail under CI (``CI`` is set)."""
     path = shutil.which(name)
     if path is None:
-        reason = f"{name} is not installed (apt-get install {name}; .ci/run installs it)"
+        package = _PACKAGE_OF.get(name, name)
+        reason = f"{name} is not installed (apt-get install {package}; .ci/run installs it)"
         if os.environ.get("CI"):
             pytest.fail(f"{reason}; CI must run this test")
         pytest.skip(reason)
