@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="modbus-gateway",
         description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
         "'example-config', 'trace [OPTIONS]' (the same as --trace), 'trace --url "
-        "http://HOST:PORT' (attach to a running gateway).",
+        "http://HOST:PORT' (attach to a running gateway), 'scan' (find the slaves on a line).",
     )
     parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
@@ -191,6 +191,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "check-config":
         return _check_config(argv[1:])
+    if argv and argv[0] == "scan":
+        from .scan import main as scan
+
+        return scan(argv[1:])
     if argv == ["example-config"]:
         sys.stdout.write(example_config())
         return 0

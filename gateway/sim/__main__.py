@@ -57,6 +57,11 @@ def _parser() -> argparse.ArgumentParser:
         default=DEFAULT_TURNAROUND_S,
         help="seconds between a request's end and the answer's start (paced lines)",
     )
+    parser.add_argument(
+        "--strict-baudrate",
+        action="store_true",
+        help="answer only while the master's side is set to --baudrate (as a real slave)",
+    )
     parser.add_argument("--link", help="make this symlink point at the pty device")
     parser.add_argument(
         "--realtime",
@@ -120,6 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             turnaround=args.turnaround,
             seed=args.seed,
             realtime=args.realtime,
+            strict_baudrate=args.strict_baudrate,
         )
         for unit in args.silent:
             if unit not in devices:

@@ -13,7 +13,9 @@ the slave answers ``turnaround`` seconds later and its m-byte response would
 end m character times after that: the whole response is written at that end
 instant (coarse wait, then a short spin for ~20 us accuracy). Every request
 starting less than t3.5 after the previous frame's end is an ``early_request``;
-one arriving while a response is pending is also a ``collision``. Colliding
+one arriving while a response is pending is also a ``collision``.
+With ``strict_baudrate`` a request is answered only while the master's end of
+the pty is set to the line's own baud rate (``wrong_baudrate`` counts the others). Colliding
 requests are still served afterwards, so a benchmark keeps running and the
 counters tell what a real bus would have garbled.
 """
@@ -26,6 +28,7 @@ import os
 import random
 import select
 import sys
+import termios
 import threading
 import time
 from collections.abc import Mapping
@@ -73,6 +76,7 @@ class LineStats:
     silent_drops: int  #: requests to a unit injected ``silent``
     crc_errors_out: int  #: responses sent with a corrupted CRC on purpose
     incomplete_frames: int  #: byte runs that never became a frame before t3.5 of silence
+    wrong_baudrate: int  #: requests ignored because the master's side was at another speed
     min_gap_s: float | None  #: shortest silence before a request (paced lines; None before any)
     max_lateness_s: float  #: worst delay of a response write behind its computed end time
 
@@ -89,6 +93,7 @@ class _Counters:
     silent_drops: int = 0
     crc_errors_out: int = 0
     incomplete_frames: int = 0
+    wrong_baudrate: int = 0
     min_gap_s: float = field(default=float("inf"))
     max_lateness_s: float = 0.0
 
@@ -145,6 +150,7 @@ class SimulatedLine:
         turnaround: float = DEFAULT_TURNAROUND_S,
         seed: int = 0,
         realtime: bool = False,
+        strict_baudrate: bool = False,
     ) -> None:
         for unit in devices:
             if not 1 <= unit <= 247:
@@ -165,6 +171,13 @@ class SimulatedLine:
             self._turnaround = turnaround
         self._rng = random.Random(seed)
         self._realtime = realtime
+        self._speed: int | None = None  # termios speed the master's side must be set to
+        if strict_baudrate:
+            if baudrate is None:
+                raise ValueError("strict_baudrate needs a baudrate")
+            self._speed = getattr(termios, f"B{baudrate}", None)
+            if self._speed is None:
+                raise ValueError(f"baud rate {baudrate} has no termios speed")
         self.realtime_active = False  # set by the serving thread once it runs
         self._counters = _Counters()
         self._buffer = bytearray()
@@ -351,6 +364,10 @@ class SimulatedLine:
         if len(frame) < MIN_RTU_FRAME or not check_crc(frame):
             counters.crc_errors_in += 1
             return
+        if self._speed is not None and not self._at_our_speed():
+            # A slave hears only noise from a master at another speed: it stays silent.
+            counters.wrong_baudrate += 1
+            return
         counters.requests += 1
         unit, pdu = frame[0], frame[1:-2]
         if unit == BROADCAST_UNIT:
@@ -389,6 +406,18 @@ class SimulatedLine:
             self._line_free_at = finish
             # Frames sent one after the other keep t3.5 apart, so the master can tell them apart.
             begin = (finish if self._char_time else time.perf_counter()) + self._silence
+
+    def _at_our_speed(self) -> bool:
+        """True when the other end of the pty is set to this line's baud rate.
+
+        A pty keeps the speed (not parity or data bits) set from either end, so
+        a simulator can refuse a master at the wrong rate, as a real slave would.
+        """
+        try:
+            speed = termios.tcgetattr(self._fd)[4]
+        except termios.error:
+            return True  # not a terminal (a socket pair in a test): nothing to compare
+        return bool(speed == self._speed)
 
     def _transmit_at(self, data: bytes, finish: float) -> None:
         """Write ``data`` at the instant its transmission would end on the wire."""
