@@ -23,6 +23,7 @@ from .config import ConfigError, GatewayConfig, LineConfig, build_config, read_c
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
+from .io.serial_port import check_device_free
 from .io.tcp import ModbusTcpServer, Router, Target
 from .live import LiveView
 from .metrics import GatewayMetrics
@@ -104,6 +105,8 @@ class Gateway:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         loop = asyncio.get_running_loop()
         ensure_file_descriptors(self.config.server.max_connections + _FDS_BESIDES_MASTERS)
+        for line in self.config.lines:  # a device another program holds fails the start
+            check_device_free(line)
         for line in self.config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])

@@ -13,7 +13,13 @@ from typing import Any
 
 from . import __version__
 from .app import Gateway, reloader, run_until_signalled
-from .config import ConfigError, build_config, parse_host_port, read_config_file
+from .config import (
+    ConfigError,
+    build_config,
+    config_warnings,
+    parse_host_port,
+    read_config_file,
+)
 from .logs import setup_logging
 from .sim.demo import DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
@@ -161,15 +167,24 @@ def _check_config(argv: Sequence[str]) -> int:
         prog="modbus-gateway check-config", description="Validate a configuration file."
     )
     parser.add_argument("file")
+    parser.add_argument(
+        "--strict", action="store_true", help="treat warnings as errors (exit 2 on any)"
+    )
     args = parser.parse_args(argv)
     try:
         config = build_config(read_config_file(args.file), args.file)
     except ConfigError as error:
         print(error, file=sys.stderr)
         return 2
+    warnings = config_warnings(config)
+    for warning in warnings:
+        print(f"{args.file}: warning: {warning}", file=sys.stderr)
+    if warnings and args.strict:
+        return 2
     print(
         f"{args.file}: OK: {len(config.lines)} line(s), {len(config.routes)} routed unit(s), "
         f"listening on {config.server.host}:{config.server.port}"
+        + (f"; {len(warnings)} warning(s)" if warnings else "")
     )
     return 0
 
@@ -220,6 +235,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             demo.stop()
         return 2
     setup_logging(config.logging.level, config.logging.format)
+    if demo is None:
+        for warning in config_warnings(config):
+            log.warning("%s: %s", config.source, warning)
     reload_source: Callable[[], Any] | None = None
     if args.config and not args.demo:
         reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))

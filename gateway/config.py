@@ -8,9 +8,11 @@ file, key and fix instead of stopping at the first. Nothing here opens a port.
 
 from __future__ import annotations
 
+import difflib
 import math
+import os
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -223,6 +225,10 @@ class _Checker:
     def unknown_keys(self, table: Mapping[str, Any], known: set[str], prefix: str) -> None:
         for key in table:
             if key not in known:
+                close = difflib.get_close_matches(str(key), sorted(known), n=1, cutoff=0.6)
+                if close:
+                    self.fail(f"{prefix}{key}", f"unknown key; did you mean {close[0]!r}?")
+                    continue
                 choices = ", ".join(sorted(known))
                 self.fail(f"{prefix}{key}", f"unknown key; known keys here are: {choices}")
 
@@ -489,14 +495,18 @@ def _build_routes(
     routes: dict[int, Route] = {}
     names = {line.name for line in lines}
     for line in lines:
+        taken: dict[str, list[int]] = {}  # earlier line -> units this line repeats
         for unit in line.units:
             if unit in routes:
-                check.fail(
-                    f"lines.{line.name}.units",
-                    f"unit {unit} is already routed to line "
-                    f"{routes[unit].line!r}; give each unit one line",
-                )
+                taken.setdefault(routes[unit].line, []).append(unit)
+                continue
             routes[unit] = Route(unit, line.name, unit)
+        for other, units in taken.items():  # one message per pair of lines, as ranges
+            check.fail(
+                f"lines.{line.name}.units",
+                f"{'unit' if len(units) == 1 else 'units'} {format_units(units)} already "
+                f"routed to line {other!r}; give each unit one line",
+            )
     raw_routes = raw.get("routes", [])
     if not isinstance(raw_routes, list):
         check.fail("routes", "write routes as [[routes]] tables with unit, line and slave")
@@ -525,6 +535,81 @@ def _build_routes(
             continue
         routes[unit] = Route(unit, line_name, slave)
     return routes
+
+
+def format_units(units: Iterable[int]) -> str:
+    """Unit ids as compact ranges: ``[1, 2, 3, 7, 9, 10]`` -> ``"1-3, 7, 9-10"``."""
+    parts: list[str] = []
+    ordered = sorted(set(units))
+    start = 0
+    for index, unit in enumerate(ordered):
+        if index + 1 < len(ordered) and ordered[index + 1] == unit + 1:
+            continue
+        low = ordered[start]
+        parts.append(str(low) if low == unit else f"{low}-{unit}")
+        start = index + 1
+    return ", ".join(parts)
+
+
+def _device_identity(device: str) -> str:
+    """What makes two ``device`` values the same port: the resolved path (by-id symlinks)."""
+    return device if "://" in device else os.path.realpath(device)
+
+
+def _check_shared_devices(check: _Checker, lines: tuple[LineConfig, ...]) -> None:
+    """Two lines on one device would interleave their frames on the wire: an error."""
+    owners: dict[str, str] = {}
+    for line in lines:
+        if not line.device:
+            continue
+        identity = _device_identity(line.device)
+        owner = owners.setdefault(identity, line.name)
+        if owner != line.name:
+            check.fail(
+                f"lines.{line.name}.device",
+                f"{line.device!r} is the device of line {owner!r} too; one serial device "
+                f"serves one line: merge the two lines' units into lines.{owner}",
+            )
+
+
+def _hosts_overlap(first: str, second: str) -> bool:
+    wildcard = ("0.0.0.0", "::", "")
+    return first == second or first in wildcard or second in wildcard
+
+
+def config_warnings(config: GatewayConfig) -> list[str]:
+    """Things that are legal but probably wrong, each naming its key (check-config, start).
+
+    Warnings, not errors: a USB adapter may be plugged in after the gateway starts, and a
+    line may be kept ready for units routed to it later.
+    """
+    warnings: list[str] = []
+    routed_lines = {route.line for route in config.routes.values()}
+    for line in config.lines:
+        prefix = f"lines.{line.name}"
+        if not line.is_url and not os.path.exists(line.device):
+            warnings.append(
+                f"{prefix}.device: {line.device} does not exist (yet); the gateway retries "
+                "opening it, check the path (ls /dev/serial/by-id/)"
+            )
+        if line.name not in routed_lines:
+            warnings.append(
+                f"{prefix}.units: no unit is routed to this line; add units = [...] or a "
+                f'[[routes]] entry with line = "{line.name}"'
+            )
+    server, metrics = config.server, config.metrics
+    if (
+        metrics.enabled
+        and server.port == metrics.port
+        and server.port != 0
+        and _hosts_overlap(server.host, metrics.host)
+    ):
+        warnings.append(
+            f"metrics.listen: port {metrics.port} is also server.listen's (Modbus TCP); "
+            "the second to bind fails: give one of them another port (the defaults are "
+            "502 and 9502)"
+        )
+    return warnings
 
 
 def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
@@ -558,6 +643,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
             'no serial line configured; add [lines.a] with device = "/dev/ttyUSB0" '
             "(or run with --serial DEVICE, or --demo)",
         )
+    _check_shared_devices(check, lines)
     routes = _build_routes(check, raw, lines)
     if check.problems:
         raise ConfigError(source, check.problems)

@@ -6,13 +6,24 @@ driven by ``loop.add_reader`` on the port's file descriptor, one non-blocking
 read per readiness, so the loop never blocks on the line. Every failure to
 apply a setting becomes a ``SerialPortError`` naming the setting, because a
 traceback about ``termios`` helps nobody on a commissioning day.
+
+One owner per device: two programs on one RS485 adapter interleave their frames
+and corrupt each other's transactions. A device node is therefore opened
+exclusively: ``TIOCEXCL`` (the kernel refuses further opens, except to root), an
+advisory ``flock`` (what pyserial's ``exclusive=True`` and other tools take) and a
+POSIX record lock, whose holder ``F_GETLK`` names by pid even where ``/proc/locks``
+is hidden (systemd's ``ProcSubset=pid``). A device that is taken raises
+``DeviceBusyError`` naming the holder.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
+import fcntl
 import os
+import struct
 import termios
 from collections.abc import Callable
 from typing import Any
@@ -33,6 +44,120 @@ _READ_CHUNK = 4096
 
 class SerialPortError(OSError):
     """A serial line that cannot be opened or configured, with the setting to blame."""
+
+
+class DeviceBusyError(SerialPortError):
+    """The device is held by another program (or another line of this gateway)."""
+
+
+# -------------------------------------------------------------------------- device ownership
+
+#: ``struct flock`` on Linux (64-bit off_t): l_type, l_whence, l_start, l_len, l_pid.
+_FLOCK = struct.Struct("hhqqi")
+
+
+def _posix_lock_holder(fd: int) -> int | None:
+    """Pid holding a POSIX record lock on the file that conflicts with ours, if any."""
+    query = _FLOCK.pack(fcntl.F_WRLCK, os.SEEK_SET, 0, 0, 0)
+    try:
+        answer = fcntl.fcntl(fd, fcntl.F_GETLK, query)
+    except OSError:
+        return None
+    l_type, _, _, _, pid = _FLOCK.unpack(answer)
+    return pid if l_type != fcntl.F_UNLCK and pid > 0 else None
+
+
+def _proc_locks_holders(path: str) -> list[int]:
+    """Pids with a lock on ``path`` in ``/proc/locks`` (empty where it is hidden)."""
+    try:
+        status = os.stat(path)
+        with open("/proc/locks", encoding="ascii") as table:
+            entries = table.read().splitlines()
+    except OSError:
+        return []
+    wanted = f"{os.major(status.st_dev):02x}:{os.minor(status.st_dev):02x}:{status.st_ino}"
+    holders: list[int] = []
+    for entry in entries:
+        fields = entry.split()
+        # "1: FLOCK  ADVISORY  WRITE 1234 00:05:27 0 EOF"; blocked waiters start with "->".
+        if len(fields) >= 6 and fields[1] != "->" and fields[5] == wanted:
+            with contextlib.suppress(ValueError):
+                holders.append(int(fields[4]))
+    return holders
+
+
+def _command_line(pid: int) -> str:
+    """What ``pid`` runs, for the message; empty when /proc does not say (another user's)."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as cmdline:
+            words = cmdline.read().rstrip(b"\0").split(b"\0")
+    except OSError:
+        return ""
+    text = " ".join(" ".join(word.decode("utf-8", "replace").split()) for word in words)
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def describe_holder(path: str, fd: int | None = None) -> str:
+    """``pid 1234 (modbus-gateway --config ...)``, or how to find the holder."""
+    pid = _posix_lock_holder(fd) if fd is not None else None
+    if pid is None:
+        others = [holder for holder in _proc_locks_holders(path) if holder != os.getpid()]
+        if others:
+            pid = others[0]
+        elif _proc_locks_holders(path):
+            return "another line of this gateway"
+    if pid is None:
+        return f"another program (find it with: fuser -v {path})"
+    command = _command_line(pid)
+    return f"pid {pid} ({command})" if command else f"pid {pid}"
+
+
+def _busy(line: LineConfig, holder: str) -> DeviceBusyError:
+    return DeviceBusyError(
+        f"line {line.name!r}: {line.device} is in use by {holder}; a serial device serves "
+        f"one gateway line: stop the other program, or set lines.{line.name}.device to "
+        "another device",
+    )
+
+
+def _lock(line: LineConfig, fd: int) -> None:
+    """Take the advisory locks on an open device, or raise ``DeviceBusyError``."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.fcntl(fd, fcntl.F_SETLK, _FLOCK.pack(fcntl.F_WRLCK, os.SEEK_SET, 0, 0, 0))
+    except OSError as error:
+        if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise SerialPortError(
+                f"line {line.name!r}: cannot lock {line.device}: {error}"
+            ) from error
+        raise _busy(line, describe_holder(line.device, fd)) from None
+
+
+def check_device_free(line: LineConfig) -> None:
+    """Raise ``DeviceBusyError`` naming the holder when another program holds the device.
+
+    Checked at start, so that a second gateway on a device fails at once instead of
+    running with a line it can never open. A device that does not exist (yet) passes:
+    a USB adapter may be plugged in later. URLs (serial servers) are not locked.
+    """
+    if line.is_url:
+        return
+    try:
+        fd = os.open(line.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError as error:
+        if error.errno == errno.EBUSY:  # TIOCEXCL by another program, and we are not root
+            raise _busy(line, describe_holder(line.device)) from None
+        return  # missing, no permission, ...: the line's own open reports it
+    try:
+        _lock(line, fd)
+    finally:
+        os.close(fd)  # releases the locks just taken
+
+
+def _set_exclusive(fd: int, exclusive: bool) -> None:
+    """TIOCEXCL / TIOCNXCL; devices that are not terminals (ENOTTY) are left alone."""
+    with contextlib.suppress(OSError):
+        fcntl.ioctl(fd, termios.TIOCEXCL if exclusive else termios.TIOCNXCL)
 
 
 def _apply(line: LineConfig, port: Any, setting: str, value: Any, shown: object = None) -> None:
@@ -64,11 +189,19 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
     try:
         port.open()
     except (serial.SerialException, OSError) as error:
+        if getattr(error, "errno", None) == errno.EBUSY:
+            raise _busy(line, describe_holder(line.device)) from error
         raise SerialPortError(
             f"line {line.name!r}: cannot open {line.device}: {error}; check the device exists, "
             "is not used by another program, and that the gateway's user is in the dialout group"
         ) from error
+    exclusive = False
     try:
+        if not line.is_url:
+            fd = port.fileno()
+            _lock(line, fd)
+            _set_exclusive(fd, True)
+            exclusive = True
         _apply(line, port, "bytesize", line.data_bits)
         _apply(line, port, "parity", _PARITIES[line.parity])
         _apply(line, port, "stopbits", _STOP_BITS[line.stop_bits])
@@ -86,9 +219,23 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
                 shown=True,
             )
     except SerialPortError:
-        port.close()
+        if exclusive:
+            _release(port)
+        else:  # the device belongs to someone else: leave its TIOCEXCL alone
+            with contextlib.suppress(OSError, serial.SerialException):
+                port.close()
         raise
     return port
+
+
+def _release(port: serial.SerialBase) -> None:
+    """Close a port, first clearing TIOCEXCL: on a pty the flag outlives our descriptor."""
+    fileno = getattr(port, "fileno", None)
+    if fileno is not None and port.is_open:
+        with contextlib.suppress(OSError, serial.SerialException, AttributeError):
+            _set_exclusive(int(fileno()), False)
+    with contextlib.suppress(OSError, serial.SerialException):
+        port.close()
 
 
 class SerialLink:
@@ -166,8 +313,7 @@ class SerialLink:
             return
         self._closed = True
         self._loop.remove_reader(self._fd)
-        with contextlib.suppress(OSError, serial.SerialException):
-            self._port.close()
+        _release(self._port)
 
     def _readable(self) -> None:
         try:
