@@ -581,11 +581,8 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
         events = stream.events
         while events:
             chunks.append(_encode(events.popleft().to_json(), sse))
-        if not chunks:
-            if sse:
-                chunks.append(b": keep-alive\n\n")
-            else:
-                continue
+        if not chunks:  # quiet for HEARTBEAT_S: show the client (and proxies) we are alive
+            chunks.append(b": keep-alive\n\n" if sse else b'{"type":"heartbeat"}\n')
         writer.write(b"".join(chunks))
         await writer.drain()  # a slow client holds only its own writer; its queue fills
 

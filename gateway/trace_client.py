@@ -196,9 +196,11 @@ def main(argv: Sequence[str]) -> int:
                 return 1
             if not raw.strip():
                 continue
+            event = json.loads(raw)
+            if event.get("type") == "heartbeat":
+                continue
             # A stop signal lands between events, never inside a capture block.
             signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-            event = json.loads(raw)
             seen += 1
             if capture is not None:
                 capture.add(event)

@@ -10,9 +10,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import pytest
 from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway
 from metrics_harness import http_get, metrics_address, samples, series
 
+from gateway import live
 from gateway.live import QUEUE_LIMIT
 from gateway.sim import plc
 
@@ -206,3 +208,22 @@ def test_the_page_is_self_contained(gateway_with: GatewayOnSim) -> None:
     assert "<script>" in page and "fetch(" in page and "EventSource(" in page
     for external in ("http://", "https://", "//cdn", "@import", "src=", '<link rel="style'):
         assert external not in page, external
+
+
+def test_quiet_streams_get_heartbeats_and_sse_frames_events(
+    gateway_with: GatewayOnSim, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _sim, gw = gateway_with({1: plc(1)})
+    monkeypatch.setattr(live, "HEARTBEAT_S", 0.05)
+    with stream(gw) as ndjson:
+        assert ndjson.event() == {"type": "heartbeat"}
+    with stream(gw, "?format=sse") as sse, gw.connect() as master:
+        assert "content-type: text/event-stream" in sse.head.lower()
+        assert sse._until(b"\n\n") == b": modbus-gateway trace"
+        assert sse._until(b"\n\n") == b": keep-alive"
+        master.request(1, READ_10)
+        frame = sse._until(b"\n\n")
+        while frame == b": keep-alive":
+            frame = sse._until(b"\n\n")
+        assert frame.startswith(b"data: ")
+        assert json.loads(frame[6:])["type"] == "request"
