@@ -67,7 +67,7 @@ _ANSWERED = frozenset({"ok", "slave_exception"})
 _OUTCOME_BY_CODE = {0x0A: "no_route", 0x0B: "target_failed"}
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)  # not frozen: a frozen dataclass costs ~1 us more to build
 class TraceEvent:
     """One frame to or from a master, with where it went on the line side."""
 
