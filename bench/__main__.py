@@ -1,8 +1,10 @@
 """``python -m bench``: run the scenarios, print the tables, write the JSON results.
 
-    python -m bench                       # every scenario, ~3 minutes
-    python -m bench --quick               # shorter windows, ~1 minute
-    python -m bench --scenario paced      # one scenario (repeat the flag for more)
+    python -m bench                       # every scenario
+    python -m bench --quick               # shorter windows
+    python -m bench late dead greedy      # chosen scenarios: a name, or the start of names
+    python -m bench --scenario paced      # the same, as a flag (repeat it for more)
+    python -m bench --tiny floor          # the smallest runs (the smoke test's)
     python -m bench --output /tmp/r.json  # results elsewhere than bench/results.json
 
 Exit status: 0 when every run completed with zero wrong answers and zero
@@ -17,28 +19,54 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from . import line_scenarios, scenarios
 from .procs import BenchError, environment_summary
 from .report import render_checks, render_table
-from .scenarios import SCENARIOS, Bench, ScenarioResult, Timing
+from .scenarios import Bench, ScenarioResult, Timing
 
 BENCH_DIR = Path(__file__).resolve().parent
 DEFAULT_OUTPUT = BENCH_DIR / "results.json"
 
+#: Every scenario by name, in the order a full run takes them; each module keeps its own.
+SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
+    **scenarios.SCENARIOS,
+    **line_scenarios.SCENARIOS,
+}
+
+
+def select(names: Sequence[str]) -> list[str]:
+    """Scenario names for the command line's: a full name, or the start of several."""
+    chosen: list[str] = []
+    for name in names:
+        matches = [name] if name in SCENARIOS else [n for n in SCENARIOS if n.startswith(name)]
+        if not matches:
+            raise ValueError(f"no scenario {name!r}; choose from {', '.join(SCENARIOS)}")
+        chosen += [match for match in matches if match not in chosen]
+    return chosen
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="short windows (~1 minute in all)")
+    parser.add_argument("--quick", action="store_true", help="short windows")
+    parser.add_argument("--tiny", action="store_true", help="the smallest runs (smoke tests)")
+    parser.add_argument(
+        "names",
+        nargs="*",
+        metavar="SCENARIO",
+        help=f"scenarios to run, by name or the start of names ({', '.join(SCENARIOS)}); "
+        "default: all",
+    )
     parser.add_argument(
         "--scenario",
         action="append",
-        choices=list(SCENARIOS),
+        default=[],
         metavar="NAME",
-        help=f"run only this scenario ({', '.join(SCENARIOS)}); repeat for more",
+        help="run this scenario (repeat for more); the same as naming it",
     )
     parser.add_argument(
         "--output",
@@ -55,15 +83,19 @@ def _progress(message: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the chosen scenarios; see the module docstring for the exit status."""
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        names = select([*args.scenario, *args.names]) or list(SCENARIOS)
+    except ValueError as error:
+        parser.error(str(error))
     # The child processes import ``bench`` and ``gateway`` from this checkout.
     root = str(BENCH_DIR.parent)
     os.environ["PYTHONPATH"] = os.pathsep.join(
         [root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
     )
     os.chdir(root)
-    names = args.scenario or list(SCENARIOS)
-    bench = Bench(Timing.make(args.quick), _progress)
+    bench = Bench(Timing.make(args.quick, args.tiny), _progress)
     started = time.monotonic()
     results: list[ScenarioResult] = []
     failures: dict[str, str] = {}
@@ -104,6 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     document: dict[str, Any] = {
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "quick": args.quick,
+        "tiny": args.tiny,
         "elapsed_s": elapsed,
         "environment": environment_summary(),
         "wrong_answers": wrong,

@@ -6,13 +6,16 @@ remote client would not, but never shares an interpreter with them. It speaks
 Modbus TCP with raw asyncio protocols (uvloop when importable) and does not
 import the gateway: its reading of the protocol is its own.
 
-Every request reads (FC03) or writes (FC06) holding registers of the
-simulator's ``plc`` profile, whose registers 1000..9999 hold their own address,
-so every answer can be checked byte for byte: transaction id (it must be one
-this connection has outstanding), protocol id, length, unit id, function, byte
-count and every register value. Masters keep ``pipeline`` requests in flight,
-each with a different unit and address, so a reply given under the wrong
-transaction id is caught.
+Every request reads (FC03) or writes (FC06) holding registers 1000..9999 of
+the benchmark's slaves (``bench.slaves``), which hold
+``bench.values.register_value(unit, address)``, so every answer can be checked
+byte for byte: transaction id (it must be one this connection has outstanding),
+protocol id, length, unit id, function, byte count and every register value.
+Polling requests take their address from one counter per unit shared by every
+master: no two requests to a unit among the last 900 read the same block, so an
+answer delivered to another request (a late answer taken for the next one, a
+reply under the wrong transaction id, another unit's data) is a wrong answer,
+and identical requests never wait together (coalescing cannot inflate a figure).
 
 Modes:
 
@@ -23,6 +26,14 @@ Modes:
               last write acknowledged before the read was sent (read-after-write),
               and nothing newer than the last write sent before the answer came.
 ``slow``      each master sends one request every ``period`` seconds (random phase).
+
+``groups`` adds masters that behave differently beside the main ones (a polite
+master among greedy ones, a live one among masters polling absent units); each
+group's answers are also counted on their own. Exception codes in ``tolerate``
+(and 0x0B from ``flaky_units``) are outcomes the scenario expects (a full queue,
+a slave answering late): counted, not errors. ``kill_after`` sends SIGUSR1 to the
+simulator that many seconds into the window (``bench.slaves --die-on-signal``);
+``timeline`` keeps each unit's correct answers in 0.1 s buckets of the window.
 
 Throughput is measured between the first and last answer inside the window
 (``(n - 1) / (t_last - t_first)``), which removes the +-1 answer quantisation
@@ -37,6 +48,7 @@ import json
 import os
 import random
 import resource
+import signal
 import struct
 import sys
 import time
@@ -44,15 +56,20 @@ from collections import Counter
 from dataclasses import asdict, dataclass, field
 from typing import Any, cast
 
+from .values import END_REGISTER, FIRST_REGISTER, identify_block, register_block, register_value
+
 READ_HOLDING = 3
 WRITE_SINGLE = 6
-FIRST_SELF_CHECKING = 1000  # plc profile: registers 1000..9999 hold their own address
-MASTER_AREAS = 100  # registers 1000..9899 split into one area per master
-AREA_SIZE = 89
-AREA_SLOTS = 8  # blocks of ``quantity`` (<= 11) registers per area
+FIRST_SELF_CHECKING = FIRST_REGISTER
+MAX_QUANTITY = 11
+TIMELINE_BUCKET_S = 0.1
+GATEWAY_BUSY = 0x06
+PATH_UNAVAILABLE = 0x0A
+TARGET_FAILED = 0x0B
 _HEADER = struct.Struct(">HHHB")
 _HEADER_SIZE = 7
 _MAX_EXAMPLES = 8
+_MAX_SEARCHED_UNITS = 16  # whose data a wrong answer carried: search this many units at most
 _REAPER_PERIOD = 0.25
 _WRITE_REGISTER_OFFSET = 5
 _FIRST_WRITTEN_VALUE = 20000
@@ -74,6 +91,12 @@ class LoadSpec:
     period: float = 2.0  #: slow mode: seconds between one master's requests
     writer_period: float = 0.25  #: coalesce mode: pause between the writer's write+read rounds
     dead_units: list[int] = field(default_factory=list)  #: units expected to answer 0x0B
+    flaky_units: list[int] = field(default_factory=list)  #: 0x0B or data, both correct
+    tolerate: list[int] = field(default_factory=list)  #: exception codes the main group expects
+    groups: list[dict[str, Any]] = field(default_factory=list)  #: see ``GroupSpec``
+    kill_after: float | None = None  #: SIGUSR1 to the simulator this far into the window
+    timeline: bool = False  #: keep per-unit correct answers in 0.1 s buckets
+    exception_pause: float = 0.0  #: poll mode: wait this long after an exception to resend
     watch_pids: dict[str, int] = field(default_factory=dict)
     request_timeout: float = 10.0  #: an answer later than this counts as lost
     connect_timeout: float = 10.0
@@ -109,6 +132,10 @@ class LoadResult:
     loadgen_cpu_s: float = 0.0
     machine_cpu_s: float = 0.0  #: busy CPU time of the whole machine in the window (all CPUs)
     connected: int = 0
+    tolerated: dict[str, int] = field(default_factory=dict)  #: expected exceptions, whole run
+    groups: dict[str, dict[str, Any]] = field(default_factory=dict)  #: per group of masters
+    timeline: dict[str, list[int]] = field(default_factory=dict)  #: unit -> ok per 0.1 s
+    killed_at: float | None = None  #: seconds into the window the simulator was signalled
 
     @property
     def errors(self) -> int:
@@ -155,9 +182,63 @@ def percentile(sorted_values: list[float], fraction: float) -> float:
     return sorted_values[rank]
 
 
-def expected_registers(address: int, quantity: int) -> bytes:
-    """The register bytes the plc profile holds at ``address`` (self-checking area)."""
-    return b"".join(value.to_bytes(2, "big") for value in range(address, address + quantity))
+@dataclass
+class GroupSpec:
+    """Masters that behave alike; ``LoadSpec.groups`` holds extra ones as dicts of these fields."""
+
+    name: str
+    masters: int
+    units: list[int]
+    mode: str = "poll"  #: ``poll`` or ``slow``
+    pipeline: int = 1
+    period: float = 1.0  #: slow mode: seconds between one master's requests
+    tolerate: list[int] = field(default_factory=list)
+
+
+class Group:
+    """A group's spec and what its masters saw (the window's counts, the whole run's faults)."""
+
+    def __init__(self, spec: GroupSpec) -> None:
+        self.spec = spec
+        self.tolerate = frozenset(spec.tolerate)
+        self.sent = 0  #: requests sent inside the window
+        self.sent_total = 0  #: requests sent in the whole run
+        self.answers = 0  #: answers of any kind inside the window
+        self.ok = 0
+        self.first_ok = 0.0
+        self.last_ok = 0.0
+        self.exceptions: Counter[str] = Counter()  #: unexpected, inside the window
+        self.tolerated: Counter[str] = Counter()  #: expected, inside the window
+        self.wrong = 0  #: whole run
+        self.lost = 0  #: whole run
+        self.latencies: list[float] = []
+
+    def summary(self, window: float) -> dict[str, Any]:
+        """The group's figures for the result."""
+        latencies = sorted(self.latencies)
+        return {
+            "masters": self.spec.masters,
+            "sent": self.sent,
+            "sent_total": self.sent_total,
+            "answers": self.answers,
+            "ok": self.ok,
+            "ok_per_s": _rate(self.ok, self.first_ok, self.last_ok, window),
+            "ok_share": self.ok / self.answers if self.answers else 0.0,
+            "exceptions": dict(self.exceptions),
+            "tolerated": dict(self.tolerated),
+            "wrong": self.wrong,
+            "lost": self.lost,
+            "latency_ms": {
+                "p50": 1000 * percentile(latencies, 0.50),
+                "p99": 1000 * percentile(latencies, 0.99),
+                "max": 1000 * (latencies[-1] if latencies else 0.0),
+            },
+        }
+
+
+def exception_key(function: int, code: int) -> str:
+    """How exceptions are counted: ``0x83/0x0b``."""
+    return f"{function:#04x}/{code:#04x}"
 
 
 class Recorder:
@@ -193,21 +274,43 @@ class Recorder:
         self.requests_sent = 0
         self.latencies: list[float] = []
         self.dead_units = frozenset(spec.dead_units)
+        self.flaky_units = frozenset(spec.flaky_units)
+        self.tolerated: Counter[str] = Counter()
+        self.timeline: dict[int, list[int]] | None = {} if spec.timeline else None
+        self.groups: list[Group] = []
+        self.group_units = [unit for extra in spec.groups for unit in extra.get("units", [])]
+        self.killed_at: float | None = None
 
-    def wrong(self, kind: str, detail: str) -> None:
+    def wrong(self, kind: str, detail: str, group: Group | None = None) -> None:
         """Record a wrong answer."""
+        if group is not None:
+            group.wrong += 1
         self.wrong_kinds[kind] += 1
         if len(self.wrong_examples) < _MAX_EXAMPLES:
             self.wrong_examples.append(f"{kind}: {detail}")
 
-    def answered(self, now: float, sent_at: float, unit: int, ok: bool, read: bool) -> None:
+    def answered(
+        self, now: float, sent_at: float, unit: int, ok: bool, read: bool, group: Group
+    ) -> None:
         """Account one verified answer received at ``now``."""
         if not self.measuring:
             return
         self.answers += 1
         self.latencies.append(now - sent_at)
+        group.answers += 1
+        group.latencies.append(now - sent_at)
         if not ok:
             return
+        group.ok += 1
+        if not group.first_ok:
+            group.first_ok = now
+        group.last_ok = now
+        if self.timeline is not None:
+            buckets = self.timeline.setdefault(unit, [])
+            index = int((now - self.window_start) / TIMELINE_BUCKET_S)
+            if index >= len(buckets):
+                buckets.extend([0] * (index + 1 - len(buckets)))
+            buckets[index] += 1
         self.ok += 1
         if not self.first_ok:
             self.first_ok = now
@@ -234,14 +337,15 @@ def _rate(count: int, first: float, last: float, window: float) -> float:
 class Master(asyncio.Protocol):
     """One Modbus TCP master connection."""
 
-    def __init__(self, index: int, recorder: Recorder, shared: SharedState) -> None:
+    def __init__(self, index: int, recorder: Recorder, shared: SharedState, group: Group) -> None:
         self.index = index
         self.recorder = recorder
         self.shared = shared
+        self.group = group
         spec = recorder.spec
-        self.units = spec.units
-        if not 1 <= spec.quantity <= AREA_SIZE // AREA_SLOTS:
-            raise ValueError(f"quantity {spec.quantity} outside 1..{AREA_SIZE // AREA_SLOTS}")
+        self.units = group.spec.units
+        if not 1 <= spec.quantity <= MAX_QUANTITY:
+            raise ValueError(f"quantity {spec.quantity} outside 1..{MAX_QUANTITY}")
         self.quantity = spec.quantity
         self.transport: asyncio.Transport | None = None
         self.buffer = bytearray()
@@ -262,6 +366,7 @@ class Master(asyncio.Protocol):
         if not self.recorder.stopping:
             self.recorder.disconnects += 1
             self.recorder.lost += len(self.outstanding)
+            self.group.lost += len(self.outstanding)
             self.outstanding.clear()
         if not self.closed.done():
             self.closed.set_result(None)
@@ -311,10 +416,13 @@ class Master(asyncio.Protocol):
         elif unit in self.recorder.dead_units:
             expected = b"\x83\x0b"
         else:
-            expected = self.shared.expected_reply(address)
+            expected = self.shared.expected_reply(unit, address)
         self.outstanding[tid] = (time.perf_counter(), unit, expected, lower)
         self.transport.write(_HEADER.pack(tid, 0, len(pdu) + 1, unit) + pdu)
         self.recorder.requests_sent += 1
+        self.group.sent_total += 1
+        if self.recorder.measuring:
+            self.group.sent += 1
 
     def send_write(self, unit: int, address: int, value: int) -> None:
         """Send FC06 (the answer must echo it)."""
@@ -325,51 +433,63 @@ class Master(asyncio.Protocol):
         self.outstanding[tid] = (time.perf_counter(), unit, pdu, -1)
         self.transport.write(_HEADER.pack(tid, 0, len(pdu) + 1, unit) + pdu)
         self.recorder.requests_sent += 1
+        self.group.sent_total += 1
+        if self.recorder.measuring:
+            self.group.sent += 1
 
     def send_next_poll(self) -> None:
-        """The next request of a polling master: rotate units and addresses.
+        """The next request of a polling master: rotate units; the unit's next address.
 
-        Each of the first ``MASTER_AREAS`` masters reads its own address area, so no
-        two masters ever send the same request and coalescing cannot inflate the
-        figures of the polling scenarios; a master's pipelined requests differ too.
+        The address comes from one counter per unit shared by every master, so no two
+        recent requests to a unit are the same (see the module docstring).
         """
         sequence = self.sequence
         self.sequence = sequence + 1
         unit = self.units[sequence % len(self.units)]
-        area = FIRST_SELF_CHECKING + (self.index % MASTER_AREAS) * AREA_SIZE
-        self.send_read(unit, area + (sequence % AREA_SLOTS) * self.quantity)
+        self.send_read(unit, self.shared.next_address(unit))
 
     # -- answers
 
     def on_frame(self, frame: bytes, now: float) -> None:
         recorder = self.recorder
         tid, protocol, _length, unit = _HEADER.unpack_from(frame)
+        group = self.group
         entry = self.outstanding.pop(tid, None)
         if entry is None:
-            recorder.wrong("unknown_tid", f"master {self.index} tid {tid} {frame.hex()}")
+            recorder.wrong("unknown_tid", f"master {self.index} tid {tid} {frame.hex()}", group)
             return
         sent_at, sent_unit, expected, lower = entry
         pdu = frame[_HEADER_SIZE:]
         ok = False
         read = pdu[:1] == b"\x03"
         if protocol != 0:
-            recorder.wrong("protocol_id", f"{protocol} in {frame.hex()}")
+            recorder.wrong("protocol_id", f"{protocol} in {frame.hex()}", group)
         elif unit != sent_unit:
-            recorder.wrong("unit", f"sent unit {sent_unit}, answer {frame.hex()}")
+            recorder.wrong("unit", f"sent unit {sent_unit}, answer {frame.hex()}", group)
         elif expected is not None and pdu == expected:
             ok = expected[0] < 0x80
             if not ok and recorder.measuring:
                 recorder.expected_exceptions += 1
         elif pdu and pdu[0] & 0x80:
             if len(pdu) != 2:
-                recorder.wrong("exception_length", frame.hex())
+                recorder.wrong("exception_length", frame.hex(), group)
             else:
-                recorder.exceptions[f"{pdu[0]:#04x}/{pdu[1]:#04x}"] += 1
+                key = exception_key(pdu[0], pdu[1])
+                if pdu[1] in group.tolerate or (
+                    pdu[1] == TARGET_FAILED and sent_unit in recorder.flaky_units
+                ):
+                    recorder.tolerated[key] += 1
+                    if recorder.measuring:
+                        group.tolerated[key] += 1
+                else:
+                    recorder.exceptions[key] += 1
+                    if recorder.measuring:
+                        group.exceptions[key] += 1
         elif expected is None:
             ok = self.shared.check_coalesced(pdu, lower, recorder)
         else:
-            recorder.wrong("payload", f"unit {unit} expected {expected.hex()} got {pdu.hex()}")
-        recorder.answered(now, sent_at, unit, ok, read)
+            recorder.wrong("payload", _payload_detail(unit, expected, pdu, recorder), group)
+        recorder.answered(now, sent_at, unit, ok, read, group)
         self.after_answer(lower, pdu, ok)
 
     def after_answer(self, lower: int, pdu: bytes, ok: bool) -> None:
@@ -379,11 +499,19 @@ class Master(asyncio.Protocol):
             if waiter is not None and not waiter.done():
                 waiter.set_result(None)
             return
-        if self.shared.slow or self.recorder.stopping:
+        if self.group.spec.mode == "slow" or self.recorder.stopping:
             return
         if self.shared.coalesce_address is not None:
             self.send_read(self.units[0], self.shared.coalesce_address, self.shared.last_acked)
+        elif pdu[:1] and pdu[0] & 0x80 and self.recorder.spec.exception_pause > 0:
+            asyncio.get_running_loop().call_later(
+                self.recorder.spec.exception_pause, self._poll_again
+            )
         else:
+            self.send_next_poll()
+
+    def _poll_again(self) -> None:
+        if not self.recorder.stopping:
             self.send_next_poll()
 
     def reap(self, now: float, timeout: float) -> None:
@@ -392,6 +520,19 @@ class Master(asyncio.Protocol):
         for tid in expired:
             del self.outstanding[tid]
             self.recorder.lost += 1
+            self.group.lost += 1
+
+
+def _payload_detail(unit: int, expected: bytes, pdu: bytes, recorder: Recorder) -> str:
+    """Whose data a wrong answer carried, for the first few (the search is slow)."""
+    detail = f"unit {unit} expected {expected.hex()} got {pdu.hex()}"
+    if len(recorder.wrong_examples) >= _MAX_EXAMPLES or len(pdu) < 2 or pdu[0] != READ_HOLDING:
+        return detail
+    candidates = list(dict.fromkeys([*recorder.spec.units, *recorder.group_units]))
+    source = identify_block(pdu[2:], candidates[:_MAX_SEARCHED_UNITS])
+    if source is None:
+        return detail + " (no slave holds this block)"
+    return detail + f" (the data of unit {source[0]}, registers {source[1]}..)"
 
 
 class SharedState:
@@ -399,48 +540,58 @@ class SharedState:
 
     def __init__(self, spec: LoadSpec) -> None:
         self.spec = spec
-        self.slow = spec.mode == "slow"
         self.coalesce_address: int | None = FIRST_SELF_CHECKING if spec.mode == "coalesce" else None
-        self._expected: dict[int, bytes] = {}
+        self._expected: dict[tuple[int, int], bytes] = {}
+        self._next_slot: Counter[int] = Counter()
+        self._slots = (END_REGISTER - FIRST_REGISTER) // spec.quantity
         self.writer: Master | None = None
-        self.initial_value = FIRST_SELF_CHECKING + _WRITE_REGISTER_OFFSET
-        self.last_acked = self.initial_value  #: last written value whose ack has arrived
-        self.last_issued = self.initial_value  #: last written value sent to the gateway
+        self.block_unit = spec.units[0]
+        self.block = register_block(self.block_unit, FIRST_SELF_CHECKING, spec.quantity)
+        self.initial_value = register_value(
+            self.block_unit, FIRST_SELF_CHECKING + _WRITE_REGISTER_OFFSET
+        )
+        #: last written value whose ack has arrived (0: none yet; written values are >= 20000)
+        self.last_acked = 0
+        self.last_issued = 0  #: last written value sent to the gateway
+
+    def next_address(self, unit: int) -> int:
+        """The unit's next block: a counter per unit, shared by every master."""
+        slot = self._next_slot[unit]
+        self._next_slot[unit] = slot + 1
+        return FIRST_REGISTER + (slot % self._slots) * self.spec.quantity
 
     def role(self, master: Master) -> str:
         return "writer" if master is self.writer else "reader"
 
-    def expected_reply(self, address: int) -> bytes:
-        """The FC03 answer PDU for ``address`` (cached per address)."""
-        reply = self._expected.get(address)
+    def expected_reply(self, unit: int, address: int) -> bytes:
+        """The FC03 answer PDU for ``address`` of ``unit`` (cached)."""
+        key = (unit, address)
+        reply = self._expected.get(key)
         if reply is None:
             quantity = self.spec.quantity
-            reply = bytes((READ_HOLDING, 2 * quantity)) + expected_registers(address, quantity)
-            self._expected[address] = reply
+            reply = bytes((READ_HOLDING, 2 * quantity)) + register_block(unit, address, quantity)
+            self._expected[key] = reply
         return reply
 
     def check_coalesced(self, pdu: bytes, lower: int, recorder: Recorder) -> bool:
         """Check a read of the written block: fixed registers and the written one's bounds."""
         quantity = self.spec.quantity
-        base = FIRST_SELF_CHECKING
         if len(pdu) != 2 + 2 * quantity or pdu[0] != READ_HOLDING or pdu[1] != 2 * quantity:
             recorder.wrong("payload", f"block read answered {pdu.hex()}")
             return False
-        values = struct.unpack_from(f">{quantity}H", pdu, 2)
-        for offset, value in enumerate(values):
-            if offset == _WRITE_REGISTER_OFFSET:
-                continue
-            if value != base + offset:
-                recorder.wrong("payload", f"register {base + offset} = {value}")
-                return False
-        written = values[_WRITE_REGISTER_OFFSET]
-        valid = written == self.initial_value or (
-            _FIRST_WRITTEN_VALUE <= written <= self.last_issued
-        )
-        if not valid:
+        at = 2 + 2 * _WRITE_REGISTER_OFFSET
+        if pdu[2:at] != self.block[: at - 2] or pdu[at + 2 :] != self.block[at:]:
+            recorder.wrong("payload", f"block read answered {pdu.hex()}")
+            return False
+        written = (pdu[at] << 8) | pdu[at + 1]
+        if _FIRST_WRITTEN_VALUE <= written <= self.last_issued:
+            seen = written
+        elif written == self.initial_value:
+            seen = 0  # the value before any write: older than every acknowledged one
+        else:
             recorder.wrong("payload", f"written register = {written}, never written")
             return False
-        if written < lower:
+        if seen < lower:
             recorder.raw_violations += 1
             if len(recorder.wrong_examples) < _MAX_EXAMPLES:
                 recorder.wrong_examples.append(
@@ -470,15 +621,38 @@ async def _writer_loop(master: Master, shared: SharedState, recorder: Recorder) 
             await asyncio.sleep(shared.spec.writer_period)
 
 
-async def _slow_loop(
-    master: Master, spec: LoadSpec, recorder: Recorder, rng: random.Random
-) -> None:
-    await asyncio.sleep(rng.uniform(0, spec.period))
+async def _slow_loop(master: Master, recorder: Recorder, rng: random.Random) -> None:
+    period = master.group.spec.period
+    await asyncio.sleep(rng.uniform(0, period))
     next_at = time.perf_counter()
     while not recorder.stopping:
         master.send_next_poll()
-        next_at += spec.period
+        next_at += period
         await asyncio.sleep(max(0.0, next_at - time.perf_counter()))
+
+
+def _groups(spec: LoadSpec) -> list[Group]:
+    """The main masters (``spec``'s own fields), then ``spec.groups``."""
+    main = GroupSpec(
+        name="main",
+        masters=spec.masters,
+        units=list(spec.units),
+        mode="slow" if spec.mode == "slow" else "poll",
+        pipeline=spec.pipeline,
+        period=spec.period,
+        tolerate=list(spec.tolerate),
+    )
+    return [Group(main)] + [Group(GroupSpec(**extra)) for extra in spec.groups]
+
+
+async def _kill_later(spec: LoadSpec, recorder: Recorder) -> None:
+    """Signal the simulator ``kill_after`` seconds into the window (a slave dies)."""
+    assert spec.kill_after is not None
+    await asyncio.sleep(max(0.0, recorder.window_start + spec.kill_after - time.perf_counter()))
+    pid = spec.watch_pids.get("simulator")
+    if pid is not None:
+        os.kill(pid, signal.SIGUSR1)
+        recorder.killed_at = time.perf_counter() - recorder.window_start
 
 
 def _raise_fd_limit(needed: int) -> None:
@@ -498,14 +672,18 @@ async def run(spec: LoadSpec) -> LoadResult:
     recorder = Recorder(spec)
     shared = SharedState(spec)
     rng = random.Random(spec.seed)
-    connections = spec.masters + (1 if spec.mode == "coalesce" else 0)
-    _raise_fd_limit(connections + 256)
+    groups = _groups(spec)
+    recorder.groups = groups
+    if spec.mode == "coalesce":
+        groups[0].spec.masters += 1  # the writer
+    members = [group for group in groups for _ in range(group.spec.masters)]
+    _raise_fd_limit(len(members) + 256)
 
-    async def connect(index: int) -> Master | None:
+    async def connect(index: int, group: Group) -> Master | None:
         try:
             _, protocol = await asyncio.wait_for(
                 loop.create_connection(
-                    lambda: Master(index, recorder, shared), spec.host, spec.port
+                    lambda: Master(index, recorder, shared, group), spec.host, spec.port
                 ),
                 spec.connect_timeout,
             )
@@ -514,23 +692,23 @@ async def run(spec: LoadSpec) -> LoadResult:
             return None
         return protocol
 
-    found = await asyncio.gather(*(connect(index) for index in range(connections)))
+    found = await asyncio.gather(*(connect(index, group) for index, group in enumerate(members)))
     masters = [master for master in found if master is not None]
     tasks: list[asyncio.Task[None]] = []
+    readers = masters
     if spec.mode == "coalesce" and masters:
-        shared.writer = masters[-1]
-        tasks.append(loop.create_task(_writer_loop(masters[-1], shared, recorder)))
-        readers = masters[:-1]
-    else:
-        readers = masters
+        writer = [master for master in masters if master.group is groups[0]][-1]
+        shared.writer = writer
+        tasks.append(loop.create_task(_writer_loop(writer, shared, recorder)))
+        readers = [master for master in masters if master is not writer]
     for master in readers:
-        if spec.mode == "slow":
-            tasks.append(loop.create_task(_slow_loop(master, spec, recorder, rng)))
+        if master.group.spec.mode == "slow":
+            tasks.append(loop.create_task(_slow_loop(master, recorder, rng)))
         elif spec.mode == "coalesce":
             for _ in range(spec.pipeline):
                 master.send_read(spec.units[0], FIRST_SELF_CHECKING, shared.last_acked)
         else:
-            for _ in range(spec.pipeline):
+            for _ in range(master.group.spec.pipeline):
                 master.send_next_poll()
 
     async def reaper() -> None:
@@ -547,6 +725,8 @@ async def run(spec: LoadSpec) -> LoadResult:
     machine_before = machine_busy_seconds()
     recorder.window_start = time.perf_counter()
     recorder.measuring = True
+    if spec.kill_after is not None:
+        tasks.append(loop.create_task(_kill_later(spec, recorder)))
     await asyncio.sleep(spec.duration)
     recorder.measuring = False
     recorder.window_end = time.perf_counter()
@@ -617,6 +797,10 @@ def _result(
         cpu_s=cpu,
         loadgen_cpu_s=own_cpu,
         connected=connected,
+        tolerated=dict(recorder.tolerated),
+        groups={group.spec.name: group.summary(window) for group in recorder.groups},
+        timeline={str(unit): counts for unit, counts in sorted((recorder.timeline or {}).items())},
+        killed_at=recorder.killed_at,
     )
 
 

@@ -88,10 +88,12 @@ class SimOptions:
     crc_error_rates: dict[int, float] = field(default_factory=dict)
     seed: int = 1
     realtime: bool = False  #: SCHED_FIFO for the simulator's thread (a real slave has its own CPU)
+    late: Sequence[tuple[int, float, float, float]] = ()  #: (unit, share, min s, max s)
+    die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
 
 
 class Simulator:
-    """``python -m gateway.sim`` on a pty, reachable through a symlink."""
+    """``python -m bench.slaves`` (the gateway's simulated line) on a pty, behind a symlink."""
 
     def __init__(self, options: SimOptions, workdir: Path) -> None:
         self.options = options
@@ -109,10 +111,10 @@ class Simulator:
     def command(self) -> list[str]:
         """The command line."""
         options = self.options
-        command = [PYTHON, "-m", "gateway.sim", "--link", str(self.link)]
+        command = [PYTHON, "-m", "bench.slaves", "--link", str(self.link)]
         command += ["--seed", str(options.seed)]
         for unit in options.units:
-            command += ["--profile", f"plc:{unit}"]
+            command += ["--unit", str(unit)]
         if options.baudrate is not None:
             command += ["--baudrate", str(options.baudrate)]
             command += ["--turnaround", f"{options.turnaround:.6f}"]
@@ -122,6 +124,10 @@ class Simulator:
             command += ["--silent", str(unit)]
         for unit, rate in options.crc_error_rates.items():
             command += ["--crc-error-rate", f"{unit}:{rate}"]
+        for unit, share, low, high in options.late:
+            command += ["--late", f"{unit}:{share}:{low}:{high}"]
+        for unit in options.die_on_signal:
+            command += ["--die-on-signal", str(unit)]
         return command
 
     def start(self) -> None:

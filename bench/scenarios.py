@@ -57,13 +57,22 @@ class Timing:
     fault_warmup: float
     fault_window: float
     slow_window: float
+    tiny: bool = False  #: the smallest runs that still exercise a scenario (the smoke test's)
 
     @staticmethod
-    def make(quick: bool) -> Timing:
-        """The full run's windows, or the short ones."""
+    def make(quick: bool, tiny: bool = False) -> Timing:
+        """The full run's windows, or the short ones, or the tiny ones."""
+        if tiny:
+            return Timing(True, 0.3, 1.0, 1.5, 0.5, 1.5, 2.0, tiny=True)
         if quick:
             return Timing(True, 0.5, 1.5, 2.0, 1.5, 2.5, 3.0)
         return Timing(False, 1.0, 5.0, 10.0, 4.0, 12.0, 10.0)
+
+    def pick(self, full: float, quick: float, tiny: float) -> float:
+        """One of three lengths, by the kind of run."""
+        if self.tiny:
+            return tiny
+        return quick if self.quick else full
 
 
 @dataclass
@@ -753,6 +762,7 @@ class Bench:
         return ScenarioResult("many-masters", figures, [table], checks, load.wrong_answers)
 
 
+#: This module's scenarios; ``bench.__main__.SCENARIOS`` joins every module's.
 SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     "paced": Bench.paced,
     "unpaced": Bench.unpaced_overhead,

@@ -3,8 +3,13 @@
 ``python -m bench --quick --scenario bad-crc`` starts the simulator (paced at
 19200 baud, 5 % bad CRCs), the gateway and the load generator as separate
 processes, exactly as the full benchmark does, and must finish with zero wrong
-answers. The second test points the load generator at a deliberately broken
-server so that a benchmark reporting "0 wrong" is known to mean something.
+answers. The line scenarios (late answers, a slave dying, greedy masters, absent
+units, the bare-forwarder floor) run in their tiny configuration: each must run
+to its figures with its faults really injected; whether the gateway meets their
+targets is the benchmark's report, not this test's. Two broken servers show that
+a benchmark reporting "0 wrong" means something: one lies about the values, one
+answers each request with the previous request's data (a late answer taken for
+the next one), and the load generator must say whose data it got.
 """
 
 from __future__ import annotations
@@ -18,13 +23,33 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from bench.__main__ import select
 from bench.loadgen import LoadSpec, run
+from bench.values import register_block
 
 REPO = Path(__file__).resolve().parents[2]
 SMOKE_BUDGET_S = 20.0
+TINY_BUDGET_S = 30.0  # several tiny runs, each paying for three process starts
+
+
+def _bench(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    output = tmp_path / "results.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "bench", *args, "--output", str(output)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode in (0, 1), done.stdout + done.stderr  # 2: a process failed
+    results: dict[str, Any] = json.loads(output.read_text())
+    assert results["failures"] == {}, results["failures"]
+    return done, results
 
 
 def test_quick_scenario_completes_with_zero_wrong_answers(tmp_path: Path) -> None:
@@ -78,15 +103,14 @@ class _LyingServer(asyncio.Protocol):
             self.transport.write(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
 
 
-@pytest.fixture
-def lying_server() -> Iterator[int]:
+def _serve(factory: type[asyncio.Protocol]) -> Iterator[int]:
     loop = asyncio.new_event_loop()
     ready = threading.Event()
     stop = asyncio.Event()
     ports: list[int] = []
 
     async def serve() -> None:
-        server = await loop.create_server(_LyingServer, "127.0.0.1", 0)
+        server = await loop.create_server(factory, "127.0.0.1", 0)
         ports.append(server.sockets[0].getsockname()[1])
         ready.set()
         await stop.wait()
@@ -102,9 +126,97 @@ def lying_server() -> Iterator[int]:
     loop.close()
 
 
+@pytest.fixture
+def lying_server() -> Iterator[int]:
+    yield from _serve(_LyingServer)
+
+
+@pytest.fixture
+def stale_server() -> Iterator[int]:
+    yield from _serve(_StaleServer)
+
+
 def test_load_generator_counts_wrong_answers(lying_server: int) -> None:
     spec = LoadSpec(port=lying_server, masters=2, pipeline=2, warmup=0.1, duration=0.3, drain=0.5)
     result = asyncio.run(run(spec))
     assert result.ok == 0
     assert result.wrong_answers > 0
     assert set(result.wrong_kinds) == {"payload"}
+
+
+def test_tiny_late_and_dead_slave_scenarios_report_their_figures(tmp_path: Path) -> None:
+    started = time.monotonic()
+    done, results = _bench(tmp_path, "--tiny", "late", "dead-default")
+    elapsed = time.monotonic() - started
+    scenarios = results["scenarios"]
+    assert set(scenarios) == {"late-few", "late-all", "dead-default"}
+    late_all = scenarios["late-all"]["run"]
+    assert late_all["simulator"]["late"]["sent"] > 0  # late answers really reached the line
+    for run_figures in scenarios["late-few"].values():
+        assert run_figures["simulator"]["late"]["scheduled"] > 0
+        assert run_figures["load"]["ok"] > 0
+    dead = scenarios["dead-default"]
+    assert dead["run"]["simulator"]["died_at_monotonic"] is not None
+    assert dead["run"]["load"]["killed_at"] is not None
+    assert dead["baseline_tx_per_s"] > 0
+    assert 0 <= dead["first_ratio"] <= 1.5
+    assert "wrong answers + read-after-write" in done.stdout
+    assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
+
+
+def test_tiny_fairness_and_floor_scenarios_report_their_figures(tmp_path: Path) -> None:
+    started = time.monotonic()
+    done, results = _bench(tmp_path, "--tiny", "greedy", "absent", "floor")
+    elapsed = time.monotonic() - started
+    scenarios = results["scenarios"]
+    greedy = scenarios["greedy"]["groups"]
+    assert greedy["polite"]["sent"] > 0
+    assert greedy["main"]["sent"] > greedy["polite"]["sent"]
+    absent = scenarios["absent"]
+    assert absent["fair_share"] == pytest.approx(1 / 9)
+    assert absent["groups"]["live"]["sent_total"] > 0
+    assert absent["groups"]["main"]["sent_total"] >= 8
+    for masters in ("1", "10"):
+        floor = scenarios["floor"][masters]
+        assert floor["cpu_ratio"] > 0
+        assert floor["bare_tx_per_s"][0] > 0
+        assert floor["bare_runs"][0]["load"]["wrong_answers"] == 0  # the floor is a real one
+    assert "gateway / mean bare" in done.stdout
+    assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
+
+
+def test_scenario_names_select_by_prefix() -> None:
+    assert select(["late"]) == ["late-few", "late-all"]
+    assert select(["paced", "dead"]) == ["paced", "dead-slave", "dead-default"]
+    assert select(["floor", "floor"]) == ["floor"]
+    with pytest.raises(ValueError, match="no scenario 'nope'"):
+        select(["nope"])
+
+
+class _StaleServer(asyncio.Protocol):
+    """Answers each FC03 with the data of the previous request it got (the first one correctly)."""
+
+    previous: tuple[int, int, int] | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        while len(data) >= 12:
+            tid, _protocol, _length, unit, _function, address, quantity = struct.unpack(
+                ">HHHBBHH", data[:12]
+            )
+            data = data[12:]
+            source = _StaleServer.previous or (unit, address, quantity)
+            _StaleServer.previous = (unit, address, quantity)
+            pdu = bytes((3, 2 * quantity)) + register_block(source[0], source[1], quantity)
+            self.transport.write(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
+
+
+def test_load_generator_names_whose_data_a_wrong_answer_carried(stale_server: int) -> None:
+    spec = LoadSpec(port=stale_server, masters=2, units=[1, 2], warmup=0.1, duration=0.3, drain=0.5)
+    result = asyncio.run(run(spec))
+    assert result.wrong_answers > 0
+    assert set(result.wrong_kinds) == {"payload"}
+    assert any("(the data of unit " in example for example in result.wrong_examples)
