@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import enum
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -29,7 +30,7 @@ from .core import pdu as fc
 from .core.errors import ResponseError
 from .core.rtu import RtuResponseDecoder, encode_rtu
 from .core.timing import character_time, t35
-from .io.serial_port import SerialPortError, open_serial
+from .io.serial_port import DeviceBusyError, SerialPortError, open_serial
 
 #: Baud rates ``--baudrate auto`` tries, the most common on Modbus lines first.
 AUTO_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 4800, 2400, 1200)
@@ -401,6 +402,14 @@ def main(argv: Sequence[str], stderr: TextIO | None = None) -> int:
     report: Callable[[ScanResult], str] = format_table
     try:
         result = scan(line, args.range, args.timeout, candidates, progress, not args.no_identify)
+    except DeviceBusyError as error:
+        held = re.search(r" is in use by (.*?); ", str(error))
+        holder = held[1] if held else "another program"
+        progress.note(
+            f"modbus-gateway scan: {line.device} is in use by {holder}; a scan is a second "
+            "master on the line: stop the gateway (or that program) first"
+        )
+        return 1
     except (SerialPortError, serial.SerialException, OSError) as error:
         progress.note(f"modbus-gateway scan: {error}")
         return 1

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import serial
-from conftest import DEADLINE_S, SimBus, SimFactory
+from conftest import DEADLINE_S, GatewayOnSim, SimBus, SimFactory
 
 from gateway.core.rtu import encode_rtu
 from gateway.sim import plc, power_controller, zl69x
@@ -93,3 +93,15 @@ def test_scan_at_the_wrong_rate_finds_nobody_and_says_so(make_sim: SimFactory) -
     missing = _scan("--serial", os.path.join(os.path.dirname(sim.path), "nonexistent"),
                     "--range", "1")  # fmt: skip
     assert missing.returncode == 1 and "cannot open" in missing.stderr
+
+
+def test_scan_refuses_a_line_a_running_gateway_holds(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with({1: plc(1)})
+    with gw.connect() as master:
+        master.request(1, bytes.fromhex("03 0000 0001"))  # the gateway has the line open
+    requests = sim.stats().requests
+    done = _scan("--serial", sim.path, "--range", "1", "--timeout", "0.05")
+    assert done.returncode == 1
+    assert f"{sim.path} is in use by pid {os.getpid()}" in done.stderr
+    assert "stop the gateway (or that program) first" in done.stderr
+    assert sim.stats().requests == requests  # nothing was sent on the gateway's line
