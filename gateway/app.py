@@ -19,12 +19,21 @@ from typing import Any
 
 from prometheus_client import CollectorRegistry
 
-from .config import ConfigError, GatewayConfig, LineConfig, build_config, read_config_file
+from .config import (
+    ConfigError,
+    GatewayConfig,
+    LineConfig,
+    ListenerConfig,
+    build_config,
+    read_config_file,
+)
+from .core.policy import Policy
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.serial_port import check_device_free
 from .io.tcp import ModbusTcpServer, Router, Target
+from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, server_context
 from .live import LiveView
 from .metrics import GatewayMetrics
 from .trace import Tracer
@@ -79,7 +88,8 @@ class Gateway:
         self.ready = asyncio.Event()
         self.stopped = asyncio.Event()
         self.buses: dict[str, Bus] = {}
-        self.server: ModbusTcpServer | None = None
+        self.server: ModbusTcpServer | None = None  #: the first listener
+        self.servers: list[ModbusTcpServer] = []  #: every listener, in configuration order
         self._clocks: dict[str, PreciseClock] = {}  # one per bus: a clock has one sleeper
         self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
@@ -94,6 +104,13 @@ class Gateway:
         assert self.server is not None
         return self.server.sockets[0]
 
+    def listener_address(self, name: str) -> tuple[str, int]:
+        """Where listener ``name`` listens (after ``start``)."""
+        for server in self.servers:
+            if server.name == name:
+                return server.sockets[0]
+        raise KeyError(name)
+
     @property
     def metrics_address(self) -> tuple[str, int] | None:
         """The HTTP endpoint's address, ``None`` when disabled."""
@@ -104,20 +121,42 @@ class Gateway:
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         loop = asyncio.get_running_loop()
-        ensure_file_descriptors(self.config.server.max_connections + _FDS_BESIDES_MASTERS)
+        listeners = self.config.listeners or (
+            ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
+        )
+        tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
+        ensure_file_descriptors(
+            self.config.server.max_connections * len(listeners) + _FDS_BESIDES_MASTERS
+        )
         for line in self.config.lines:  # a device another program holds fails the start
             check_device_free(line)
         for line in self.config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])
-        self.server = ModbusTcpServer(self.config.server, self._build_router(), self.metrics)
-        self.server.tracer = self.tracer
+        router = self._build_router()
+        for listener in listeners:
+            built = tls.get(listener.name)
+            server = ModbusTcpServer(
+                self.config.server, router, self.metrics, listener,
+                self._policy(self.config, listener), built.context if built else None,
+            )  # fmt: skip
+            server.tracer = self.tracer
+            self.servers.append(server)
+        self.server = self.servers[0]
         self.live = LiveView(self)
-        await self.server.start()
+        for server in self.servers:
+            await server.start()
         if self.config.metrics.enabled:
             self._http = await self._start_http()
-        host, port = self.address
-        log.info("listening on %s:%d (Modbus TCP), %d line(s)", host, port, len(self.buses))
+        for server in self.servers:
+            host, port = server.sockets[0]
+            listener = server.listener
+            if listener.tls:
+                log.info("listening on %s:%d (Modbus/TCP Security), listener %s, %d line(s)",
+                         host, port, listener.name, len(self.buses))  # fmt: skip
+            else:
+                log.info("listening on %s:%d (Modbus TCP), listener %s, %d line(s)",
+                         host, port, listener.name, len(self.buses))  # fmt: skip
         if self.metrics_address is not None:
             mhost, mport = self.metrics_address
             log.info("metrics on http://%s:%d/metrics", mhost, mport)
@@ -142,12 +181,13 @@ class Gateway:
             return
         self._stopping = True
         log.info("stopping: no new connections, finishing the transactions on the wire")
-        if self.server is not None:
-            self.server.stop_accepting()
+        for server in self.servers:
+            server.stop_accepting()
         await asyncio.gather(*(bus.stop(grace) for bus in self.buses.values()))
-        if self.server is not None:
-            self.server.close_all("shutdown")
-            await self.server.wait_closed()
+        for server in self.servers:
+            server.close_all("shutdown")
+        for server in self.servers:
+            await server.wait_closed()
         if self.live is not None:
             self.live.close()
         if self._http is not None:
@@ -172,6 +212,11 @@ class Gateway:
     async def _apply(self, config: GatewayConfig) -> None:
         loop = asyncio.get_running_loop()
         assert self.server is not None
+        try:
+            tls = self._build_tls(config)  # certificates, keys and CAs are read again
+        except TlsSetupError as error:
+            log.error("reload rejected, the running configuration stays: %s", error)
+            return
         new_names = {line.name for line in config.lines}
         for name in list(self.buses):
             if name not in new_names:
@@ -208,12 +253,34 @@ class Gateway:
                     config.server, host=self.config.server.host, port=self.config.server.port
                 ),
             )
+        running = {s.name: (s.listener.protocol, s.listener.host, s.listener.port)
+                   for s in self.servers}  # fmt: skip
+        wanted = {lst.name: (lst.protocol, lst.host, lst.port) for lst in config.listeners}
+        if config.listeners and wanted != running:
+            log.warning(
+                "reload: adding, removing or moving listeners needs a restart; the listeners "
+                "stay as they are (their policies and certificates reload)"
+            )
         if (config.metrics, config.logging) != (self.config.metrics, self.config.logging):
             log.warning("reload: [metrics] and [logging] changes need a restart; keeping them")
             config = replace(config, metrics=self.config.metrics, logging=self.config.logging)
         self.config = config
-        self.server.config = config.server
-        self.server.router = self._build_router()
+        router = self._build_router()
+        by_name = {listener.name: listener for listener in config.listeners}
+        for server in self.servers:
+            server.config = config.server
+            server.router = router
+            listener = by_name.get(server.name)
+            if listener is None or listener.protocol != server.listener.protocol:
+                continue
+            server.listener = replace(listener, host=server.listener.host,
+                                      port=server.listener.port)  # fmt: skip
+            server.policy = self._policy(config, server.listener)
+            server.screen.allow_lists = tuple(
+                tuple(nets) for nets in (config.server.allow, listener.allow) if nets
+            )
+            if server.name in tls:
+                server.ssl_context = tls[server.name].context
         self.metrics.describe_lines([line.name for line in config.lines])
         log.info("reload: configuration from %s applied", config.source)
 
@@ -232,6 +299,22 @@ class Gateway:
         """Stop the bus of line ``name`` (see ``Bus.stop``) and release its clock."""
         await self.buses.pop(name).stop(grace)
         self._clocks.pop(name).close()
+
+    def _build_tls(self, config: GatewayConfig) -> dict[str, ServerTls]:
+        """Every tls listener's context, built from its files now (raises ``TlsSetupError``)."""
+        built = {
+            listener.name: server_context(listener) for listener in config.listeners if listener.tls
+        }
+        self.metrics.set_certificates(info for tls in built.values() for info in tls.certificates)
+        for name in built:
+            self.metrics.prepare_tls_listener(name, (reason.value for reason in HandshakeFailure))
+        return built
+
+    @staticmethod
+    def _policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
+        rules = config.policies[listener.policy] if listener.policy is not None else None
+        read_only = listener.read_only or config.server.read_only
+        return Policy(rules, read_only=read_only, tls=listener.tls)
 
     def _build_router(self) -> Router:
         routes = {

@@ -18,8 +18,10 @@ from .config import (
     build_config,
     config_warnings,
     parse_host_port,
+    policy_warnings,
     read_config_file,
 )
+from .io.tls import TlsSetupError, server_context
 from .logs import setup_logging
 from .sim.demo import DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
@@ -63,6 +65,21 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="HOST:PORT",
         type=_host_port,
         help="Modbus TCP address (default 0.0.0.0:502; 127.0.0.1:5020 with --demo)",
+    )
+    parser.add_argument("--tls-listen", metavar="HOST:PORT", type=_host_port,
+                        help="Modbus/TCP Security (TLS) address, listener 'tls' (802 is the "
+                        "standard port); needs --tls-cert, --tls-key, --tls-ca")  # fmt: skip
+    parser.add_argument("--tls-cert", metavar="FILE",
+                        help="the server's certificate chain, PEM (leaf first)")  # fmt: skip
+    parser.add_argument("--tls-key", metavar="FILE", help="the server's private key, PEM")
+    parser.add_argument(
+        "--tls-ca", metavar="FILE", help="CA certificates client certificates must chain to, PEM"
+    )
+    parser.add_argument("--allow", metavar="CIDR", action="append",
+                        help="accept masters only from this address or network, on every "
+                        "listener (repeatable); others are closed at accept")  # fmt: skip
+    parser.add_argument(
+        "--read-only", action="store_true", help="every listener refuses anything but reads (0x01)"
     )
     parser.add_argument("--serial", metavar="DEVICE_OR_URL",
                         help="serial device or pyserial URL; without --config every unit "
@@ -128,6 +145,11 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
         raw.setdefault("server", {})["listen"] = args.listen
     if args.metrics:
         raw.setdefault("metrics", {})["listen"] = args.metrics
+    if args.allow:
+        raw.setdefault("server", {})["allow"] = list(args.allow)
+    if args.read_only:
+        raw.setdefault("server", {})["read_only"] = True
+    _apply_tls_flags(raw, args)
     if args.log_level:
         raw.setdefault("logging", {})["level"] = args.log_level
     if args.log_format:
@@ -157,6 +179,24 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
     return raw
 
 
+def _apply_tls_flags(raw: dict[str, Any], args: argparse.Namespace) -> None:
+    """``--tls-*`` set the listener named ``tls`` (added when the file has none)."""
+    flags = {"listen": args.tls_listen, "cert": args.tls_cert, "key": args.tls_key,
+             "ca": args.tls_ca}  # fmt: skip
+    if not any(flags.values()):
+        return
+    listeners = raw.setdefault("listeners", [])
+    if not isinstance(listeners, list):
+        return  # build_config reports the type
+    entry = next(
+        (item for item in listeners if isinstance(item, dict) and item.get("name") == "tls"), None
+    )
+    if entry is None:
+        entry = {"name": "tls", "protocol": "tls"}
+        listeners.append(entry)
+    entry.update({key: value for key, value in flags.items() if value})
+
+
 def example_config() -> str:
     """The example configuration shipped in the package, every key with its default."""
     return resources.files("gateway").joinpath("data/gateway.example.toml").read_text("utf-8")
@@ -173,10 +213,16 @@ def _check_config(argv: Sequence[str]) -> int:
     args = parser.parse_args(argv)
     try:
         config = build_config(read_config_file(args.file), args.file)
+        for listener in config.listeners:
+            if listener.tls:
+                server_context(listener)  # the files exist, match, and are valid now
     except ConfigError as error:
         print(error, file=sys.stderr)
         return 2
-    warnings = config_warnings(config)
+    except TlsSetupError as error:
+        print(f"{args.file}: {error}", file=sys.stderr)
+        return 2
+    warnings = config_warnings(config) + policy_warnings(config)
     for warning in warnings:
         print(f"{args.file}: warning: {warning}", file=sys.stderr)
     if warnings and args.strict:
@@ -236,7 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     setup_logging(config.logging.level, config.logging.format)
     if demo is None:
-        for warning in config_warnings(config):
+        for warning in config_warnings(config) + policy_warnings(config):
             log.warning("%s: %s", config.source, warning)
     reload_source: Callable[[], Any] | None = None
     if args.config and not args.demo:
@@ -254,7 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)
-    except OSError as error:
+    except (OSError, TlsSetupError) as error:
         log.error("cannot start: %s", error)
         return 1
     finally:

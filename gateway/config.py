@@ -9,6 +9,7 @@ file, key and fix instead of stopping at the first. Nothing here opens a port.
 from __future__ import annotations
 
 import difflib
+import ipaddress
 import math
 import os
 import tomllib
@@ -17,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .core import pdu as fc
+from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
 from .core.timing import t35
 
 DEFAULT_LISTEN = "0.0.0.0:502"
@@ -25,6 +28,9 @@ VALID_PARITIES = ("N", "E", "O")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
+VALID_PROTOCOLS = ("tcp", "tls")
+#: The IANA port of Modbus/TCP Security.
+DEFAULT_TLS_PORT = 802
 URL_SCHEMES = ("socket://", "rfc2217://", "loop://", "spy://")
 
 
@@ -51,6 +57,34 @@ class ServerConfig:
     backlog: int = 1024
     broadcast_reply: bool = False
     refuse_functions: frozenset[int] = frozenset()
+    #: Source networks every listener accepts (empty: any); a listener's own list applies too.
+    allow: tuple[IPNetwork, ...] = ()
+    #: Every listener refuses anything but reads.
+    read_only: bool = False
+    #: The policy of the ``listen`` shorthand listener.
+    policy: str | None = None
+
+
+@dataclass(frozen=True)
+class ListenerConfig:
+    """One listening address: ``tcp`` (Modbus TCP) or ``tls`` (Modbus/TCP Security)."""
+
+    name: str
+    protocol: str = "tcp"
+    host: str = "0.0.0.0"
+    port: int = 502
+    cert: str | None = None  #: the server's certificate chain (PEM), tls only
+    key: str | None = None  #: its private key (PEM), tls only
+    ca: str | None = None  #: the CAs client certificates must chain to (PEM), tls only
+    allow: tuple[IPNetwork, ...] = ()  #: source networks accepted (empty: any)
+    read_only: bool = False
+    policy: str | None = None  #: a name in ``GatewayConfig.policies``; None: no rules
+    key_prefix: str = "server."  #: where it was configured, for messages
+
+    @property
+    def tls(self) -> bool:
+        """True for a Modbus/TCP Security listener."""
+        return self.protocol == "tls"
 
 
 @dataclass(frozen=True)
@@ -162,6 +196,10 @@ class GatewayConfig:
     lines: tuple[LineConfig, ...] = ()
     routes: Mapping[int, Route] = field(default_factory=dict)
     source: str = "<defaults>"
+    #: Every listener; the ``[server] listen`` shorthand is the first when present.
+    listeners: tuple[ListenerConfig, ...] = ()
+    #: Named rule lists (``[[policies.NAME.rules]]``), in the order written.
+    policies: Mapping[str, tuple[Rule, ...]] = field(default_factory=dict)
 
     def line(self, name: str) -> LineConfig:
         """The line called ``name``."""
@@ -322,6 +360,9 @@ _SERVER_KEYS = {
     "backlog",
     "broadcast_reply",
     "refuse_functions",
+    "allow",
+    "read_only",
+    "policy",
 }
 _LINE_KEYS = {
     "device",
@@ -379,6 +420,9 @@ def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
         backlog=check.integer(table, "backlog", prefix, 1024, 1, 65_535),
         broadcast_reply=check.boolean(table, "broadcast_reply", prefix, False),
         refuse_functions=frozenset(refuse),
+        allow=_networks(check, table, "allow", prefix),
+        read_only=check.boolean(table, "read_only", prefix, False),
+        policy=_policy_name(check, table, prefix),
     )
 
 
@@ -612,10 +656,267 @@ def config_warnings(config: GatewayConfig) -> list[str]:
     return warnings
 
 
+def _networks(
+    check: _Checker, table: Mapping[str, Any], key: str, prefix: str
+) -> tuple[IPNetwork, ...]:
+    """A list of addresses or CIDR networks (a single string is a list of one)."""
+    raw = table.get(key, [])
+    if isinstance(raw, str):
+        raw = [raw]
+    if not isinstance(raw, list):
+        check.fail(f"{prefix}{key}", 'write a list of addresses or networks, like ["10.1.2.0/24"]')
+        return ()
+    networks: list[IPNetwork] = []
+    for item in raw:
+        try:
+            networks.append(ipaddress.ip_network(str(item), strict=False))
+        except ValueError:
+            check.fail(
+                f"{prefix}{key}",
+                f"{item!r} is not an IP address or network; write it like "
+                '"10.1.2.0/24", "192.168.1.7" or "fd00::/8"',
+            )
+    return tuple(networks)
+
+
+def _policy_name(check: _Checker, table: Mapping[str, Any], prefix: str) -> str | None:
+    value = table.get("policy")
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value:
+        check.fail(f"{prefix}policy", "write the name of a [policies.NAME] table, as a string")
+        return None
+    return value
+
+
+_ACCESS = {"read": Access.READ, "write": Access.WRITE, "read_write": Access.READ_WRITE}
+_RULE_KEYS = {"role", "source", "units", "functions", "addresses", "access"}
+
+
+def parse_function_key(item: Any) -> tuple[int, int | None]:
+    """``3``, ``"0x10"``, ``"write_single_register"``, ``"8:4"`` or ``"diagnostics:0"``.
+
+    FC 8 takes a subfunction (0..65535), FC 43 a MEI type (0..255); raise ValueError with the fix.
+    """
+    if isinstance(item, int) and not isinstance(item, bool):
+        if not 1 <= item <= 127:
+            raise ValueError(f"function code {item} outside 1..127")
+        return item, None
+    if not isinstance(item, str):
+        raise ValueError(f"{item!r} is not a function code or name")
+    text, sep, sub_text = item.strip().lower().partition(":")
+    code = next((c for c, name in fc.FUNCTION_NAMES.items() if name == text), None)
+    if code is None:
+        try:
+            code = int(text, 0)
+        except ValueError:
+            raise ValueError(
+                f"{item!r} is not a function: write a code (3), a name (read_holding_registers) "
+                'or "8:4" for a diagnostics subfunction'
+            ) from None
+        if not 1 <= code <= 127:
+            raise ValueError(f"function code {code} outside 1..127")
+    if not sep:
+        return code, None
+    limit = {fc.DIAGNOSTICS: 0xFFFF, fc.ENCAPSULATED_INTERFACE: 0xFF}.get(code)
+    try:
+        sub = int(sub_text, 0)
+    except ValueError:
+        sub = -1
+    if limit is None or not 0 <= sub <= limit:
+        raise ValueError(
+            f"{item!r}: only diagnostics (8:0..65535) and encapsulated_interface (43:0..255) "
+            "take a subfunction after the colon"
+        )
+    return code, sub
+
+
+def _ranges(value: Any, low: int, high: int) -> list[tuple[int, int]]:
+    """``[0, "100-199"]`` as inclusive ranges; ValueError with the fix."""
+    if isinstance(value, int | str) and not isinstance(value, bool):
+        value = [value]
+    if not isinstance(value, list):
+        raise ValueError(f'write a list of numbers and ranges, like [{low}, "{low + 10}-{high}"]')
+    spans: list[tuple[int, int]] = []
+    for item in value:
+        if isinstance(item, int) and not isinstance(item, bool):
+            first = last = item
+        elif isinstance(item, str) and "-" in item:
+            first_text, _, last_text = item.partition("-")
+            if not (first_text.strip().isdigit() and last_text.strip().isdigit()):
+                raise ValueError(f'{item!r} is not a range like "{low}-{high}"')
+            first, last = int(first_text), int(last_text)
+        elif isinstance(item, str) and item.strip().isdigit():
+            first = last = int(item)
+        else:
+            raise ValueError(f"{item!r} is not a number or a range")
+        if not (low <= first <= last <= high):
+            raise ValueError(f"{item!r} outside {low}..{high} (or backwards)")
+        spans.append((first, last))
+    return spans
+
+
+def _build_rule(check: _Checker, entry: Any, key: str) -> Rule | None:
+    if not isinstance(entry, dict):
+        check.fail(key, "must be a table with role, source, units, functions, addresses, access")
+        return None
+    prefix = f"{key}."
+    check.unknown_keys(entry, _RULE_KEYS, prefix)
+    role = entry.get("role")
+    if role is not None and (not isinstance(role, str) or not role):
+        check.fail(f"{prefix}role", 'write the role as a non-empty string, like "operator"')
+        role = None
+    units: frozenset[int] | None = None
+    if "units" in entry:
+        try:
+            units = frozenset(first for a, b in _ranges(entry["units"], 0, 255) for first in
+                              range(a, b + 1))  # fmt: skip
+        except ValueError as error:
+            check.fail(f"{prefix}units", f"{error} (0 is broadcast, 1..255 unit ids)")
+    functions: frozenset[tuple[int, int | None]] | None = None
+    if "functions" in entry:
+        raw_functions = entry["functions"]
+        if not isinstance(raw_functions, list):
+            raw_functions = [raw_functions]
+        keys = set()
+        for item in raw_functions:
+            try:
+                keys.add(parse_function_key(item))
+            except ValueError as error:
+                check.fail(f"{prefix}functions", str(error))
+        functions = frozenset(keys)
+    addresses = None
+    if "addresses" in entry:
+        try:
+            addresses = merge_ranges(_ranges(entry["addresses"], 0, 65535))
+        except ValueError as error:
+            check.fail(f"{prefix}addresses", str(error))
+    access = _ACCESS[check.choice(entry, "access", prefix, "read_write", tuple(_ACCESS))]
+    return Rule(
+        key=key,
+        role=role,
+        sources=_networks(check, entry, "source", prefix),
+        units=units,
+        functions=functions,
+        addresses=addresses,
+        access=access,
+    )
+
+
+def _build_policies(check: _Checker, raw: Mapping[str, Any]) -> dict[str, tuple[Rule, ...]]:
+    table = check.table(raw, "policies")
+    policies: dict[str, tuple[Rule, ...]] = {}
+    for name, body in table.items():
+        key = f"policies.{name}"
+        if not isinstance(body, dict):
+            check.fail(key, "must be a table; write rules as [[policies.NAME.rules]]")
+            continue
+        check.unknown_keys(body, {"rules"}, f"{key}.")
+        entries = body.get("rules", [])
+        if not isinstance(entries, list):
+            check.fail(f"{key}.rules", "write rules as [[policies.NAME.rules]] tables")
+            continue
+        rules = [_build_rule(check, entry, f"{key}.rules[{i}]") for i, entry in enumerate(entries)]
+        policies[name] = tuple(rule for rule in rules if rule is not None)
+    return policies
+
+
+_LISTENER_KEYS = {"name", "protocol", "listen", "cert", "key", "ca", "allow", "read_only", "policy"}
+
+
+def _build_listeners(
+    check: _Checker,
+    raw: Mapping[str, Any],
+    server: ServerConfig,
+    policies: Mapping[str, tuple[Rule, ...]],
+) -> tuple[ListenerConfig, ...]:
+    """``[server] listen`` (the shorthand tcp listener) and every ``[[listeners]]`` entry.
+
+    The shorthand listener exists when ``[server] listen`` is written (or ``--listen``
+    given), or when no other listener is configured: as before listeners existed.
+    """
+    server_table = check.table(raw, "server")
+    entries = raw.get("listeners", [])
+    if not isinstance(entries, list):
+        check.fail("listeners", "write listeners as [[listeners]] tables")
+        entries = []
+    listeners: list[ListenerConfig] = []
+    if "listen" in server_table or not entries:
+        listeners.append(
+            ListenerConfig(
+                name="tcp", protocol="tcp", host=server.host, port=server.port,
+                read_only=server.read_only, policy=server.policy,
+            )
+        )  # fmt: skip
+    for index, entry in enumerate(entries):
+        key = f"listeners[{index}]"
+        if not isinstance(entry, dict):
+            check.fail(key, "must be a table with name, protocol and listen")
+            continue
+        prefix = f"{key}."
+        check.unknown_keys(entry, _LISTENER_KEYS, prefix)
+        protocol = check.choice(entry, "protocol", prefix, "tcp", VALID_PROTOCOLS)
+        name = entry.get("name", protocol)
+        if not isinstance(name, str) or not name.replace("-", "_").isidentifier():
+            check.fail(f"{prefix}name", f"{name!r}: write a short name of letters, digits, - or _")
+            name = f"listener{index}"
+        default_port = DEFAULT_TLS_PORT if protocol == "tls" else 502
+        address = check.address(entry, "listen", prefix, f"0.0.0.0:{default_port}")
+        if address is None:
+            check.fail(
+                f"{prefix}listen", 'a listener needs an address; write it like "0.0.0.0:802"'
+            )
+            address = ("0.0.0.0", default_port)
+        files: dict[str, str | None] = {}
+        for file_key in ("cert", "key", "ca"):
+            value = entry.get(file_key)
+            if value is not None and (not isinstance(value, str) or not value):
+                check.fail(f"{prefix}{file_key}", "write a file path as a string")
+                value = None
+            if protocol == "tls" and value is None:
+                what = {
+                    "cert": "the server's certificate chain (PEM)",
+                    "key": "the server's private key (PEM)",
+                    "ca": "the CA certificates client certificates must chain to (PEM)",
+                }
+                check.fail(f"{prefix}{file_key}", f"missing; a tls listener needs {what[file_key]}"
+                           f" (or --tls-{file_key} FILE)")  # fmt: skip
+            if protocol == "tcp" and value is not None:
+                check.fail(f"{prefix}{file_key}", 'only a protocol = "tls" listener takes it')
+            files[file_key] = value
+        listeners.append(
+            ListenerConfig(
+                name=name, protocol=protocol, host=address[0], port=address[1],
+                cert=files["cert"], key=files["key"], ca=files["ca"],
+                allow=_networks(check, entry, "allow", prefix),
+                read_only=check.boolean(entry, "read_only", prefix, False) or server.read_only,
+                policy=_policy_name(check, entry, prefix), key_prefix=prefix,
+            )
+        )  # fmt: skip
+    seen: dict[str, ListenerConfig] = {}
+    for listener in listeners:
+        if listener.name in seen:
+            check.fail(f"{listener.key_prefix}name", f"{listener.name!r} is used by another "
+                       "listener; give each listener its own name")  # fmt: skip
+        seen[listener.name] = listener
+        if listener.policy is not None and listener.policy not in policies:
+            known = ", ".join(sorted(policies)) or "(none defined)"
+            check.fail(f"{listener.key_prefix}policy", f"{listener.policy!r} is not a "
+                       f"[policies.NAME] table; policies are: {known}")  # fmt: skip
+    addresses = [(lst.host, lst.port) for lst in listeners if lst.port != 0]
+    for address in set(addresses):
+        if addresses.count(address) > 1:
+            check.fail("listeners", f"two listeners on {address[0]}:{address[1]}; "
+                       "give each its own port")  # fmt: skip
+    return tuple(listeners)
+
+
 def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
     """Validate raw tables into a ``GatewayConfig``; raise ``ConfigError`` listing every fault."""
     check = _Checker()
-    check.unknown_keys(raw, {"server", "metrics", "logging", "lines", "routes"}, "")
+    check.unknown_keys(
+        raw, {"server", "metrics", "logging", "lines", "routes", "listeners", "policies"}, ""
+    )
     server = _build_server(check, raw)
     metrics_table = check.table(raw, "metrics")
     check.unknown_keys(metrics_table, {"listen"}, "metrics.")
@@ -645,9 +946,42 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
         )
     _check_shared_devices(check, lines)
     routes = _build_routes(check, raw, lines)
+    policies = _build_policies(check, raw)
+    listeners = _build_listeners(check, raw, server, policies)
     if check.problems:
         raise ConfigError(source, check.problems)
-    return GatewayConfig(server, metrics, log, lines, routes, source)
+    return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies)
+
+
+def policy_warnings(config: GatewayConfig) -> list[str]:
+    """Rules that can never grant anything, unused policies, tls listeners without a policy."""
+    warnings: list[str] = []
+    used = {listener.policy for listener in config.listeners}
+    for name in config.policies:
+        if name not in used:
+            warnings.append(f"policies.{name}: no listener uses it; set policy = {name!r} on "
+                            "a listener ([server] or [[listeners]]) or remove it")  # fmt: skip
+    for listener in config.listeners:
+        if listener.policy is None:
+            if listener.tls:
+                warnings.append(
+                    f"{listener.key_prefix}policy: tls listener {listener.name!r} has no policy: "
+                    "every client certificate with a role has every right (the NULL role none)"
+                )
+            continue
+        rules = config.policies.get(listener.policy, ())
+        if not rules:
+            warnings.append(f"policies.{listener.policy}: no rules, so listener "
+                            f"{listener.name!r} refuses every request")  # fmt: skip
+        warnings += lint(
+            rules,
+            listener=listener.name,
+            tls=listener.tls,
+            read_only=listener.read_only or config.server.read_only,
+            allow=listener.allow or config.server.allow,
+            routed_units=config.routes,
+        )
+    return warnings
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

@@ -247,15 +247,13 @@ class TraceHub:
         self._update()
 
     def _update(self) -> None:
-        server = self._gateway.server
-        if server is None:
-            return
         wanted = bool(self.streams) or self._clock() < self._watched_until
-        if wanted:
-            server.tracer = self
-        elif server.tracer is self:
-            server.tracer = self.inner
-            self._pending.clear()
+        for server in self._gateway.servers:  # every listener
+            if wanted:
+                server.tracer = self
+            elif server.tracer is self:
+                server.tracer = self.inner
+                self._pending.clear()
 
     def slave_latency(self, line: str, slave: int) -> tuple[float | None, float | None]:
         """p50 and p99 in seconds over the slave's recent answers (``None`` without any)."""
@@ -268,10 +266,18 @@ class TraceHub:
 
     # -- the tracer seat -----------------------------------------------------------------
 
-    def request(self, peer: str, transaction_id: int, unit: int, pdu: bytes) -> None:
-        """A request arrived from ``peer``."""
+    def request(
+        self,
+        peer: str,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        listener: str | None = None,
+        role: str | None = None,
+    ) -> None:
+        """A request arrived from ``peer`` (on ``listener``, with ``role`` on TLS)."""
         if self.inner is not None:
-            self.inner.request(peer, transaction_id, unit, pdu)
+            self.inner.request(peer, transaction_id, unit, pdu, listener, role)
         line: str | None = None
         slave: int | None = None
         server = self._gateway.server

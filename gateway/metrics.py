@@ -16,10 +16,12 @@ broadcasts ``line="broadcast", unit="0"``. docs/metrics.md lists every metric.
 
 from __future__ import annotations
 
+import time
 from bisect import bisect_left
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from itertools import accumulate
+from typing import Protocol
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Info
 from prometheus_client.core import (
@@ -43,6 +45,7 @@ OUTCOMES = (
     "broadcast",  # sent to unit 0, no answer expected
     "dropped",  # the master left before its answer was ready
     "cached",  # answered from the read cache
+    "denied",  # refused by the listener's policy (0x01), never sent to the line
 )
 
 #: Why a TCP connection closed, the ``reason`` label's vocabulary.
@@ -107,6 +110,43 @@ class _LineCountersCollector(Collector):
             for line, counters in sorted(self._lines.items()):
                 family.add_metric([line], getattr(counters, field))
             yield family
+
+
+class CertificateExpiry(Protocol):
+    """What the expiry metric needs to know of a certificate."""
+
+    @property
+    def listener(self) -> str: ...
+
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def subject(self) -> str: ...
+
+    def seconds_left(self, now: float | None = None) -> float: ...
+
+
+class _CertificateExpiryCollector(Collector):
+    """``tls_certificate_expiry_seconds``: computed at scrape time from each ``notAfter``."""
+
+    def __init__(self, certificates: list[CertificateExpiry]) -> None:
+        self._certificates = certificates
+
+    def collect(self) -> Iterator[Metric]:
+        family = GaugeMetricFamily(
+            "modbus_gateway_tls_certificate_expiry_seconds",
+            "Seconds until the certificate's notAfter (negative once expired), per tls "
+            "listener: kind is server, chain (an intermediate sent to clients) or ca.",
+            labels=["listener", "kind", "subject"],
+        )
+        now = time.time()
+        for certificate in self._certificates:
+            family.add_metric(
+                [certificate.listener, certificate.kind, certificate.subject],
+                certificate.seconds_left(now),
+            )
+        yield family
 
 
 class LoopHistogram:
@@ -248,6 +288,24 @@ class GatewayMetrics:
         self.trace_streams = Gauge(
             p + "trace_streams", "Live trace streams open now (GET /trace).", registry=r
         )
+        self.denied_requests = Counter(
+            p + "denied_requests",
+            "Requests refused by a listener's policy (answered 0x01), by listener, role and "
+            "function; role is one the rules name, none (NULL role or plain TCP) or other.",
+            ["listener", "role", "function"], registry=r,
+        )  # fmt: skip
+        self.connections_denied = Counter(
+            p + "connections_denied",
+            "Connections closed at accept: the source is outside the listener's allow list.",
+            ["listener"], registry=r,
+        )  # fmt: skip
+        self.tls_handshake_failures = Counter(
+            p + "tls_handshake_failures", "Failed TLS handshakes on tls listeners, by reason.",
+            ["listener", "reason"], registry=r,
+        )  # fmt: skip
+        self._certificates: list[CertificateExpiry] = []
+        r.register(_CertificateExpiryCollector(self._certificates))
+        self._denial_children: dict[tuple[str, str, int], Counter] = {}
         self.info = Info(p + "build", "Version and configured lines.", registry=r)
         self.info.info({"version": __version__, "lines": ""})
         self._line_counters: dict[str, LineCounters] = {}
@@ -284,6 +342,28 @@ class GatewayMetrics:
     def request_duration_for(self, line: str) -> LoopHistogram:
         """The latency histogram of ``line``."""
         return self.request_duration.labels(line)
+
+    def prepare_listener(self, listener: str) -> None:
+        """Create a listener's door counters at 0."""
+        self.connections_denied.labels(listener)
+
+    def prepare_tls_listener(self, listener: str, reasons: Iterable[str]) -> None:
+        """Create a TLS listener's handshake failure series at 0."""
+        for reason in reasons:
+            self.tls_handshake_failures.labels(listener, reason)
+
+    def set_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
+        """The certificates whose ``notAfter`` is exported (replaced on every reload)."""
+        self._certificates[:] = list(certificates)
+
+    def count_denial(self, listener: str, role: str, function: int) -> None:
+        """Count one request refused by policy (``role`` already bounded by the policy)."""
+        key = (listener, role, function)
+        child = self._denial_children.get(key)
+        if child is None:
+            child = self.denied_requests.labels(listener, role, function_name(function))
+            self._denial_children[key] = child
+        child.inc()
 
     def count_request(self, line: str, unit: str, function: int, outcome: str) -> None:
         """Count one request's outcome (children cached: this runs per request).

@@ -51,8 +51,16 @@ def parse_function(text: str) -> int:
 class FrameTracer(Protocol):
     """What the TCP server calls per frame while tracing: the logger, or the live trace hub."""
 
-    def request(self, peer: str, transaction_id: int, unit: int, pdu: bytes) -> None:
-        """A request arrived from ``peer``."""
+    def request(
+        self,
+        peer: str,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        listener: str | None = None,
+        role: str | None = None,
+    ) -> None:
+        """A request arrived from ``peer`` on ``listener`` (``role``: TLS only)."""
 
     def reply(
         self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
@@ -88,8 +96,16 @@ class Tracer:
             not self.functions or (function & 0x7F) in self.functions
         )
 
-    def request(self, peer: str, transaction_id: int, unit: int, pdu: bytes) -> None:
-        """A request arrived from ``peer``."""
+    def request(
+        self,
+        peer: str,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        listener: str | None = None,
+        role: str | None = None,
+    ) -> None:
+        """A request arrived from ``peer`` on ``listener``; ``role`` on TLS listeners only."""
         function = pdu[0] if pdu else 0
         if not self.wants(unit, function):
             return
@@ -99,12 +115,15 @@ class Tracer:
         pending[(peer, transaction_id, unit)] = self._clock()
         name = fc.function_name(function)
         detail = fc.describe_request(pdu)
+        where = ""
+        if listener is not None:
+            where = f" via {listener}" if role is None else f" via {listener} role={role}"
         self._log.info(
-            "-> %s tid=%d unit=%d %s(%d) %s",
-            peer, transaction_id, unit, name, function, detail,
+            "-> %s tid=%d unit=%d %s(%d) %s%s",
+            peer, transaction_id, unit, name, function, detail, where,
             extra={"direction": "request", "peer": peer, "transaction_id": transaction_id,
                    "unit": unit, "function": name, "function_code": function,
-                   "detail": detail},
+                   "detail": detail, "listener": listener, "role": role},
         )  # fmt: skip
 
     def reply(

@@ -15,19 +15,23 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+import ssl
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import cast
 
-from ..config import ServerConfig
+from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode, FramingError, ModbusError
 from ..core.mbap import MbapDecoder, MbapFrame, encode_mbap
+from ..core.policy import Decision, Policy, Principal
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
 from ..trace import FrameTracer
+from .access import SourceScreen, peer_address, peer_address_of
 from .bus import Bus, Request
+from .tls import HandshakeFailure, TlsServer, role_of
 
 log = logging.getLogger("gateway.tcp")
 
@@ -67,6 +71,8 @@ class MasterConnection(asyncio.Protocol):
         self.requests = 0  # frames received, for the status page
         self.last_activity = time.monotonic()
         self._idle_timer: asyncio.TimerHandle | None = None
+        self.principal = Principal(None)  #: set by the source screen (and the TLS role)
+        self.role_text: str | None = None  #: the role as the trace shows it (TLS only)
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
@@ -75,6 +81,10 @@ class MasterConnection(asyncio.Protocol):
         self._transport = cast(asyncio.Transport, transport)
         peer = transport.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        if not self._server.screen_source(self, self._transport):
+            self._closed = True
+            self._transport.abort()
+            return
         sock = transport.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -144,7 +154,7 @@ class MasterConnection(asyncio.Protocol):
         function = pdu[0] if pdu else 0
         tracer = server.tracer
         if tracer is not None:
-            tracer.request(self.peer, transaction_id, unit, pdu)
+            tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
         try:
             if function in server.config.refuse_functions:
                 raise ModbusError(
@@ -158,6 +168,11 @@ class MasterConnection(asyncio.Protocol):
             self._send(transaction_id, unit, fc.exception_pdu(function, error.code), "rejected")
             server.metrics.count_request("none", "other", function, "rejected")
             return
+        if not server.policy.open:
+            decision = server.policy.decide(self.principal, unit, pdu)
+            if decision.denied is not None:
+                self._deny(transaction_id, unit, function, decision)
+                return
         if unit == 0:
             self._broadcast(transaction_id, pdu, arrived)
             return
@@ -199,6 +214,21 @@ class MasterConnection(asyncio.Protocol):
                 fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
             )
             server.metrics.count_request(line, unit_label, function, "no_route")
+
+    def _deny(self, transaction_id: int, unit: int, function: int, decision: Decision) -> None:
+        """Answer 0x01 (Illegal Function) to a request the policy refuses; none reaches the line."""
+        server = self._server
+        self._send(
+            transaction_id, unit, fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION),
+            "denied",
+        )  # fmt: skip
+        server.metrics.count_denial(
+            server.name, server.policy.role_label(self.principal.role), function
+        )
+        server.metrics.count_request("none", "other", function, "denied")
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
+                      fc.function_name(function), decision.denied)  # fmt: skip
 
     def _broadcast(self, transaction_id: int, pdu: bytes, arrived: float) -> None:
         server = self._server
@@ -285,13 +315,21 @@ class ModbusTcpServer:
         config: ServerConfig,
         router: Router,
         metrics: GatewayMetrics,
+        listener: ListenerConfig | None = None,
+        policy: Policy | None = None,
+        ssl_context: ssl.SSLContext | None = None,
     ) -> None:
         self.config = config
         self.router = router
         self.metrics = metrics
+        self.listener = listener or ListenerConfig("tcp", host=config.host, port=config.port)
+        self.name = self.listener.name
+        self.policy = policy or Policy()  #: replaced as a whole on reload
+        self.ssl_context = ssl_context  #: replaced on reload; new connections use the new one
+        self.screen = SourceScreen(self.name, (config.allow, self.listener.allow), metrics)
         self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
-        self._server: asyncio.Server | None = None
+        self._server: asyncio.Server | TlsServer | None = None
 
     @property
     def connections(self) -> int:
@@ -308,10 +346,40 @@ class ModbusTcpServer:
     async def start(self) -> None:
         """Bind and start accepting."""
         loop = asyncio.get_running_loop()
+        self.screen.start(loop)
+        host, port, backlog = self.listener.host, self.listener.port, self.config.backlog
+        if self.ssl_context is not None:
+            self._server = await TlsServer.start(
+                self, lambda: MasterConnection(self), host, port, backlog
+            )
+            return
         self._server = await loop.create_server(
-            lambda: MasterConnection(self), self.config.host, self.config.port,
-            backlog=self.config.backlog, reuse_address=True,
-        )  # fmt: skip
+            lambda: MasterConnection(self), host, port, backlog=backlog, reuse_address=True
+        )
+
+    def admits(self, address: object) -> bool:
+        """Allow-list check of a TLS listener at accept, before the handshake reads a byte."""
+        source = peer_address_of(address)
+        if self.screen.allows(source):
+            return True
+        self.screen.refuse(source)
+        return False
+
+    def screen_source(self, connection: MasterConnection, transport: asyncio.Transport) -> bool:
+        """The allow lists at accept (before any byte is read); the source and TLS role."""
+        source = peer_address(transport)
+        if not self.screen.allows(source):
+            self.screen.refuse(source)
+            return False
+        tls, role = role_of(transport)
+        connection.principal = Principal(source, role)
+        if tls:
+            connection.role_text = "NULL" if role is None else role
+        return True
+
+    def handshake_failed(self, reason: HandshakeFailure, error: BaseException) -> None:
+        """Count and log (at a bounded rate) a failed TLS handshake."""
+        self.screen.handshake_failed(reason, error)
 
     def stop_accepting(self) -> None:
         """Close the listening sockets; connections stay."""

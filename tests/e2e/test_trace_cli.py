@@ -59,7 +59,7 @@ def test_trace_subcommand_prints_requests_and_replies_decoded() -> None:
                 sock.recv(struct.unpack(">HHHB", header)[2] - 1, socket.MSG_WAITALL)
         request = _wait_for(lines, r"gateway\.trace: -> (\S+) tid=(\d+) unit=1 (.*)$", seen)
         assert (request[2], request[3]) == (
-            "43", "read_holding_registers(3) address=0 quantity=10"
+            "43", "read_holding_registers(3) address=0 quantity=10 via tcp"
         )  # fmt: skip
         reply = _wait_for(lines, r"gateway\.trace: <- (\S+) tid=43 unit=1 (.*)$", seen)
         assert re.fullmatch(r"read_holding_registers\(3\) byte_count=20 ok \d+\.\d\d ms", reply[2])

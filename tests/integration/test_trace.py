@@ -70,7 +70,7 @@ def test_trace_shows_the_frames_that_pass_the_filters(
     assert (
         trace_log.records[0]
         .getMessage()
-        .endswith("tid=101 unit=1 read_holding_registers(3) address=0 quantity=10")
+        .endswith("tid=101 unit=1 read_holding_registers(3) address=0 quantity=10 via tcp")
     )
 
 

@@ -1,0 +1,336 @@
+"""Modbus/TCP Security: the server's TLS context, the client's role, and the TLS handshake.
+
+Theory of operation. ``server_context`` builds an ``ssl.SSLContext`` that speaks
+TLS 1.2 or newer only and requires a client certificate chaining to the
+configured CAs (mutual authentication, as the Modbus/TCP Security
+specification requires); an expired or not-yet-valid server certificate, a key
+that does not match it, or an unreadable file is a ``TlsSetupError`` naming the
+listener's key and the fix. It is built again on every SIGHUP, so renewed
+certificates are picked up without a restart; connections already open keep
+the session they negotiated.
+
+``TlsServer`` accepts on a ``tls`` listener: it screens the source address
+(allow list) before a single byte is read, runs the handshake so that a
+failure can be counted by reason, and only then hands the connection to the
+Modbus side, which takes the role once from the client certificate. ``ssl``
+never shows a certificate's private extensions, so the role (extension OID
+1.3.6.1.4.1.50316.802.1, an ASN.1 UTF8String) is read from the DER with
+``cryptography``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import logging
+import socket
+import ssl
+import struct
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
+
+from cryptography import x509
+from cryptography.x509.oid import NameOID
+
+from ..config import ListenerConfig
+from ..core.policy import ROLE_OID, decode_role
+
+if TYPE_CHECKING:
+    from .tcp import ModbusTcpServer
+
+log = logging.getLogger("gateway.tls")
+
+#: A client that has not finished its handshake by then is disconnected.
+HANDSHAKE_TIMEOUT_S = 10.0
+
+
+class TlsSetupError(Exception):
+    """A listener's certificate, key or CA file cannot be used; the message says which and why."""
+
+
+class HandshakeFailure(enum.StrEnum):
+    """Why a TLS handshake failed: the ``reason`` label of ``tls_handshake_failures_total``."""
+
+    PROTOCOL_VERSION = "protocol_version"  # TLS 1.1 or older, SSL
+    NO_CERTIFICATE = "no_certificate"  # the client sent no certificate
+    UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # does not chain to the configured CAs
+    EXPIRED_CERTIFICATE = "expired_certificate"  # expired or not yet valid
+    TIMEOUT = "timeout"  # no complete handshake within HANDSHAKE_TIMEOUT_S
+    CLOSED = "closed"  # the client went away during the handshake
+    OTHER = "other"  # anything else (no common cipher, garbage instead of a ClientHello, ...)
+
+
+# OpenSSL's X509_V_ERR_CERT_NOT_YET_VALID and X509_V_ERR_CERT_HAS_EXPIRED.
+_EXPIRY_VERIFY_CODES = frozenset({9, 10})
+
+
+def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
+    """Map an exception from the handshake to its ``HandshakeFailure``."""
+    if isinstance(error, ssl.SSLCertVerificationError):
+        if error.verify_code in _EXPIRY_VERIFY_CODES:
+            return HandshakeFailure.EXPIRED_CERTIFICATE
+        return HandshakeFailure.UNTRUSTED_CERTIFICATE
+    if isinstance(error, ssl.SSLError):
+        reason = (error.reason or "").upper()
+        if "VERSION" in reason or "UNSUPPORTED_PROTOCOL" in reason:
+            return HandshakeFailure.PROTOCOL_VERSION
+        if "CERTIFICATE_REQUIRED" in reason or "DID_NOT_RETURN_A_CERTIFICATE" in reason:
+            return HandshakeFailure.NO_CERTIFICATE
+        if "EXPIRED" in reason:
+            return HandshakeFailure.EXPIRED_CERTIFICATE
+        if "CERTIFICATE" in reason or "UNKNOWN_CA" in reason:
+            return HandshakeFailure.UNTRUSTED_CERTIFICATE
+        if isinstance(error, ssl.SSLEOFError):
+            return HandshakeFailure.CLOSED
+        return HandshakeFailure.OTHER
+    if isinstance(error, TimeoutError) or "longer than" in str(error):
+        return HandshakeFailure.TIMEOUT
+    if isinstance(error, ConnectionError | OSError):
+        return HandshakeFailure.CLOSED
+    return HandshakeFailure.OTHER
+
+
+# --------------------------------------------------------------------------- certificates
+
+
+@dataclass(frozen=True, slots=True)
+class CertificateInfo:
+    """One certificate a listener uses, for the expiry metric."""
+
+    listener: str
+    kind: str  #: ``server`` (the leaf), ``chain`` (an intermediate it sends) or ``ca``
+    subject: str
+    not_after: datetime
+
+    def seconds_left(self, now: float | None = None) -> float:
+        """Seconds until ``notAfter`` (negative once expired)."""
+        return self.not_after.timestamp() - (time.time() if now is None else now)
+
+
+def _subject(certificate: x509.Certificate) -> str:
+    names = certificate.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    if names:
+        return str(names[0].value)
+    return certificate.subject.rfc4514_string() or "(no subject)"
+
+
+def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+    except OSError as error:
+        raise TlsSetupError(f"{key} = {path!r}: cannot read: {error.strerror or error}") from None
+    try:
+        certificates = x509.load_pem_x509_certificates(data)
+    except ValueError:
+        raise TlsSetupError(
+            f"{key} = {path!r}: no PEM certificate in it (expected -----BEGIN CERTIFICATE-----)"
+        ) from None
+    return certificates
+
+
+@dataclass
+class ServerTls:
+    """A listener's built TLS context and the certificates it rests on."""
+
+    context: ssl.SSLContext
+    certificates: list[CertificateInfo]
+
+
+def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
+    """Build the TLS context of a ``tls`` listener; raise ``TlsSetupError`` naming the fault."""
+    assert listener.cert and listener.key and listener.ca
+    prefix = listener.key_prefix
+    moment = now or datetime.now(UTC)
+    chain = _read_pem_certificates(listener.cert, f"{prefix}cert")
+    infos: list[CertificateInfo] = []
+    for index, certificate in enumerate(chain):
+        kind = "server" if index == 0 else "chain"
+        subject = _subject(certificate)
+        if moment < certificate.not_valid_before_utc:
+            raise TlsSetupError(
+                f"{prefix}cert = {listener.cert!r}: the {kind} certificate {subject!r} is not "
+                f"valid before {certificate.not_valid_before_utc:%Y-%m-%d %H:%M:%S} UTC; check "
+                "the clock or issue it again"
+            )
+        if moment > certificate.not_valid_after_utc:
+            raise TlsSetupError(
+                f"{prefix}cert = {listener.cert!r}: the {kind} certificate {subject!r} expired on "
+                f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC; renew it, then reload "
+                "(SIGHUP)"
+            )
+        infos.append(CertificateInfo(listener.name, kind, subject, certificate.not_valid_after_utc))
+    authorities = _read_pem_certificates(listener.ca, f"{prefix}ca")
+    for authority in authorities:
+        info = CertificateInfo(
+            listener.name, "ca", _subject(authority), authority.not_valid_after_utc
+        )
+        if moment > authority.not_valid_after_utc:
+            log.warning(
+                "listener %s: CA certificate %r in %s expired on %s: no client certificate "
+                "chaining to it is accepted any more",
+                listener.name, info.subject, listener.ca,
+                f"{authority.not_valid_after_utc:%Y-%m-%d}",
+            )  # fmt: skip
+        infos.append(info)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
+    context.verify_mode = ssl.CERT_REQUIRED  # mutual authentication
+    context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
+    context.options |= ssl.OP_CIPHER_SERVER_PREFERENCE
+    try:
+        context.load_cert_chain(listener.cert, listener.key)
+    except ssl.SSLError as error:
+        raise TlsSetupError(
+            f"{prefix}key = {listener.key!r}: cannot be used with {prefix}cert = "
+            f"{listener.cert!r} ({error.reason or error}); give the private key of the "
+            "certificate's first (leaf) entry, unencrypted PEM"
+        ) from None
+    except OSError as error:
+        raise TlsSetupError(
+            f"{prefix}key = {listener.key!r}: cannot read: {error.strerror or error}"
+        ) from None
+    try:
+        context.load_verify_locations(cafile=listener.ca)
+    except (ssl.SSLError, OSError) as error:
+        raise TlsSetupError(f"{prefix}ca = {listener.ca!r}: cannot be used: {error}") from None
+    return ServerTls(context, infos)
+
+
+def role_from_certificate(der: bytes | None) -> str | None:
+    """The Modbus/TCP Security role in a DER client certificate; ``None`` is the NULL role.
+
+    No role extension, two of them, or one that is not a single UTF8String gives the
+    NULL role; so does a certificate ``cryptography`` cannot parse. Never raises.
+    """
+    if not der:
+        return None
+    try:
+        certificate = x509.load_der_x509_certificate(der)
+        values = [
+            extension.value
+            for extension in certificate.extensions
+            if extension.oid.dotted_string == ROLE_OID
+        ]
+    except (ValueError, TypeError, x509.DuplicateExtension, x509.UnsupportedGeneralNameType):
+        return None
+    if len(values) != 1 or not isinstance(values[0], x509.UnrecognizedExtension):
+        return None
+    return decode_role(values[0].value)
+
+
+# --------------------------------------------------------------------------- the handshake
+
+
+class TlsServer:
+    """A ``tls`` listener: accepts, screens the source, then runs the handshake.
+
+    The listening socket is watched with ``add_reader``, so a connection from a
+    source outside the allow list is closed right after ``accept()``, before a
+    byte of its ClientHello is read. Admitted connections are handed to
+    ``loop.connect_accepted_socket`` with the TLS context, which completes the
+    handshake before the Modbus side sees the connection and raises the reason
+    when it fails (counted by ``server.handshake_failed``). It offers the part
+    of ``asyncio.Server`` the TCP server uses: ``sockets``, ``close``, ``wait_closed``.
+    """
+
+    #: Connections accepted per wake-up, so a flood cannot hold the loop.
+    ACCEPTS_PER_WAKEUP = 64
+
+    def __init__(
+        self,
+        server: ModbusTcpServer,
+        make_connection: Callable[[], asyncio.Protocol],
+        listening: socket.socket,
+    ) -> None:
+        self._server = server
+        self._make_connection = make_connection
+        self._socket = listening
+        self._loop = asyncio.get_running_loop()
+        self._handshakes: set[asyncio.Task[None]] = set()
+        self._closed = asyncio.Event()
+        listening.setblocking(False)
+        self._loop.add_reader(listening.fileno(), self._accept)
+
+    @classmethod
+    async def start(
+        cls,
+        server: ModbusTcpServer,
+        make_connection: Callable[[], asyncio.Protocol],
+        host: str,
+        port: int,
+        backlog: int,
+    ) -> TlsServer:
+        """Bind ``host:port`` and start accepting."""
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        listening = socket.create_server((host, port), family=family, backlog=backlog)
+        return cls(server, make_connection, listening)
+
+    @property
+    def sockets(self) -> tuple[socket.socket, ...]:
+        """The listening socket (none once closed)."""
+        return () if self._closed.is_set() else (self._socket,)
+
+    def _accept(self) -> None:
+        for _ in range(self.ACCEPTS_PER_WAKEUP):
+            try:
+                connection, address = self._socket.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as error:  # EMFILE and the like: the next wake-up tries again
+                log.warning("listener %s: accept failed: %s", self._server.name, error)
+                return
+            if not self._server.admits(address):
+                connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _ABORT)
+                connection.close()
+                continue
+            connection.setblocking(False)
+            task = self._loop.create_task(self._handshake(connection))
+            self._handshakes.add(task)
+            task.add_done_callback(self._handshakes.discard)
+
+    async def _handshake(self, connection: socket.socket) -> None:
+        context = self._server.ssl_context
+        assert context is not None
+        try:
+            await self._loop.connect_accepted_socket(
+                self._make_connection, connection, ssl=context,
+                ssl_handshake_timeout=HANDSHAKE_TIMEOUT_S,
+            )  # fmt: skip
+        except (ssl.SSLError, ConnectionError, TimeoutError, OSError) as error:
+            self._server.handshake_failed(handshake_failure_reason(error), error)
+
+    def close(self) -> None:
+        """Stop accepting; handshakes under way are abandoned (their sockets closed)."""
+        if self._closed.is_set():
+            return
+        self._loop.remove_reader(self._socket.fileno())
+        self._socket.close()
+        for task in self._handshakes:
+            task.cancel()
+        self._closed.set()
+
+    async def wait_closed(self) -> None:
+        """Wait until ``close`` has run."""
+        await self._closed.wait()
+
+
+#: SO_LINGER on, 0 s: ``close`` sends a reset at once instead of a graceful FIN.
+_ABORT = struct.pack("ii", 1, 0)
+
+
+def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:
+    """(is TLS, role) of an accepted transport: the role read once from the client certificate."""
+    ssl_object: Any = transport.get_extra_info("ssl_object")
+    if ssl_object is None:
+        return False, None
+    return True, role_from_certificate(ssl_object.getpeercert(binary_form=True))
+
+
+def certificates_of(tls: dict[str, ServerTls]) -> Iterator[CertificateInfo]:
+    """Every certificate of every listener, for the expiry metric."""
+    for built in tls.values():
+        yield from built.certificates
