@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway
-from metrics_harness import http_get, metrics_address, samples, series
+from metrics_harness import http_get, metrics_address, samples, series, wait_until
 
 from gateway import live
 from gateway.live import QUEUE_LIMIT
@@ -227,3 +227,20 @@ def test_quiet_streams_get_heartbeats_and_sse_frames_events(
             frame = sse._until(b"\n\n")
         assert frame.startswith(b"data: ")
         assert json.loads(frame[6:])["type"] == "request"
+
+
+def test_streams_past_the_cap_are_refused(
+    gateway_with: GatewayOnSim, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _sim, gw = gateway_with({1: plc(1)})
+    monkeypatch.setattr(live, "MAX_STREAMS", 2)
+    with stream(gw), stream(gw):
+        refused = Stream(gw)
+        assert (
+            refused.status == 503
+            and "2 trace streams are open already" in refused._until(b"\n").decode()
+        )
+        refused.close()
+    with stream(gw) as again:  # closed streams free their places
+        assert again.status == 200
+    wait_until(lambda: status(gw)["trace_clients"] == 0, "the closed streams to be forgotten")
