@@ -411,7 +411,7 @@ class StatusView:
                 )
             )
         server = gateway.server
-        masters = tuple(server.masters()) if server is not None else ()
+        masters = tuple(master for listener in gateway.servers for master in listener.masters())
         return GatewayStatus(
             version=__version__,
             uptime=round(now - self._started, 3),

@@ -398,8 +398,8 @@ class ModbusTcpServer:
 
     def masters(self) -> list[MasterStatus]:
         """A snapshot of the connected masters, for the status page."""
-        host, port = self.sockets[0] if self.sockets else (self.config.host, self.config.port)
-        listener = f"{host}:{port}"
+        host, port = self.sockets[0] if self.sockets else (self.listener.host, self.listener.port)
+        listener = f"{self.name} {host}:{port}"
         return [
             MasterStatus(connection.peer, listener, connection.in_flight, connection.requests)
             for connection in self._connections

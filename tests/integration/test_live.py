@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import socket
+import ssl
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -11,8 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway
+from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway, SimFactory
 from metrics_harness import http_get, metrics_address, samples, series, wait_until
+from pki import make_pki
 
 from gateway import live
 from gateway.live import QUEUE_LIMIT
@@ -244,3 +246,34 @@ def test_streams_past_the_cap_are_refused(
     with stream(gw) as again:  # closed streams free their places
         assert again.status == 200
     wait_until(lambda: status(gw)["trace_clients"] == 0, "the closed streams to be forgotten")
+
+
+def test_masters_on_every_listener_are_traced_and_listed(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    pki = make_pki(tmp_path)
+    sim = make_sim({1: plc(1)})
+    gw = make_gateway({
+        "lines": {"a": sim.line_table([1])},
+        "listeners": [{"name": "tls", "protocol": "tls", "listen": "127.0.0.1:0",
+                       "cert": str(pki.server_chain), "key": str(pki.server_key),
+                       "ca": str(pki.ca)}],
+    })  # fmt: skip
+    tls_address = gw.call(lambda: gw.gateway.listener_address("tls"))
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cafile=str(pki.ca))
+    context.load_cert_chain(*pki.client("operator"))
+    with (
+        stream(gw, "?unit=1") as trace,
+        gw.connect() as plain,
+        context.wrap_socket(socket.create_connection(tls_address, timeout=DEADLINE_S),
+                            server_hostname="localhost") as secure,
+    ):  # fmt: skip
+        secure.sendall(bytes.fromhex("0007 0000 0006 01") + READ_10)
+        assert secure.recv(256)[:2] == b"\x00\x07"
+        event = trace.event()
+        assert (event["tid"], event["type"]) == (7, "request")
+        assert event["master"] == "{}:{}".format(*secure.getsockname())
+        plain.request(1, READ_10)
+        listeners = sorted(m["listener"].split()[0] for m in status(gw)["masters"])
+        assert listeners == ["tcp", "tls"]
