@@ -287,6 +287,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     reload_source: Callable[[], Any] | None = None
     if args.config and not args.demo:
         reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))
+    elif not args.demo:  # flags only: SIGHUP still re-reads the TLS files they name
+
+        def reload_source() -> Any:
+            return build_config(apply_overrides({}, args), "<command line>")
 
     async def serve() -> None:
         tracer = None

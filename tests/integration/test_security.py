@@ -33,9 +33,9 @@ from conftest import (
     SimFactory,
     require_tool,
 )
-from pki import Pki, make_pki
 
 from gateway.sim import plc
+from gateway.sim.pki import Pki, make_pki
 
 PLANT_RULES: list[dict[str, Any]] = [
     {"role": "operator", "units": [1], "functions": [3, "write_single_register", 16],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -12,10 +13,11 @@ from gateway.config import (
     ConfigError,
     ListenerConfig,
     build_config,
+    load_config,
     parse_function_key,
     policy_warnings,
 )
-from gateway.core.policy import Access
+from gateway.core.policy import Access, Policy, Principal
 
 LINE = {"a": {"device": "/dev/null", "units": [1, 2]}}
 TLS = {"protocol": "tls", "cert": "s.pem", "key": "s.key", "ca": "ca.pem"}
@@ -160,3 +162,38 @@ def test_warnings_for_rules_that_never_match() -> None:
     assert "tls listener 'tls' has no policy" in text
     assert "policies.p.rules[0] (listener 'tcp'): role 'operator' never matches" in text
     assert "policies.p.rules[1] (listener 'tcp'): source 192.168.0.0/16 is outside" in text
+
+
+def test_the_locked_down_example_means_what_its_comments_say() -> None:
+    root = Path(__file__).resolve().parents[2]
+    built = load_config(root / "conf" / "gateway.locked-down.toml")
+    assert policy_warnings(built) == []
+    tcp, tls = built.listeners
+    assert (tcp.name, tcp.port, tls.name, tls.port, tls.protocol) == ("tcp", 502, "tls", 802, "tls")
+    hmi = Policy(built.policies["legacy"])
+    plant = Policy(built.policies["plant"], tls=True)
+
+    def ip(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+        return ipaddress.ip_address(text)
+
+    station = ip("10.1.2.50")
+    cases = [
+        (hmi, Principal(ip("10.1.2.20")), 3, "03 0000 0010", True),
+        (hmi, Principal(ip("10.1.2.20")), 3, "06 0000 0001", False),
+        (hmi, Principal(ip("10.1.2.21")), 3, "03 0000 0010", False),
+        (plant, Principal(station, "operator"), 10, "10 03E6 0002 04 00010002", True),
+        (plant, Principal(station, "operator"), 10, "10 03E7 0002 04 00010002", False),
+        (plant, Principal(station, "operator"), 11, "03 0000 0001", False),
+        (plant, Principal(station, "operator"), 1, "05 0063 FF00", True),
+        (plant, Principal(station, "viewer"), 7, "04 0000 0010", True),
+        (plant, Principal(station, "viewer"), 7, "06 0000 0001", False),
+        (plant, Principal(station, "engineer"), 7, "08 000B 0000", True),
+        (plant, Principal(station, "engineer"), 7, "08 0004 0000", False),
+        (plant, Principal(station, "engineer"), 0, "10 2328 0004 08 0001000200030004", True),
+        (plant, Principal(ip("10.1.2.51"), "engineer"), 0, "10 2328 0001 02 0001", False),
+        (plant, Principal(station, None), 1, "03 0000 0001", False),
+    ]
+    for policy, principal, unit, pdu, served in cases:
+        assert policy.decide(principal, unit, bytes.fromhex(pdu)).allowed is served, (
+            principal, unit, pdu,
+        )  # fmt: skip

@@ -1,4 +1,6 @@
-"""A throwaway PKI for the TLS tests, made with ``cryptography`` (no key is ever committed).
+"""A throwaway PKI for TLS tests and the benchmark, made with ``cryptography`` on the spot.
+
+No key is ever committed or shipped: every run makes its own.
 
 ``make_pki(directory)`` writes PEM files: a root CA, an intermediate CA, the
 server's chain (leaf + intermediate) and key, and client certificates (each

@@ -1,0 +1,297 @@
+"""The TLS flags in a real ``modbus-gateway`` process: serve, reload certificates, refuse bad ones.
+
+The line's device does not exist, so every request is answered 0x0A by the
+gateway itself: these tests are about the listener, not the line.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import http.client
+import os
+import re
+import shutil
+import signal
+import socket
+import ssl
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import require_tool
+from cryptography import x509
+from cryptography.hazmat.primitives.serialization import Encoding
+
+from gateway.io.tls import role_from_certificate
+from gateway.sim.pki import DAY, Pki, make_pki
+
+DEADLINE_S = 10.0
+READ = bytes.fromhex("03 0000 0001")
+
+
+class Gateway:
+    """``python -m gateway ARGS`` with its log collected line by line."""
+
+    def __init__(self, *args: str) -> None:
+        command = [sys.executable, "-m", "gateway", *args]
+        self.lines: list[str] = []
+        self._eof = False
+        self._changed = threading.Condition()
+        self.proc = subprocess.Popen(
+            command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True,
+        )  # fmt: skip
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._changed:
+                self.lines.append(line.rstrip("\n"))
+                self._changed.notify_all()
+        with self._changed:
+            self._eof = True
+            self._changed.notify_all()
+
+    def mark(self) -> int:
+        with self._changed:
+            return len(self.lines)
+
+    def wait_for(self, pattern: str, start: int = 0) -> re.Match[str]:
+        regex = re.compile(pattern)
+        deadline = time.monotonic() + DEADLINE_S
+        index = start
+        with self._changed:
+            while True:
+                while index < len(self.lines):
+                    match = regex.search(self.lines[index])
+                    index += 1
+                    if match is not None:
+                        return match
+                remaining = deadline - time.monotonic()
+                if self._eof or remaining <= 0:
+                    raise AssertionError(f"no line matching {pattern!r}:\n" + "\n".join(self.lines))
+                self._changed.wait(remaining)
+
+    def close(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(DEADLINE_S)
+
+
+@pytest.fixture
+def pki(tmp_path: Path) -> Pki:
+    return make_pki(tmp_path)
+
+
+def context(pki: Pki, client: str) -> ssl.SSLContext:
+    result = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    result.load_verify_locations(cafile=str(pki.ca))
+    result.load_cert_chain(*pki.client(client))
+    return result
+
+
+def request(sock: ssl.SSLSocket, tid: int, pdu: bytes) -> bytes:
+    sock.sendall(struct.pack(">HHHB", tid, 0, len(pdu) + 1, 1) + pdu)
+    header = sock.recv(7)
+    while len(header) < 7:
+        header += sock.recv(7 - len(header))
+    length = struct.unpack(">HHHB", header)[2]
+    body = sock.recv(length - 1)
+    return body
+
+
+def connect(address: tuple[str, int], pki: Pki, client: str = "operator") -> ssl.SSLSocket:
+    raw = socket.create_connection(address, timeout=DEADLINE_S)
+    return context(pki, client).wrap_socket(raw, server_hostname="localhost")
+
+
+def serial_of(sock: ssl.SSLSocket) -> int:
+    der = sock.getpeercert(binary_form=True)
+    assert der is not None
+    return x509.load_der_x509_certificate(der).serial_number
+
+
+def config_file(tmp_path: Path, extra: str = "") -> Path:
+    path = tmp_path / "gateway.toml"
+    path.write_text(f'[lines.a]\ndevice = "{tmp_path}/no-such-adapter"\nunits = [1]\n{extra}')
+    return path
+
+
+def metric(address: tuple[str, int], name: str, labels: str) -> float:
+    connection = http.client.HTTPConnection(*address, timeout=DEADLINE_S)
+    try:
+        connection.request("GET", "/metrics")
+        text = connection.getresponse().read().decode()
+    finally:
+        connection.close()
+    match = re.search(rf"^{name}\{{{labels}\}} (\S+)$", text, re.MULTILINE)
+    assert match, f"{name}{{{labels}}} not in /metrics"
+    return float(match[1])
+
+
+def install(pki: Pki, chain: Path, key: Path, tmp_path: Path) -> None:
+    """Put a server chain and key where the gateway reads them (one rename each)."""
+    for source, target in ((chain, tmp_path / "live.pem"), (key, tmp_path / "live.key")):
+        shutil.copy(source, target.with_suffix(".tmp"))
+        os.replace(target.with_suffix(".tmp"), target)
+
+
+@pytest.fixture(params=["file", "flags only"])
+def running(request: pytest.FixtureRequest, tmp_path: Path, pki: Pki) -> Iterator[Gateway]:
+    """A gateway serving TLS from the flags, with a configuration file or flags alone."""
+    install(pki, pki.server_chain, pki.server_key, tmp_path)
+    if request.param == "file":
+        line = ["--config", str(config_file(tmp_path))]
+    else:
+        line = ["--serial", str(tmp_path / "no-such-adapter")]
+    gateway = Gateway(
+        *line, "--metrics", "127.0.0.1:0",
+        "--tls-listen", "127.0.0.1:0", "--tls-cert", str(tmp_path / "live.pem"),
+        "--tls-key", str(tmp_path / "live.key"), "--tls-ca", str(pki.ca),
+        "--allow", "127.0.0.0/8", "--read-only",
+    )  # fmt: skip
+    try:
+        yield gateway
+    finally:
+        gateway.close()
+
+
+def test_tls_flags_serve_and_certificates_reload_on_sighup(
+    running: Gateway, pki: Pki, tmp_path: Path
+) -> None:
+    match = running.wait_for(r"listening on ([\d.]+):(\d+) \(Modbus/TCP Security\), listener tls")
+    address = (match[1], int(match[2]))
+    metrics = running.wait_for(r"metrics on http://([\d.]+):(\d+)/metrics")
+    metrics_address = (metrics[1], int(metrics[2]))
+    assert "listener tcp" not in "\n".join(running.lines)  # --tls-listen alone: TLS only
+    first = connect(address, pki)
+    original = serial_of(first)
+    assert request(first, 1, READ) == bytes([0x83, 0x0A])  # served (the line is down)
+    assert request(first, 2, bytes.fromhex("06 0000 0001")) == bytes([0x86, 0x01])  # --read-only
+    left = metric(metrics_address, "modbus_gateway_tls_certificate_expiry_seconds",
+                  'kind="server",listener="tls",subject="modbus-gateway"')  # fmt: skip
+    assert 364 * 86400 < left <= 365 * 86400
+
+    now = dt.datetime.now(dt.UTC)
+    renewed = pki.server_certificate("renewed", now - DAY, now + 30 * DAY)
+    install(pki, *renewed, tmp_path)
+    mark = running.mark()
+    running.proc.send_signal(signal.SIGHUP)
+    running.wait_for(r"reload: configuration from .* applied", mark)  # file or command line
+    second = connect(address, pki)
+    assert serial_of(second) != original
+    assert request(second, 1, READ) == bytes([0x83, 0x0A])
+    assert request(first, 3, READ) == bytes([0x83, 0x0A])  # the open session goes on
+    left = metric(metrics_address, "modbus_gateway_tls_certificate_expiry_seconds",
+                  'kind="server",listener="tls",subject="modbus-gateway"')  # fmt: skip
+    assert 29 * 86400 < left <= 30 * 86400
+
+    expired = pki.server_certificate("expired-server", now - 10 * DAY, now - DAY)
+    install(pki, *expired, tmp_path)
+    mark = running.mark()
+    running.proc.send_signal(signal.SIGHUP)
+    line = running.wait_for(r"reload rejected.*", mark)[0]
+    assert "live.pem" in line and "expired on" in line and "renew it" in line
+    third = connect(address, pki)
+    assert serial_of(third) == serial_of(second)  # the running certificate stays
+    for sock in (first, second, third):
+        sock.close()
+    assert running.close() == 0
+
+
+def test_an_expired_server_certificate_stops_the_start(tmp_path: Path, pki: Pki) -> None:
+    now = dt.datetime.now(dt.UTC)
+    chain, key = pki.server_certificate("old", now - 10 * DAY, now - DAY)
+    gateway = Gateway(
+        "--config", str(config_file(tmp_path)), "--metrics", "off", "--tls-listen",
+        "127.0.0.1:0", "--tls-cert", str(chain), "--tls-key", str(key), "--tls-ca", str(pki.ca),
+    )  # fmt: skip
+    assert gateway.proc.wait(DEADLINE_S) == 1
+    gateway.wait_for(rf"cannot start: .*cert = '{re.escape(str(chain))}'.* expired on")
+    assert not [line for line in gateway.lines if "listening on" in line]
+
+
+def test_check_config_validates_tls_files_and_warns_about_rules(tmp_path: Path, pki: Pki) -> None:
+    tls = f"""
+[[listeners]]
+name = "secure"
+protocol = "tls"
+listen = "127.0.0.1:8802"
+cert = "{pki.server_chain}"
+key = "{pki.server_key}"
+ca = "{pki.ca}"
+policy = "plant"
+
+[[policies.plant.rules]]
+role = "operator"
+units = [1, 77]
+
+[[policies.plant.rules]]
+role = "operator"
+units = [1]
+access = "read"
+"""
+    good = config_file(tmp_path, tls)
+    checked = subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config", str(good)],
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+    assert checked.returncode == 0, checked.stderr
+    assert "policies.plant.rules[1] (listener 'secure'): adds nothing to " in checked.stderr
+    broken = config_file(tmp_path, tls.replace(str(pki.server_key), str(tmp_path / "gone.key")))
+    checked = subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config", str(broken)],
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+    assert checked.returncode == 2
+    assert f"listeners[0].key = '{tmp_path / 'gone.key'}': cannot read" in checked.stderr
+
+
+def readme_block(marker: str) -> str:
+    """The first ```sh block after ``marker`` in the README."""
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    after = text[text.index(marker) :]
+    start = after.index("```sh\n") + len("```sh\n")
+    return after[start : after.index("```", start)]
+
+
+def test_the_readmes_tls_setup_works(tmp_path: Path) -> None:
+    """The README's openssl commands make a PKI the gateway, Python and s_client accept."""
+    openssl = require_tool("openssl")
+    made = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", readme_block("<!-- tls-setup -->")],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    tls = tmp_path / "tls"
+    for role in ("operator", "viewer"):
+        der = x509.load_pem_x509_certificate((tls / f"{role}.pem").read_bytes())
+        assert role_from_certificate(der.public_bytes(Encoding.DER)) == role
+    gateway = Gateway(
+        "--serial", str(tmp_path / "no-such-adapter"), "--metrics", "off", "--tls-listen",
+        "127.0.0.1:0", "--tls-cert", str(tls / "server.pem"), "--tls-key",
+        str(tls / "server.key"), "--tls-ca", str(tls / "ca.pem"), "--trace",
+    )  # fmt: skip
+    try:
+        match = gateway.wait_for(r"listening on ([\d.]+):(\d+) \(Modbus/TCP Security\)")
+        context = ssl.create_default_context(cafile=str(tls / "ca.pem"))  # checks the name too
+        context.load_cert_chain(str(tls / "viewer.pem"), str(tls / "viewer.key"))
+        raw = socket.create_connection((match[1], int(match[2])), timeout=DEADLINE_S)
+        with context.wrap_socket(raw, server_hostname="localhost") as sock:
+            assert request(sock, 7, READ) == bytes([0x83, 0x0A])  # served; the line is down
+        gateway.wait_for(r"-> \S+ tid=7 unit=1 read_holding_registers\(3\) .* via tls role=viewer")
+        checked = subprocess.run(
+            [openssl, "s_client", "-connect", f"{match[1]}:{match[2]}", "-CAfile",
+             str(tls / "ca.pem"), "-cert", str(tls / "operator.pem"), "-key",
+             str(tls / "operator.key"), "-brief"],
+            input="", capture_output=True, text=True, timeout=DEADLINE_S, check=False,
+        )  # fmt: skip
+        assert "Verification: OK" in checked.stderr, checked.stderr
+    finally:
+        assert gateway.close() == 0
