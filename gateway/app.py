@@ -10,6 +10,7 @@ timeouts and limits in place and reopens only lines whose port settings changed.
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import resource
 import signal
@@ -32,6 +33,7 @@ from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.serial_port import check_device_free
+from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, server_context
 from .live import LiveView
@@ -73,6 +75,26 @@ def ensure_file_descriptors(needed: int) -> None:
         )  # fmt: skip
 
 
+def bind_error(error: OSError, key: str, host: str, port: int) -> OSError:
+    """A listener that cannot bind, explained: which key, and what grants a port below 1024."""
+    where = f"cannot listen on {host}:{port} ({key})"
+    if error.errno in (errno.EACCES, errno.EPERM) and 0 < port < 1024:
+        return PermissionError(
+            f"{where}: permission denied: ports below 1024 need the CAP_NET_BIND_SERVICE "
+            "capability. The systemd unit modbus-gateway@.service grants it (and nothing "
+            "else); otherwise listen on a port from 1024 up (e.g. --listen 0.0.0.0:5020) and "
+            "point the masters at it, or grant the capability to the Python interpreter with "
+            '`sudo setcap cap_net_bind_service=+ep "$(realpath .venv/bin/python)"` '
+            "(every program that interpreter runs then has it)"
+        )
+    if error.errno == errno.EADDRINUSE:
+        return OSError(
+            f"{where}: address already in use: another program listens there "
+            f"(ss -ltnp 'sport = :{port}'); stop it or change {key.split(' ')[0]}"
+        )
+    return OSError(f"{where}: {error.strerror or error}")
+
+
 class Gateway:
     """The running gateway."""
 
@@ -103,6 +125,10 @@ class Gateway:
         """The Modbus TCP listening address (after ``start``)."""
         assert self.server is not None
         return self.server.sockets[0]
+
+    def addresses(self) -> list[tuple[str, int]]:
+        """Every Modbus listener's address (after ``start``)."""
+        return [server.sockets[0] for server in self.servers if server.sockets]
 
     def listener_address(self, name: str) -> tuple[str, int]:
         """Where listener ``name`` listens (after ``start``)."""
@@ -145,9 +171,22 @@ class Gateway:
         self.server = self.servers[0]
         self.live = LiveView(self)
         for server in self.servers:
-            await server.start()
-        if self.config.metrics.enabled:
-            self._http = await self._start_http()
+            listener = server.listener
+            try:
+                await server.start()
+            except OSError as error:
+                key = f"{listener.key_prefix}listen" + (
+                    ", --listen" if listener.key_prefix == "server." else ""
+                )
+                raise bind_error(error, key, listener.host, listener.port) from error
+        metrics = self.config.metrics
+        if metrics.enabled:
+            try:
+                self._http = await self._start_http()
+            except OSError as error:
+                raise bind_error(
+                    error, "metrics.listen, --metrics", metrics.host, metrics.port
+                ) from error
         for server in self.servers:
             host, port = server.sockets[0]
             listener = server.listener
@@ -330,9 +369,15 @@ async def run_until_signalled(
     gateway: Gateway,
     reload_source: Callable[[], GatewayConfig] | None,
     grace: float,
+    notifier: SystemdNotifier | None = None,
 ) -> None:
-    """Run until SIGTERM/SIGINT (a second one exits at once); SIGHUP reloads the file."""
+    """Run until SIGTERM/SIGINT (a second one exits at once); SIGHUP reloads the file.
+
+    systemd (``Type=notify``) hears READY=1 once the listeners are bound, RELOADING=1 and
+    READY=1 around a reload, STOPPING=1 at a stop, and WATCHDOG=1 while the loop turns.
+    """
     loop = asyncio.get_running_loop()
+    notifier = SystemdNotifier() if notifier is None else notifier
     stop_requested = asyncio.Event()
     signals_seen = 0
     reloads: set[asyncio.Task[None]] = set()
@@ -351,10 +396,12 @@ async def run_until_signalled(
             log.warning("SIGHUP: no configuration file to reload")
             return
         log.info("SIGHUP received: reloading the configuration file")
+        notifier.reloading()
         try:
             config = reload_source()
         except ConfigError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
+            notifier.ready("reload rejected: " + serving())
             return
         task = loop.create_task(gateway.reload(config))
         reloads.add(task)
@@ -364,13 +411,25 @@ async def run_until_signalled(
         reloads.discard(task)
         if not task.cancelled() and (error := task.exception()) is not None:
             log.error("reload failed: %r", error, exc_info=error)
+        if not stop_requested.is_set():
+            notifier.ready(serving())
+
+    def serving() -> str:
+        addresses = ", ".join(f"{host}:{port}" for host, port in gateway.addresses())
+        return f"listening on {addresses}, {len(gateway.buses)} line(s)"
 
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, on_stop_signal, signum)
     loop.add_signal_handler(signal.SIGHUP, on_reload_signal)
-    await gateway.start()
-    await stop_requested.wait()
-    await gateway.stop(grace)
+    try:
+        await gateway.start()
+        notifier.ready(serving())
+        notifier.start_watchdog(loop)
+        await stop_requested.wait()
+        notifier.stopping()
+        await gateway.stop(grace)
+    finally:
+        notifier.close()
 
 
 def reloader(

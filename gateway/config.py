@@ -20,7 +20,7 @@ from typing import Any
 
 from .core import pdu as fc
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
-from .core.timing import t35
+from .core.timing import t35, transmission_time
 
 DEFAULT_LISTEN = "0.0.0.0:502"
 DEFAULT_METRICS = "127.0.0.1:9502"
@@ -134,7 +134,7 @@ class LineConfig:
     data_bits: int = 8
     parity: str = "N"
     stop_bits: float = 1
-    timeout: float = 1.0
+    timeout: float = 0.367  # auto_timeout(9600): "auto" is computed from the line's settings
     retries: int = 1
     retry_writes: bool = False
     frame_gap: float | None = None
@@ -454,6 +454,13 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
             units = tuple(parse_units(table["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
+    baudrate = check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000)
+    data_bits = check.integer(table, "data_bits", prefix, 8, 7, 8)
+    parity = check.choice(table, "parity", prefix, "N", VALID_PARITIES, upper=True)
+    stop_bits = float(stop_bits_raw)
+    timeout = auto_timeout(baudrate, data_bits, parity, stop_bits)
+    if table.get("timeout", "auto") != "auto":
+        timeout = check.number(table, "timeout", prefix, timeout, 0.001, 60.0)
     return LineConfig(
         dead_after=check.integer(table, "dead_after", prefix, 3, 0, 1000),
         probe_interval=check.number(table, "probe_interval", prefix, 1.0, 0.01, 3600.0),
@@ -463,11 +470,11 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         cache=_cache_rules(check, table, prefix),
         name=name,
         device=device,
-        baudrate=check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000),
-        data_bits=check.integer(table, "data_bits", prefix, 8, 7, 8),
-        parity=check.choice(table, "parity", prefix, "N", VALID_PARITIES, upper=True),
-        stop_bits=float(stop_bits_raw),
-        timeout=check.number(table, "timeout", prefix, 1.0, 0.001, 60.0),
+        baudrate=baudrate,
+        data_bits=data_bits,
+        parity=parity,
+        stop_bits=stop_bits,
+        timeout=timeout,
         retries=check.integer(table, "retries", prefix, 1, 0, 10),
         retry_writes=check.boolean(table, "retry_writes", prefix, False),
         frame_gap=frame_gap,
@@ -481,6 +488,27 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         rs485_delay_after_tx=check.number(table, "rs485_delay_after_tx", prefix, 0.0, 0.0, 1.0),
         units=units,
     )
+
+
+#: Time a slave is given to start its answer, on top of the longest answer's transmission.
+SLAVE_TURNAROUND_S = 0.1
+#: The longest RTU frame (Modbus over Serial Line 2.5.1): 256 bytes.
+MAX_RTU_FRAME = 256
+
+
+def auto_timeout(
+    baudrate: int, data_bits: int = 8, parity: str = "N", stop_bits: float = 1
+) -> float:
+    """The default response timeout (``timeout = "auto"``) of a line with these settings.
+
+    The timeout runs from the end of the request to the end of the answer, so it must hold
+    the longest answer's transmission (256 characters) plus the slave's turnaround (0.1 s):
+    0.367 s at 9600 8N1, 0.393 s at 9600 8E1. Two attempts (``retries = 1``) then end before
+    a master's common 1 s timeout at 9600 baud and faster, so the master gets the gateway's
+    0x0B rather than a timeout of its own; slower lines get proportionally longer.
+    """
+    longest = transmission_time(MAX_RTU_FRAME, baudrate, data_bits, parity, stop_bits)
+    return round(SLAVE_TURNAROUND_S + longest, 3)
 
 
 def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[int, float]:

@@ -107,6 +107,9 @@ def test_unit_contract() -> None:
     d = _unit_directives(UNIT.read_text(encoding="utf-8"))
     assert d["Service.ExecStart"] == [f"{INSTALLED_EXEC} --config /etc/modbus-gateway/%i.toml"]
     assert d["Service.ExecReload"] == ["/bin/kill -HUP $MAINPID"]
+    assert d["Service.Type"] == ["notify"]  # READY=1 from gateway/io/systemd.py
+    assert d["Service.NotifyAccess"] == ["main"]
+    assert d["Service.WatchdogSec"] == ["20s"]
     assert d["Service.Restart"] == ["on-failure"]
     assert d["Service.DevicePolicy"] == ["closed"]
     assert {"char-ttyUSB rw", "char-ttyS rw", "char-ttyACM rw"} <= set(d["Service.DeviceAllow"])

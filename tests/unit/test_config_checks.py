@@ -13,11 +13,13 @@ from hypothesis import strategies as st
 from gateway.config import (
     ConfigError,
     GatewayConfig,
+    auto_timeout,
     build_config,
     config_warnings,
     format_units,
     parse_units,
 )
+from gateway.core.timing import t35, transmission_time
 
 
 def problems(raw: dict[str, Any]) -> list[str]:
@@ -185,3 +187,50 @@ def test_format_units_round_trips_through_parse_units(units: set[int]) -> None:
     parsed = parse_units(text.split(", ")) if text else []
     assert parsed == sorted(units)
     assert len(text.split(", ")) <= len(units) or not units
+
+
+# ------------------------------------------------------------------------ the default timeout
+
+
+@pytest.mark.parametrize(
+    ("baudrate", "parity", "stop_bits", "expected"),
+    [
+        (9600, "N", 1, 0.367),  # 256 x 10 bits / 9600 = 0.267 s, + 0.1 s
+        (9600, "E", 1, 0.393),
+        (19200, "E", 1, 0.247),
+        (115200, "N", 1, 0.122),
+        (1200, "N", 1, 2.233),  # a slow line waits as long as its longest answer needs
+    ],
+)
+def test_auto_timeout_is_the_longest_answer_plus_the_turnaround(
+    baudrate: int, parity: str, stop_bits: float, expected: float
+) -> None:
+    assert auto_timeout(baudrate, 8, parity, stop_bits) == expected
+    line = {"device": "/dev/null", "units": [1], "baudrate": baudrate, "parity": parity,
+            "stop_bits": stop_bits}  # fmt: skip
+    for table in (line, {**line, "timeout": "auto"}):
+        assert config({"lines": {"a": table}}).lines[0].timeout == expected
+
+
+def test_an_explicit_timeout_wins_and_a_bad_one_is_named() -> None:
+    raw: dict[str, Any] = {"lines": {"a": {"device": "/dev/null", "units": [1], "timeout": 1.5}}}
+    assert config(raw).lines[0].timeout == 1.5
+    raw["lines"]["a"]["timeout"] = "slow"
+    assert problems(raw) == ["lines.a.timeout: 'slow' is not a number of seconds; write e.g. 0.367"]
+
+
+@given(
+    baudrate=st.integers(9600, 4_000_000),
+    data_bits=st.sampled_from([7, 8]),
+    parity=st.sampled_from(["N", "E", "O"]),
+    stop_bits=st.sampled_from([1.0, 1.5, 2.0]),
+)
+def test_with_defaults_a_silent_slave_is_answered_well_within_a_second(
+    baudrate: int, data_bits: int, parity: str, stop_bits: float
+) -> None:
+    """Two attempts (retries = 1) of an 8-byte request, each followed by the timeout, plus
+    the frame gap between them: under 0.9 s at 9600 baud and faster, whatever the format."""
+    timeout = auto_timeout(baudrate, data_bits, parity, stop_bits)
+    request = transmission_time(8, baudrate, data_bits, parity, stop_bits)
+    gap = t35(baudrate, data_bits, parity, stop_bits)
+    assert 2 * (request + timeout) + gap < 0.9
