@@ -14,11 +14,11 @@ from typing import Any
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway, SimFactory
 from metrics_harness import http_get, metrics_address, samples, series, wait_until
-from pki import make_pki
 
 from gateway import live
 from gateway.live import QUEUE_LIMIT
 from gateway.sim import plc
+from gateway.sim.pki import make_pki
 
 READ_10 = bytes.fromhex("03 0000 000A")
 
