@@ -37,7 +37,7 @@ from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, server_context
 from .live import LiveView
-from .metrics import GatewayMetrics
+from .metrics import CloseReason, GatewayMetrics
 from .trace import Tracer
 
 log = logging.getLogger("gateway")
@@ -52,7 +52,8 @@ def _port_changed(old: LineConfig, new: LineConfig) -> bool:
     return any(getattr(old, key) != getattr(new, key) for key in _PORT_SETTINGS)
 
 
-#: File descriptors needed besides one per master: lines, timers, listeners, logs, scrapes.
+#: File descriptors needed besides one per master and per HTTP connection: lines, timers,
+#: listeners, logs.
 _FDS_BESIDES_MASTERS = 64
 
 
@@ -151,8 +152,11 @@ class Gateway:
             ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
         )
         tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
+        http_connections = self.config.metrics.max_connections if self.config.metrics.enabled else 0
         ensure_file_descriptors(
-            self.config.server.max_connections * len(listeners) + _FDS_BESIDES_MASTERS
+            self.config.server.max_connections * len(listeners)
+            + http_connections
+            + _FDS_BESIDES_MASTERS
         )
         for line in self.config.lines:  # a device another program holds fails the start
             check_device_free(line)
@@ -203,7 +207,9 @@ class Gateway:
 
     async def _start_http(self) -> HttpEndpoint:
         routes = self.live.routes if self.live is not None else None
-        return await start_http(self.config.metrics, self.metrics.registry, self.is_ready, routes)
+        return await start_http(
+            self.config.metrics, self.metrics.exposition_registry(), self.is_ready, routes
+        )
 
     def is_ready(self) -> tuple[bool, str]:
         """Readiness for /readyz: the listener is up and every line is open."""
@@ -224,7 +230,7 @@ class Gateway:
             server.stop_accepting()
         await asyncio.gather(*(bus.stop(grace) for bus in self.buses.values()))
         for server in self.servers:
-            server.close_all("shutdown")
+            server.close_all(CloseReason.SHUTDOWN)
         for server in self.servers:
             await server.wait_closed()
         if self.live is not None:

@@ -63,6 +63,9 @@ class ServerConfig:
     read_only: bool = False
     #: The policy of the ``listen`` shorthand listener.
     policy: str | None = None
+    max_connections_per_source: int = 16
+    evict_min_idle: float = 10.0
+    send_timeout: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,8 @@ class MetricsConfig:
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = 9502
+    max_connections: int = 32
+    header_timeout: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -363,6 +368,9 @@ _SERVER_KEYS = {
     "allow",
     "read_only",
     "policy",
+    "max_connections_per_source",
+    "evict_min_idle",
+    "send_timeout",
 }
 _LINE_KEYS = {
     "device",
@@ -423,6 +431,11 @@ def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
         allow=_networks(check, table, "allow", prefix),
         read_only=check.boolean(table, "read_only", prefix, False),
         policy=_policy_name(check, table, prefix),
+        max_connections_per_source=check.integer(
+            table, "max_connections_per_source", prefix, 16, 0, 100_000
+        ),
+        evict_min_idle=check.number(table, "evict_min_idle", prefix, 10.0, 0.0, 86_400.0),
+        send_timeout=check.number(table, "send_timeout", prefix, 10.0, 0.0, 3600.0),
     )
 
 
@@ -947,12 +960,14 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     )
     server = _build_server(check, raw)
     metrics_table = check.table(raw, "metrics")
-    check.unknown_keys(metrics_table, {"listen"}, "metrics.")
+    check.unknown_keys(metrics_table, {"listen", "max_connections", "header_timeout"}, "metrics.")
     metrics_address = check.address(metrics_table, "listen", "metrics.", DEFAULT_METRICS)
+    http_cap = check.integer(metrics_table, "max_connections", "metrics.", 32, 1, 1024)
+    header_timeout = check.number(metrics_table, "header_timeout", "metrics.", 5.0, 0.1, 60.0)
     metrics = (
-        MetricsConfig(True, metrics_address[0], metrics_address[1])
+        MetricsConfig(True, metrics_address[0], metrics_address[1], http_cap, header_timeout)
         if metrics_address is not None
-        else MetricsConfig(enabled=False)
+        else MetricsConfig(False, max_connections=http_cap, header_timeout=header_timeout)
     )
     logging_table = check.table(raw, "logging")
     check.unknown_keys(logging_table, {"level", "format"}, "logging.")

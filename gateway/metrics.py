@@ -12,6 +12,15 @@ so a request costs dictionary look-ups, not label resolution.
 one-to-one routes it is also the unit id the master sent. Requests answered
 without a line (no route, rejected locally) carry ``line="none", unit="other"``,
 broadcasts ``line="broadcast", unit="0"``. docs/metrics.md lists every metric.
+
+A remote client chooses the unit and function of its requests, so
+``requests_total`` names a unit only once that slave has answered on its line
+(a routed address where a device is present); requests to a slave never heard
+from count under ``unit="other"``. With ``--serial`` every address 1..247 is
+routed, and a scan of every unit and function code would otherwise add
+thousands of series for good. The exposition leaves out ``_created`` series
+(``exposition_registry``): they double the output and say nothing a restart
+counter does not.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ import time
 from bisect import bisect_left
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from enum import StrEnum
 from itertools import accumulate
 from typing import Protocol
 
@@ -48,8 +58,35 @@ OUTCOMES = (
     "denied",  # refused by the listener's policy (0x01), never sent to the line
 )
 
-#: Why a TCP connection closed, the ``reason`` label's vocabulary.
-CLOSE_REASONS = ("peer_closed", "error", "protocol_error", "idle", "evicted", "shutdown")
+
+class CloseReason(StrEnum):
+    """Why a TCP connection closed: the ``reason`` label of ``connections_closed_total``."""
+
+    PEER_CLOSED = "peer_closed"  # the master closed it
+    ERROR = "error"  # the socket failed (reset, timeout)
+    PROTOCOL_ERROR = "protocol_error"  # a malformed MBAP header
+    IDLE = "idle"  # no complete request for server.idle_timeout
+    EVICTED = "evicted"  # closed to make room for a new master
+    STALLED = "stalled"  # left its replies unread for server.send_timeout
+    SHUTDOWN = "shutdown"  # the gateway stopped
+
+
+class RejectReason(StrEnum):
+    """Why a TCP connection was refused at accept: ``connections_rejected_total``'s ``reason``."""
+
+    MAX_CONNECTIONS = "max_connections"  # full, and no master idle long enough to evict
+    MAX_PER_SOURCE = "max_per_source"  # that source address has all it may have
+
+
+#: The ``reason`` label's vocabulary of ``connections_closed_total``.
+CLOSE_REASONS = tuple(CloseReason)
+
+#: Outcomes that show a slave is present: its unit gets its own label in ``requests_total``.
+_HEARD_OUTCOMES = frozenset({"ok", "slave_exception", "cached"})
+#: The ``unit`` label of requests to a slave never heard from, and of those without a line.
+OTHER_UNIT = "other"
+#: Unit labels that are always their own: no slave, and broadcast.
+_FIXED_UNITS = frozenset({OTHER_UNIT, "0"})
 
 #: Why bytes from the line were thrown away: ``late`` (nobody was waiting), ``incomplete``
 #: (half an answer at the timeout), and the core's ``ResponseError`` kinds other than ``crc``
@@ -271,8 +308,8 @@ class GatewayMetrics:
             p + "connections_accepted", "TCP connections accepted.", registry=r
         )
         self.connections_rejected = Counter(
-            p + "connections_rejected", "TCP connections refused because the limit was reached.",
-            registry=r,
+            p + "connections_rejected", "TCP connections refused at accept, by reason.",
+            ["reason"], registry=r,
         )  # fmt: skip
         self.connections_closed = Counter(
             p + "connections_closed", "TCP connections closed, by reason.", ["reason"], registry=r
@@ -310,9 +347,12 @@ class GatewayMetrics:
         self.info.info({"version": __version__, "lines": ""})
         self._line_counters: dict[str, LineCounters] = {}
         r.register(_LineCountersCollector(self._line_counters))
-        self._request_children: dict[tuple[str, str, int, str], Counter] = {}
+        self._request_children: dict[tuple[str, str, str, str], Counter] = {}
+        self._heard: set[tuple[str, str]] = set()  #: (line, unit) of slaves that answered
         for reason in CLOSE_REASONS:
             self.connections_closed.labels(reason)
+        for reject in RejectReason:
+            self.connections_rejected.labels(reject)
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
@@ -369,10 +409,38 @@ class GatewayMetrics:
         """Count one request's outcome (children cached: this runs per request).
 
         ``outcome`` must be one of ``OUTCOMES``; ``function`` is the request's code.
+        ``unit`` is counted as ``other`` until that slave has answered (module docstring).
         """
-        key = (line, unit, function, outcome)
+        key = (line, unit, function_name(function), outcome)
         child = self._request_children.get(key)
         if child is None:
-            child = self.requests.labels(line, unit, function_name(function), outcome)
-            self._request_children[key] = child
+            child = self._request_child(key)
         child.inc()
+
+    def _request_child(self, key: tuple[str, str, str, str]) -> Counter:
+        line, unit, function, outcome = key
+        if unit not in _FIXED_UNITS and (line, unit) not in self._heard:
+            if outcome not in _HEARD_OUTCOMES:
+                # Not cached: the slave may be heard from later, and then has its own label.
+                return self.requests.labels(line, OTHER_UNIT, function, outcome)
+            self._heard.add((line, unit))
+        child: Counter = self.requests.labels(line, unit, function, outcome)
+        self._request_children[key] = child
+        return child
+
+    def exposition_registry(self) -> Collector:
+        """What the HTTP endpoint exposes: every metric, without ``_created`` series."""
+        return _WithoutCreated(self.registry)
+
+
+class _WithoutCreated(Collector):
+    """A view of a registry that drops the ``_created`` samples of counters and histograms."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self._registry = registry
+
+    def collect(self) -> Iterator[Metric]:
+        for metric in self._registry.collect():
+            if any(sample.name.endswith("_created") for sample in metric.samples):
+                metric.samples = [s for s in metric.samples if not s.name.endswith("_created")]
+            yield metric

@@ -1,14 +1,30 @@
-"""The HTTP endpoint: /metrics (Prometheus text or OpenMetrics), /healthz and /readyz.
+"""The HTTP endpoint: /metrics (Prometheus text or OpenMetrics), /healthz, /readyz, and more routes.
 
 A deliberately small asyncio HTTP/1.0-style server (one request per
-connection, GET and HEAD only, bounded request size) on the gateway's own
-loop, so that scraping needs no thread and no web framework.
+connection, GET and HEAD only, bounded request head) on the gateway's own
+loop, so that scraping needs no thread and no web framework. Other modules
+add paths (``routes``, ``HttpEndpoint.add_route``: ``gateway.live``'s trace
+stream and status page); every route is served under the same limits:
+
+- at most ``max_connections`` connections at once, streams included; at the
+  cap the oldest connection still sending its request head is closed to make
+  room (a client that opens connections and sends nothing cannot lock out a
+  scraper), and when every connection is past its head the new one is closed;
+- the request head must arrive within ``header_timeout``; a handler that
+  streams its answer (``/trace``) runs as long as it likes once the head is in.
+
+``/metrics`` is rendered by ``ScrapeRenderer``: fresh for every scrape (never
+a cached copy), one metric family per turn of the event loop, and scrapes
+spaced so that rendering takes at most a tenth of the loop's time, however
+many clients scrape in a loop. Scrapes waiting at the same time share one
+rendering.
 
 ``/healthz`` answers 200 while the event loop runs (liveness: restart me if
-this fails); ``/readyz`` answers 200 only while the TCP listener is up and
-every configured line is open, else 503 with the reason, naming the lines
-that are down (readiness: do not send me traffic). ``/metrics`` speaks
-OpenMetrics when the scraper's Accept header asks for it, else text 0.0.4.
+this fails); a missing or noisy serial device does not change it, because a
+restart cannot fix hardware and the gateway reopens the device by itself.
+``/readyz`` answers 200 only while the TCP listener is up and every configured
+line is open, else 503 naming the lines that are down (readiness: the device
+is missing). A noisy line is open and ready: its faults are in the metrics.
 """
 
 from __future__ import annotations
@@ -16,24 +32,146 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable, Mapping
+import time
+from collections.abc import Awaitable, Callable, Iterator, Mapping
+from dataclasses import dataclass
 from http import HTTPStatus
 
-from prometheus_client import CollectorRegistry
 from prometheus_client.exposition import choose_encoder
+from prometheus_client.metrics_core import Metric
+from prometheus_client.registry import Collector
 
 from ..config import MetricsConfig
 
 log = logging.getLogger("gateway.http")
 
 _MAX_REQUEST_HEAD = 8192
-_READ_TIMEOUT = 5.0
 _INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
+_OPENMETRICS_EOF = b"# EOF\n"
+#: Share of the event loop's time that rendering /metrics may take, however often it is asked.
+SCRAPE_LOOP_SHARE = 0.1
 
-#: An extra route (gateway.live): method, target with query, lower-case headers, the streams.
+
+#: A route: method, target with query, lower-case headers, the streams. It answers on the
+#: writer, a whole body or a stream, and closes it.
 Route = Callable[
     [str, str, Mapping[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]
 ]
+
+
+async def respond(
+    writer: asyncio.StreamWriter, status: int, content_type: str, body: bytes, method: str = "GET"
+) -> None:
+    """Write a whole response (head only for HEAD) and close the connection."""
+    reason = HTTPStatus(status).phrase
+    head = (
+        f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
+        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+    ).encode()
+    try:
+        writer.write(head if method == "HEAD" else head + body)
+        await writer.drain()
+    except ConnectionError:
+        pass
+    finally:
+        writer.close()
+
+
+class _Single(Collector):
+    """One metric family as a registry, for the encoders."""
+
+    def __init__(self, metric: Metric) -> None:
+        self._metric = metric
+
+    def collect(self) -> Iterator[Metric]:
+        yield self._metric
+
+
+class ScrapeRenderer:
+    """Renders /metrics fresh for each scrape at a bounded cost to the event loop.
+
+    Rendering the exposition is the one thing on the Modbus loop whose cost
+    grows with the number of series. Each family is encoded in a turn of its
+    own, so a master's reply waits for at most one family, and the next
+    rendering starts no sooner than ``(1 / share - 1)`` times the last one's
+    cost after it, so scraping in a loop takes at most ``share`` of the loop.
+    Scrapes that arrive before a rendering starts all get that rendering.
+    """
+
+    def __init__(self, registry: Collector, share: float = SCRAPE_LOOP_SHARE) -> None:
+        self._registry = registry
+        self._share = share
+        self._next: dict[str, asyncio.Future[bytes]] = {}  # by content type, not started yet
+        self._lock = asyncio.Lock()
+        self._not_before = 0.0
+        self.last_cost = 0.0  #: seconds the last rendering held the loop, all turns together
+        self.renderings = 0
+
+    async def render(self, accept: str) -> tuple[bytes, str]:
+        """The exposition for a scraper's Accept header, rendered after this call: body, type."""
+        encoder, content_type = choose_encoder(accept)
+        future = self._next.get(content_type)
+        if future is None:
+            loop = asyncio.get_running_loop()
+            future = self._next[content_type] = loop.create_future()
+            task = loop.create_task(self._run(content_type, encoder, future))
+            task.add_done_callback(_log_failure)
+        return await asyncio.shield(future), content_type
+
+    async def _run(
+        self,
+        content_type: str,
+        encoder: Callable[[Collector], bytes],
+        future: asyncio.Future[bytes],
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        async with self._lock:
+            delay = self._not_before - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            del self._next[content_type]  # scrapes from now on wait for the next rendering
+            try:
+                body = await self._render(encoder, content_type)
+            except Exception as error:  # a collector's bug must not hang every scraper
+                future.set_exception(error)
+                raise
+            future.set_result(body)
+            self._not_before = loop.time() + self.last_cost * (1.0 / self._share - 1.0)
+
+    async def _render(self, encoder: Callable[[Collector], bytes], content_type: str) -> bytes:
+        openmetrics = content_type.startswith("application/openmetrics-text")
+        parts: list[bytes] = []
+        cost = 0.0
+        families = iter(self._registry.collect())
+        while True:
+            started = time.perf_counter()
+            metric = next(families, None)
+            if metric is not None:
+                part = encoder(_Single(metric))
+                if openmetrics and part.endswith(_OPENMETRICS_EOF):
+                    part = part[: -len(_OPENMETRICS_EOF)]
+                parts.append(part)
+            cost += time.perf_counter() - started
+            if metric is None:
+                break
+            await asyncio.sleep(0)  # a master's reply waits for one family at most
+        if openmetrics:
+            parts.append(_OPENMETRICS_EOF)
+        self.last_cost = cost
+        self.renderings += 1
+        return b"".join(parts)
+
+
+def _log_failure(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and (error := task.exception()) is not None:
+        log.error("rendering /metrics failed: %r", error, exc_info=error)
+
+
+@dataclass(eq=False, slots=True)
+class _Connection:
+    writer: asyncio.StreamWriter
+    opened: float
+    reading_head: bool = True
 
 
 class HttpEndpoint:
@@ -41,14 +179,30 @@ class HttpEndpoint:
 
     def __init__(
         self,
-        registry: CollectorRegistry,
+        registry: Collector,
         readiness: Callable[[], tuple[bool, str]],
         routes: Mapping[str, Route] | None = None,
+        max_connections: int = 32,
+        header_timeout: float = 5.0,
     ) -> None:
-        self._registry = registry
         self._readiness = readiness
-        self._routes = dict(routes or {})
+        self.max_connections = max_connections
+        self.header_timeout = header_timeout
+        self.renderer = ScrapeRenderer(registry)
         self._server: asyncio.Server | None = None
+        self._open: dict[_Connection, None] = {}  # in opening order
+        self.refused = 0  #: connections closed at once at the cap
+        self._routes: dict[str, Route] = {
+            "/metrics": self._metrics,
+            "/healthz": self._healthz,
+            "/readyz": self._readyz,
+            "/": self._index,
+        }
+        self._routes.update(routes or {})
+
+    def add_route(self, path: str, route: Route) -> None:
+        """Serve ``path`` (without query) with ``route``, under the endpoint's limits."""
+        self._routes[path] = route
 
     @property
     def address(self) -> tuple[str, int]:
@@ -56,6 +210,11 @@ class HttpEndpoint:
         assert self._server is not None
         host, port = self._server.sockets[0].getsockname()[:2]
         return str(host), int(port)
+
+    @property
+    def connections(self) -> int:
+        """HTTP connections open now."""
+        return len(self._open)
 
     async def start(self, host: str, port: int) -> None:
         """Bind and serve."""
@@ -67,18 +226,50 @@ class HttpEndpoint:
         """Stop serving."""
         if self._server is not None:
             self._server.close()
+            for connection in list(self._open):
+                connection.writer.transport.abort()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
 
+    # -- admission ---------------------------------------------------------------------
+
+    def _admit(self, writer: asyncio.StreamWriter) -> _Connection | None:
+        """Register a new connection, making room at the cap; ``None`` when it is refused."""
+        if len(self._open) >= self.max_connections:
+            waiting = next((c for c in self._open if c.reading_head), None)
+            if waiting is None:
+                self.refused += 1
+                writer.transport.abort()
+                return None
+            waiting.writer.transport.abort()  # its _serve forgets it
+            self._open.pop(waiting, None)
+        connection = _Connection(writer, time.monotonic())
+        self._open[connection] = None
+        return connection
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        connection = self._admit(writer)
+        if connection is None:
+            return
         try:
-            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), _READ_TIMEOUT)
+            await self._serve_admitted(connection, reader, writer)
+        finally:
+            self._open.pop(connection, None)
+            if not writer.transport.is_closing():
+                writer.close()
+
+    async def _serve_admitted(
+        self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        try:
+            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), self.header_timeout)
         except asyncio.LimitOverrunError:
-            await self._respond(writer, 431, "text/plain", b"request header too large\n")
+            connection.reading_head = False
+            await respond(writer, 431, "text/plain", b"request header too large\n")
             return
         except (asyncio.IncompleteReadError, TimeoutError, ConnectionError):
-            writer.close()
             return
+        connection.reading_head = False
         lines = head.decode("latin-1").split("\r\n")
         parts = lines[0].split()
         headers = {
@@ -86,50 +277,54 @@ class HttpEndpoint:
             for name, _, value in (line.partition(":") for line in lines[1:] if line)
         }
         if len(parts) < 2 or parts[0] not in ("GET", "HEAD"):
-            await self._respond(writer, 405, "text/plain", b"only GET is served\n")
+            await respond(writer, 405, "text/plain", b"only GET is served\n")
             return
-        path = parts[1].split("?", 1)[0]
-        route = self._routes.get(path)
-        if route is not None:
-            await route(parts[0], parts[1], headers, reader, writer)
-        elif path == "/metrics":
-            encoder, content_type = choose_encoder(headers.get("accept", ""))
-            await self._respond(writer, 200, content_type, encoder(self._registry), parts[0])
-        elif path == "/healthz":
-            await self._respond(writer, 200, "text/plain", b"ok\n", parts[0])
-        elif path == "/readyz":
-            ready, why = self._readiness()
-            await self._respond(writer, 200 if ready else 503, "text/plain",
-                                (why + "\n").encode(), parts[0])  # fmt: skip
-        elif path == "/":
-            await self._respond(writer, 200, "text/plain", _INDEX, parts[0])
-        else:
-            await self._respond(writer, 404, "text/plain", b"not found\n", parts[0])
+        method, target = parts[0], parts[1]
+        route = self._routes.get(target.split("?", 1)[0])
+        if route is None:
+            await respond(writer, 404, "text/plain", b"not found\n", method)
+            return
+        with contextlib.suppress(ConnectionError):
+            await route(method, target, headers, reader, writer)
 
-    @staticmethod
-    async def _respond(writer: asyncio.StreamWriter, status: int, content_type: str,
-                       body: bytes, method: str = "GET") -> None:  # fmt: skip
-        reason = HTTPStatus(status).phrase
-        head = (
-            f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
-            f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
-        ).encode()
-        try:
-            writer.write(head if method == "HEAD" else head + body)
-            await writer.drain()
-        except ConnectionError:
-            pass
-        finally:
-            writer.close()
+    # -- routes ------------------------------------------------------------------------
+
+    async def _metrics(
+        self, method: str, _target: str, headers: Mapping[str, str],
+        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+    ) -> None:  # fmt: skip
+        body, content_type = await self.renderer.render(headers.get("accept", ""))
+        await respond(writer, 200, content_type, body, method)
+
+    async def _healthz(
+        self, method: str, _target: str, _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+    ) -> None:  # fmt: skip
+        await respond(writer, 200, "text/plain", b"ok\n", method)
+
+    async def _readyz(
+        self, method: str, _target: str, _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+    ) -> None:  # fmt: skip
+        ready, why = self._readiness()
+        await respond(writer, 200 if ready else 503, "text/plain", (why + "\n").encode(), method)
+
+    async def _index(
+        self, method: str, _target: str, _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+    ) -> None:  # fmt: skip
+        await respond(writer, 200, "text/plain", _INDEX, method)
 
 
 async def start_http(
     config: MetricsConfig,
-    registry: CollectorRegistry,
+    registry: Collector,
     readiness: Callable[[], tuple[bool, str]],
     routes: Mapping[str, Route] | None = None,
 ) -> HttpEndpoint:
     """Start the endpoint on the configured address."""
-    endpoint = HttpEndpoint(registry, readiness, routes)
+    endpoint = HttpEndpoint(
+        registry, readiness, routes, config.max_connections, config.header_timeout
+    )
     await endpoint.start(config.host, config.port)
     return endpoint

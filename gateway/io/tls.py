@@ -9,10 +9,12 @@ listener's key and the fix. It is built again on every SIGHUP, so renewed
 certificates are picked up without a restart; connections already open keep
 the session they negotiated.
 
-``TlsServer`` accepts on a ``tls`` listener: it screens the source address
-(allow list) before a single byte is read, runs the handshake so that a
-failure can be counted by reason, and only then hands the connection to the
-Modbus side, which takes the role once from the client certificate. ``ssl``
+The TCP server (``gateway.io.tcp``) accepts on a ``tls`` listener itself: it
+screens the source address (allow list) and admits the connection before a
+single byte is read, runs the handshake with ``HANDSHAKE_TIMEOUT_S`` so that a
+failure can be counted by reason (``handshake_failure_reason``), and only then
+hands the connection to the Modbus side, which takes the role once from the
+client certificate (``role_of``). ``ssl``
 never shows a certificate's private extensions, so the role (extension OID
 1.3.6.1.4.1.50316.802.1, an ASN.1 UTF8String) is read from the DER with
 ``cryptography``.
@@ -23,23 +25,18 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
-import socket
 import ssl
-import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
 from ..config import ListenerConfig
 from ..core.policy import ROLE_OID, decode_role
-
-if TYPE_CHECKING:
-    from .tcp import ModbusTcpServer
 
 log = logging.getLogger("gateway.tls")
 
@@ -223,103 +220,6 @@ def role_from_certificate(der: bytes | None) -> str | None:
 
 
 # --------------------------------------------------------------------------- the handshake
-
-
-class TlsServer:
-    """A ``tls`` listener: accepts, screens the source, then runs the handshake.
-
-    The listening socket is watched with ``add_reader``, so a connection from a
-    source outside the allow list is closed right after ``accept()``, before a
-    byte of its ClientHello is read. Admitted connections are handed to
-    ``loop.connect_accepted_socket`` with the TLS context, which completes the
-    handshake before the Modbus side sees the connection and raises the reason
-    when it fails (counted by ``server.handshake_failed``). It offers the part
-    of ``asyncio.Server`` the TCP server uses: ``sockets``, ``close``, ``wait_closed``.
-    """
-
-    #: Connections accepted per wake-up, so a flood cannot hold the loop.
-    ACCEPTS_PER_WAKEUP = 64
-
-    def __init__(
-        self,
-        server: ModbusTcpServer,
-        make_connection: Callable[[], asyncio.Protocol],
-        listening: socket.socket,
-    ) -> None:
-        self._server = server
-        self._make_connection = make_connection
-        self._socket = listening
-        self._loop = asyncio.get_running_loop()
-        self._handshakes: set[asyncio.Task[None]] = set()
-        self._closed = asyncio.Event()
-        listening.setblocking(False)
-        self._loop.add_reader(listening.fileno(), self._accept)
-
-    @classmethod
-    async def start(
-        cls,
-        server: ModbusTcpServer,
-        make_connection: Callable[[], asyncio.Protocol],
-        host: str,
-        port: int,
-        backlog: int,
-    ) -> TlsServer:
-        """Bind ``host:port`` and start accepting."""
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        listening = socket.create_server((host, port), family=family, backlog=backlog)
-        return cls(server, make_connection, listening)
-
-    @property
-    def sockets(self) -> tuple[socket.socket, ...]:
-        """The listening socket (none once closed)."""
-        return () if self._closed.is_set() else (self._socket,)
-
-    def _accept(self) -> None:
-        for _ in range(self.ACCEPTS_PER_WAKEUP):
-            try:
-                connection, address = self._socket.accept()
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError as error:  # EMFILE and the like: the next wake-up tries again
-                log.warning("listener %s: accept failed: %s", self._server.name, error)
-                return
-            if not self._server.admits(address):
-                connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _ABORT)
-                connection.close()
-                continue
-            connection.setblocking(False)
-            task = self._loop.create_task(self._handshake(connection))
-            self._handshakes.add(task)
-            task.add_done_callback(self._handshakes.discard)
-
-    async def _handshake(self, connection: socket.socket) -> None:
-        context = self._server.ssl_context
-        assert context is not None
-        try:
-            await self._loop.connect_accepted_socket(
-                self._make_connection, connection, ssl=context,
-                ssl_handshake_timeout=HANDSHAKE_TIMEOUT_S,
-            )  # fmt: skip
-        except (ssl.SSLError, ConnectionError, TimeoutError, OSError) as error:
-            self._server.handshake_failed(handshake_failure_reason(error), error)
-
-    def close(self) -> None:
-        """Stop accepting; handshakes under way are abandoned (their sockets closed)."""
-        if self._closed.is_set():
-            return
-        self._loop.remove_reader(self._socket.fileno())
-        self._socket.close()
-        for task in self._handshakes:
-            task.cancel()
-        self._closed.set()
-
-    async def wait_closed(self) -> None:
-        """Wait until ``close`` has run."""
-        await self._closed.wait()
-
-
-#: SO_LINGER on, 0 s: ``close`` sends a reset at once instead of a graceful FIN.
-_ABORT = struct.pack("ii", 1, 0)
 
 
 def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:

@@ -10,7 +10,7 @@ READ_1 = bytes.fromhex("03 0000 0001")
 
 
 def test_at_the_limit_the_oldest_idle_master_makes_room(gateway_with: GatewayOnSim) -> None:
-    _sim, gw = gateway_with({1: plc(1)}, server={"max_connections": 2})
+    _sim, gw = gateway_with({1: plc(1)}, server={"max_connections": 2, "evict_min_idle": 0.0})
     oldest, newer = gw.connect(), gw.connect()
     try:
         assert oldest.request(1, READ_1)[0] == 0x03
@@ -39,7 +39,7 @@ def test_at_the_limit_a_new_master_is_refused_when_configured(gateway_with: Gate
             refused.close()
         assert first.request(1, READ_1)[0] == 0x03  # the first master is untouched
     rejected = gw.gateway.metrics.registry.get_sample_value(
-        "modbus_gateway_connections_rejected_total"
+        "modbus_gateway_connections_rejected_total", {"reason": "max_connections"}
     )
     assert rejected == 1
 

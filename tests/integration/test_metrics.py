@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import socket
 
-from conftest import GatewayFactory, GatewayOnSim, SimFactory, mbap
+from conftest import GatewayFactory, GatewayOnSim, RawClient, SimFactory, mbap
 from metrics_harness import (
     Series,
     counter_changes,
@@ -52,6 +52,12 @@ def per_unit(name: str, unit: str, line: str = "a") -> Series:
     return series(f"modbus_gateway_{name}_total", line=line, unit=unit)
 
 
+def heard(master: RawClient, *units: int) -> None:
+    """One good read from each unit: ``requests_total`` names a slave once it has answered."""
+    for unit in units:
+        assert master.request(unit, READ_10)[0] == 0x03
+
+
 def test_ok_request_counts_once_and_observes_every_histogram(gateway_with: GatewayOnSim) -> None:
     _sim, gw = gateway_with({1: plc(1)}, line=FAST)
     with gw.connect() as master:
@@ -73,8 +79,9 @@ def test_ok_request_counts_once_and_observes_every_histogram(gateway_with: Gatew
 
 def test_crc_error_is_retried_then_answered_0x0b(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with({1: plc(1)}, line=FAST)
-    sim.faults(1).crc_error_rate = 1.0
     with gw.connect() as master:
+        heard(master, 1)
+        sim.faults(1).crc_error_rate = 1.0
         before = samples(gw)
         assert master.request(1, READ_10) == bytes((0x83, 0x0B))
         after = samples(gw)
@@ -88,8 +95,9 @@ def test_crc_error_is_retried_then_answered_0x0b(gateway_with: GatewayOnSim) -> 
 
 def test_timeout_is_retried_then_answered_0x0b(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line=FAST)
-    sim.faults(2).silent = True
     with gw.connect() as master:
+        heard(master, 2)
+        sim.faults(2).silent = True
         before = samples(gw)
         assert master.request(2, READ_10) == bytes((0x83, 0x0B))
         after = samples(gw)
@@ -104,9 +112,10 @@ def test_timeout_is_retried_then_answered_0x0b(gateway_with: GatewayOnSim) -> No
 
 def test_late_answer_after_a_timeout_is_discarded(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with({1: plc(1)}, line={"timeout": 0.05, "retries": 0})
-    sim.faults(1).reply_delay = 0.1
     late = series("modbus_gateway_discarded_frames_total", line="a", reason="late")
     with gw.connect() as master:
+        heard(master, 1)
+        sim.faults(1).reply_delay = 0.1
         before = samples(gw)
         assert master.request(1, READ_10) == bytes((0x83, 0x0B))
         wait_until(lambda: value(gw, late) >= 1, "the late answer to be discarded")
@@ -166,13 +175,14 @@ def test_unknown_function_code_is_labelled_other(gateway_with: GatewayOnSim) -> 
 
 def test_master_leaving_drops_its_queued_requests_unsent(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with({1: plc(1)}, line={"timeout": 1.0})
-    sim.faults(1).reply_delay = 0.2
     dropped = requests("a", "1", "dropped")
     closed = series("modbus_gateway_connections_closed_total", reason="peer_closed")
     master = gw.connect()
+    heard(master, 1)
+    sim.faults(1).reply_delay = 0.2
     before = samples(gw)
     master.send(1, READ_10)
-    wait_until(lambda: sim.stats().requests == 1, "the first request on the wire")
+    wait_until(lambda: sim.stats().requests == 2, "the second request on the wire")
     for address in (0, 0, 20):  # two identical reads (coalesced) and another
         master.send(1, bytes((0x03, 0, address, 0, 10)))
     master.close()
@@ -202,7 +212,8 @@ def test_connections_accepted_refused_and_closed_by_reason(gateway_with: Gateway
     wait_until(lambda: value(gw, closed) == 1, "the third connection counted as closed")
     after = samples(gw)
     assert after[series("modbus_gateway_connections_accepted_total")] == 2
-    assert after[series("modbus_gateway_connections_rejected_total")] == 1
+    rejected = series("modbus_gateway_connections_rejected_total", reason="max_connections")
+    assert after[rejected] == 1
     assert after[series("modbus_gateway_connections_open")] == 0
     reason = series("modbus_gateway_connections_closed_total", reason="protocol_error")
     assert after[reason] == 1
@@ -228,7 +239,8 @@ def test_health_readiness_and_line_state(
     assert found[series("modbus_gateway_build_info", lines="a,b", version=__version__)] == 1
     with gw.connect() as master:
         assert master.request(7, READ_10) == bytes((0x83, 0x0A))
-    assert samples(gw)[requests("b", "7", "no_route")] == 1
+    # Unit 7 has never answered: its requests count under unit="other" (bounded labels).
+    assert samples(gw)[requests("b", "other", "no_route")] == 1
     assert http_get(gw, "/nope")[0] == 404
 
 
