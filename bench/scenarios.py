@@ -204,10 +204,13 @@ def gateway_server(
             command += ["--timeout", repr(timeout)]
         if retries is not None:
             command += ["--retries", str(retries)]
+        # The load generator's masters all connect from 127.0.0.1: no per-address limit.
+        server = "[server]\nmax_connections_per_source = 0\n"
         if max_connections is not None:
-            config = workdir / "gateway.toml"
-            config.write_text(f"[server]\nmax_connections = {max_connections}\n")
-            command += ["--config", str(config)]
+            server += f"max_connections = {max_connections}\n"
+        config = workdir / "gateway.toml"
+        config.write_text(server)
+        command += ["--config", str(config)]
         return Server(command, workdir, "server")
 
     return make
