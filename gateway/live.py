@@ -357,7 +357,8 @@ class StatusView:
         self._gateway = gateway
         self._hub = hub
         self._started = time.monotonic()
-        self._last: dict[str, tuple[float, float, float]] = {}  # line → (time, wire s, faults)
+        # line → (time, wire seconds, CRC errors, utilisation) at the previous snapshot
+        self._last: dict[str, tuple[float, float, float, float | None]] = {}
 
     def snapshot(self) -> GatewayStatus:
         """The gateway's state now."""
@@ -376,14 +377,16 @@ class StatusView:
             status = bus.status(sorted(slaves_by_line.get(name, ())))
             wire = metrics.wire_duration.labels(name)
             faults = crc_by_line.get(name, 0.0)
-            utilisation = None
-            noisy = False
             previous = self._last.get(name)
-            if previous is not None and now - previous[0] > 0.05:
-                utilisation = min(1.0, max(0.0, (wire.sum - previous[1]) / (now - previous[0])))
-                noisy = faults > previous[2]
-            if previous is None or now - previous[0] > 0.05:
-                self._last[name] = (now, wire.sum, faults)
+            noisy = previous is not None and faults > previous[2]
+            utilisation = previous[3] if previous is not None else None
+            if previous is None or now - previous[0] > 0.05:  # too short an interval says little
+                if previous is not None:
+                    busy = (wire.sum - previous[1]) / (now - previous[0])
+                    utilisation = min(1.0, max(0.0, busy))
+                self._last[name] = (now, wire.sum, faults, utilisation)
+            else:
+                self._last[name] = (*previous[:2], faults, utilisation)
             state = status.state
             if noisy and state is LineState.UP:
                 state = LineState.NOISY

@@ -277,3 +277,14 @@ def test_masters_on_every_listener_are_traced_and_listed(
         plain.request(1, READ_10)
         listeners = sorted(m["listener"].split()[0] for m in status(gw)["masters"])
         assert listeners == ["tcp", "tls"]
+
+
+def test_a_line_with_fresh_crc_errors_shows_noisy(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with({1: plc(1)}, line={"retries": 3})
+    assert status(gw)["lines"][0]["state"] == "up"  # the first refresh: the baseline
+    sim.faults(1).crc_error_rate = 0.5
+    with gw.connect() as master:
+        while sim.stats().crc_errors_out == 0:
+            master.request(1, READ_10)
+    assert status(gw)["lines"][0]["state"] == "noisy"
+    assert status(gw)["lines"][0]["state"] == "up"  # no new errors since the last refresh
