@@ -26,7 +26,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from . import line_scenarios, scenarios
+from . import line_scenarios, scenarios, tls_scenarios
 from .procs import BenchError, environment_summary
 from .report import render_checks, render_table
 from .scenarios import Bench, ScenarioResult, Timing
@@ -38,6 +38,7 @@ DEFAULT_OUTPUT = BENCH_DIR / "results.json"
 SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **scenarios.SCENARIOS,
     **line_scenarios.SCENARIOS,
+    **tls_scenarios.SCENARIOS,
 }
 
 

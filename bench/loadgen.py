@@ -49,6 +49,7 @@ import os
 import random
 import resource
 import signal
+import ssl
 import struct
 import sys
 import time
@@ -102,6 +103,8 @@ class LoadSpec:
     connect_timeout: float = 10.0
     drain: float = 2.0  #: after the window, wait this long for answers still outstanding
     seed: int = 1
+    #: Modbus/TCP Security: ``{"ca": FILE, "cert": FILE, "key": FILE}`` (empty: plain TCP).
+    tls: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -152,6 +155,14 @@ class LoadResult:
 
 def _clock_ticks() -> int:
     return os.sysconf("SC_CLK_TCK")
+
+
+def _client_tls(files: dict[str, str]) -> ssl.SSLContext:
+    """A Modbus/TCP Security client context: trust ``ca``, present ``cert`` with ``key``."""
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cafile=files["ca"])
+    context.load_cert_chain(files["cert"], files["key"])
+    return context
 
 
 def process_cpu_seconds(pid: int) -> float | None:
@@ -679,14 +690,17 @@ async def run(spec: LoadSpec) -> LoadResult:
     members = [group for group in groups for _ in range(group.spec.masters)]
     _raise_fd_limit(len(members) + 256)
 
+    tls = _client_tls(spec.tls) if spec.tls else None
+
     async def connect(index: int, group: Group) -> Master | None:
         try:
             _, protocol = await asyncio.wait_for(
                 loop.create_connection(
-                    lambda: Master(index, recorder, shared, group), spec.host, spec.port
+                    lambda: Master(index, recorder, shared, group), spec.host, spec.port,
+                    ssl=tls, server_hostname="localhost" if tls else None,
                 ),
                 spec.connect_timeout,
-            )
+            )  # fmt: skip
         except (OSError, TimeoutError):
             recorder.connect_failures += 1
             return None

@@ -14,10 +14,9 @@ screens the source address (allow list) and admits the connection before a
 single byte is read, runs the handshake with ``HANDSHAKE_TIMEOUT_S`` so that a
 failure can be counted by reason (``handshake_failure_reason``), and only then
 hands the connection to the Modbus side, which takes the role once from the
-client certificate (``role_of``). ``ssl``
-never shows a certificate's private extensions, so the role (extension OID
-1.3.6.1.4.1.50316.802.1, an ASN.1 UTF8String) is read from the DER with
-``cryptography``.
+client certificate (``role_of``). ``ssl`` never shows a certificate's private
+extensions, so the role (extension OID 1.3.6.1.4.1.50316.802.1, an ASN.1
+UTF8String) is read from the DER with ``cryptography``.
 """
 
 from __future__ import annotations
