@@ -82,6 +82,8 @@ class TraceEvent:
     slave: int | None = None
     outcome: str | None = None
     latency_ms: float | None = None
+    listener: str | None = None  # requests: the listener it came in on
+    role: str | None = None  # requests on a tls listener: the client's role ("NULL" for none)
 
     def to_json(self) -> dict[str, Any]:
         """The event as the stream sends it."""
@@ -106,6 +108,10 @@ class TraceEvent:
             event["outcome"] = self.outcome
         if self.latency_ms is not None:
             event["latency_ms"] = round(self.latency_ms, 3)
+        if self.listener is not None:
+            event["listener"] = self.listener
+        if self.role is not None:
+            event["role"] = self.role
         return event
 
 
@@ -292,7 +298,8 @@ class TraceHub:
         if self.streams:
             function = pdu[0] if pdu else 0
             self._publish(TraceEvent(time.time(), "request", peer, transaction_id, unit,
-                                     function, pdu, line, slave))  # fmt: skip
+                                     function, pdu, line, slave, listener=listener,
+                                     role=role))  # fmt: skip
 
     def reply(
         self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None

@@ -51,6 +51,7 @@ class HandshakeFailure(enum.StrEnum):
     """Why a TLS handshake failed: the ``reason`` label of ``tls_handshake_failures_total``."""
 
     PROTOCOL_VERSION = "protocol_version"  # TLS 1.1 or older, SSL
+    NOT_TLS = "not_tls"  # bytes that are no TLS record: a plain Modbus TCP master, a scanner
     NO_CERTIFICATE = "no_certificate"  # the client sent no certificate
     UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # does not chain to the configured CAs
     EXPIRED_CERTIFICATE = "expired_certificate"  # expired or not yet valid
@@ -71,6 +72,9 @@ def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
         return HandshakeFailure.UNTRUSTED_CERTIFICATE
     if isinstance(error, ssl.SSLError):
         reason = (error.reason or "").upper()
+        if reason in ("WRONG_VERSION_NUMBER", "HTTP_REQUEST", "HTTPS_PROXY_REQUEST",
+                      "PACKET_LENGTH_TOO_LONG", "RECORD_LAYER_FAILURE"):  # fmt: skip
+            return HandshakeFailure.NOT_TLS
         if "VERSION" in reason or "UNSUPPORTED_PROTOCOL" in reason:
             return HandshakeFailure.PROTOCOL_VERSION
         if "CERTIFICATE_REQUIRED" in reason or "DID_NOT_RETURN_A_CERTIFICATE" in reason:

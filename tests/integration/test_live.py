@@ -274,6 +274,7 @@ def test_masters_on_every_listener_are_traced_and_listed(
         event = trace.event()
         assert (event["tid"], event["type"]) == (7, "request")
         assert event["master"] == "{}:{}".format(*secure.getsockname())
+        assert (event["listener"], event["role"]) == ("tls", "operator")
         plain.request(1, READ_10)
         listeners = sorted(m["listener"].split()[0] for m in status(gw)["masters"])
         assert listeners == ["tcp", "tls"]

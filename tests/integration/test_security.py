@@ -34,6 +34,7 @@ from conftest import (
     require_tool,
 )
 
+from gateway.config import build_config
 from gateway.sim import plc
 from gateway.sim.pki import Pki, make_pki
 
@@ -317,8 +318,10 @@ def test_openssl_s_client_sees_the_handshake_rules(
     ok = s_client(pki, port, *identity)
     assert ok.returncode == 0, ok.stderr
     assert "Verification: OK" in ok.stderr and "Protocol version: TLSv1.3" in ok.stderr
-    ok12 = s_client(pki, port, *identity, "-tls1_2")
+    # The cipher suite the specification requires for ECDSA certificates, on TLS 1.2.
+    ok12 = s_client(pki, port, *identity, "-tls1_2", "-cipher", "ECDHE-ECDSA-AES128-GCM-SHA256")
     assert ok12.returncode == 0 and "Protocol version: TLSv1.2" in ok12.stderr, ok12.stderr
+    assert "Ciphersuite: ECDHE-ECDSA-AES128-GCM-SHA256" in ok12.stderr
     no_cert = s_client(pki, port, "-tls1_2")  # TLS 1.2: the refusal comes in the handshake
     assert no_cert.returncode != 0
     assert "alert" in no_cert.stderr.lower() or "error" in no_cert.stderr.lower()
@@ -399,3 +402,56 @@ def test_allow_list_closes_other_sources_at_accept(
     assert sample(gw, "modbus_gateway_connections_accepted_total") == 1
     refusals = [m for m in log_records.messages if "outside the allow list" in m]
     assert len(refusals) == 1 and "127.0.0.3" in refusals[0]  # then counted, not logged
+
+
+def test_a_reload_changes_rights_and_allow_lists_of_open_listeners(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    sim = make_sim({1: plc(1)})
+    tables: dict[str, Any] = {
+        "server": {"listen": "127.0.0.1:0", "policy": "p"},
+        "metrics": {"listen": "off"},
+        "lines": {"a": sim.line_table([1])},
+        "policies": {"p": {"rules": [{"units": [1], "access": "read"}]}},
+    }
+    gw = make_gateway(tables)
+    write = bytes.fromhex("06 0009 0001")
+    with Master(gw.address, source="127.0.0.2") as master:
+        assert master.request(1, write) == exception(6)
+        tables["policies"] = {"p": {"rules": [{"units": [1]}]}}
+        tables["server"]["allow"] = ["127.0.0.2"]
+        gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
+        assert master.request(1, write) == write  # the open connection has the new rights
+    with Master(gw.address, source="127.0.0.3") as outsider:
+        assert outsider.is_closed_by_peer()
+    assert sample(gw, "modbus_gateway_connections_denied_total", {"listener": "tcp"}) == 1
+
+
+def test_garbage_instead_of_a_client_hello_is_counted_and_closed(
+    plant: tuple[SimBus, RunningGateway], pki: Pki
+) -> None:
+    """Plain Modbus (and noise) sent to the tls port: closed, counted, honest masters served."""
+    _, gw = plant
+    address = listener_address(gw, "tls")
+    with Master(address, context=client_context(pki, "viewer")) as honest:
+        for noise in (bytes.fromhex("0001 0000 0006 01 03 0000 0001"), b"GET / HTTP/1.0\r\n\r\n"):
+            for _ in range(10):
+                with Master(address) as confused:  # a plain Modbus TCP master on port 802
+                    confused.send_raw(noise)
+                    assert closed_soon(confused.sock)
+                assert honest.request(1, bytes.fromhex("03 0000 0001"))[0] == 3
+    labels = {"listener": "tls", "reason": "not_tls"}
+    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 20)
+
+
+def closed_soon(sock: socket.socket) -> bool:
+    """True when the peer closes within the deadline (whatever it sent first: an alert)."""
+    sock.settimeout(DEADLINE_S)
+    try:
+        while sock.recv(4096):
+            pass
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+    return True
