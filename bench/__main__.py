@@ -26,7 +26,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from . import line_scenarios, scenarios, tls_scenarios
+from . import hostile, line_scenarios, scenarios, tls_scenarios
 from .procs import BenchError, environment_summary
 from .report import render_checks, render_table
 from .scenarios import Bench, ScenarioResult, Timing
@@ -39,6 +39,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **scenarios.SCENARIOS,
     **line_scenarios.SCENARIOS,
     **tls_scenarios.SCENARIOS,
+    **hostile.SCENARIOS,
 }
 
 

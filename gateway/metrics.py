@@ -430,10 +430,10 @@ class GatewayMetrics:
 
     def exposition_registry(self) -> Collector:
         """What the HTTP endpoint exposes: every metric, without ``_created`` series."""
-        return _WithoutCreated(self.registry)
+        return WithoutCreated(self.registry)
 
 
-class _WithoutCreated(Collector):
+class WithoutCreated(Collector):
     """A view of a registry that drops the ``_created`` samples of counters and histograms."""
 
     def __init__(self, registry: CollectorRegistry) -> None:

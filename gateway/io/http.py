@@ -14,7 +14,8 @@ stream and status page); every route is served under the same limits:
   streams its answer (``/trace``) runs as long as it likes once the head is in.
 
 ``/metrics`` is rendered by ``ScrapeRenderer``: fresh for every scrape (never
-a cached copy), one metric family per turn of the event loop, and scrapes
+a cached copy), at most ``SAMPLES_PER_TURN`` samples per turn of the event
+loop, and scrapes
 spaced so that rendering takes at most a tenth of the loop's time, however
 many clients scrape in a loop. Scrapes waiting at the same time share one
 rendering.
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import logging
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
@@ -50,6 +52,8 @@ _INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
 _OPENMETRICS_EOF = b"# EOF\n"
 #: Share of the event loop's time that rendering /metrics may take, however often it is asked.
 SCRAPE_LOOP_SHARE = 0.1
+#: Samples encoded per turn of the event loop: a family of 247 slaves' series is several slices.
+SAMPLES_PER_TURN = 64
 
 
 #: A route: method, target with query, lower-case headers, the streams. It answers on the
@@ -91,8 +95,8 @@ class ScrapeRenderer:
     """Renders /metrics fresh for each scrape at a bounded cost to the event loop.
 
     Rendering the exposition is the one thing on the Modbus loop whose cost
-    grows with the number of series. Each family is encoded in a turn of its
-    own, so a master's reply waits for at most one family, and the next
+    grows with the number of series. Each slice of a family's samples is encoded
+    in a turn of its own, so a master's reply waits for one slice at most; the next
     rendering starts no sooner than ``(1 / share - 1)`` times the last one's
     cost after it, so scraping in a loop takes at most ``share`` of the loop.
     Scrapes that arrive before a rendering starts all get that rendering.
@@ -146,20 +150,42 @@ class ScrapeRenderer:
         while True:
             started = time.perf_counter()
             metric = next(families, None)
-            if metric is not None:
-                part = encoder(_Single(metric))
-                if openmetrics and part.endswith(_OPENMETRICS_EOF):
-                    part = part[: -len(_OPENMETRICS_EOF)]
-                parts.append(part)
             cost += time.perf_counter() - started
             if metric is None:
                 break
-            await asyncio.sleep(0)  # a master's reply waits for one family at most
+            samples = metric.samples
+            for first in range(0, max(len(samples), 1), SAMPLES_PER_TURN):
+                await asyncio.sleep(0)  # a master's reply waits for one slice at most
+                started = time.perf_counter()
+                part = encoder(_Single(_slice(metric, first)))
+                if first:  # the family's HELP and TYPE lines come once
+                    part = _without_comments(part)
+                if openmetrics and part.endswith(_OPENMETRICS_EOF):
+                    part = part[: -len(_OPENMETRICS_EOF)]
+                parts.append(part)
+                cost += time.perf_counter() - started
         if openmetrics:
             parts.append(_OPENMETRICS_EOF)
         self.last_cost = cost
         self.renderings += 1
         return b"".join(parts)
+
+
+def _slice(metric: Metric, first: int) -> Metric:
+    """``metric`` with only samples ``first .. first + SAMPLES_PER_TURN``."""
+    if first == 0 and len(metric.samples) <= SAMPLES_PER_TURN:
+        return metric
+    part = copy.copy(metric)
+    part.samples = metric.samples[first : first + SAMPLES_PER_TURN]
+    return part
+
+
+def _without_comments(text: bytes) -> bytes:
+    """An encoded family without its leading ``# HELP``/``# TYPE``/``# UNIT`` lines."""
+    start = 0
+    while text.startswith(b"# ", start):
+        start = text.index(b"\n", start) + 1
+    return text[start:]
 
 
 def _log_failure(task: asyncio.Task[None]) -> None:

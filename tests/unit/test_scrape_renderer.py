@@ -1,0 +1,109 @@
+"""The /metrics renderer: sliced over turns of the loop, yet byte for byte what the encoders give.
+
+Runs on a real asyncio loop with a real registry; nothing is mocked.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from prometheus_client import CollectorRegistry, Counter, Gauge
+from prometheus_client.exposition import generate_latest
+from prometheus_client.openmetrics.exposition import generate_latest as generate_openmetrics
+
+from gateway.io.http import SAMPLES_PER_TURN, ScrapeRenderer
+from gateway.metrics import GatewayMetrics, WithoutCreated
+
+OPENMETRICS = "application/openmetrics-text;version=1.0.0"
+
+
+def big_registry() -> CollectorRegistry:
+    registry = CollectorRegistry()
+    counter = Counter("many", "A family larger than one slice.", ["unit"], registry=registry)
+    for unit in range(3 * SAMPLES_PER_TURN + 5):
+        counter.labels(str(unit)).inc(unit)
+    Gauge("small", "One sample.", registry=registry).set(3)
+    return registry
+
+
+def test_sliced_rendering_is_what_the_encoders_produce() -> None:
+    # The gateway's exposition has no _created series (the text format would write them as
+    # families of their own after each counter's samples, which slicing would interleave).
+    registry = WithoutCreated(big_registry())
+
+    async def render() -> tuple[bytes, bytes]:
+        renderer = ScrapeRenderer(registry)
+        text, _ = await renderer.render("")
+        openmetrics, content_type = await renderer.render(OPENMETRICS)
+        assert content_type.startswith("application/openmetrics-text")
+        return text, openmetrics
+
+    text, openmetrics = asyncio.run(render())
+    assert text == generate_latest(registry)
+    assert openmetrics == generate_openmetrics(registry)  # type: ignore[no-untyped-call]
+
+
+def test_scrapes_waiting_together_share_one_rendering_and_renderings_are_spaced() -> None:
+    registry = big_registry()
+
+    async def scrape() -> tuple[int, float, float]:
+        renderer = ScrapeRenderer(registry, share=0.1)
+        bodies = await asyncio.gather(*(renderer.render("") for _ in range(5)))
+        assert len({body for body, _ in bodies}) == 1
+        first_done = asyncio.get_running_loop().time()
+        await renderer.render("")  # waits until 9 x the first rendering's cost has passed
+        return (
+            renderer.renderings,
+            asyncio.get_running_loop().time() - first_done,
+            renderer.last_cost,
+        )
+
+    renderings, gap, cost = asyncio.run(scrape())
+    assert renderings == 2
+    assert gap >= 9 * cost * 0.9  # the loop's clock is millisecond-grained
+
+
+def test_the_exposition_has_no_created_series() -> None:
+    metrics = GatewayMetrics()
+    metrics.count_request("a", "1", 3, "ok")
+    body = generate_latest(metrics.exposition_registry()).decode()
+    assert "modbus_gateway_requests_total" in body
+    assert "_created" not in body
+    assert "_created" in generate_latest(metrics.registry).decode()  # what it leaves out
+
+
+def test_requests_name_a_unit_only_once_its_slave_has_answered() -> None:
+    metrics = GatewayMetrics()
+    for function in range(1, 60):
+        metrics.count_request("a", "7", function, "target_failed")  # never heard: "other"
+    metrics.count_request("a", "5", 3, "ok")
+    metrics.count_request("a", "5", 3, "target_failed")
+    metrics.count_request("broadcast", "0", 6, "broadcast")
+    units = {
+        sample.labels["unit"]
+        for family in metrics.registry.collect()
+        if family.name == "modbus_gateway_requests"
+        for sample in family.samples
+        if sample.name.endswith("_total")
+    }
+    functions = {
+        sample.labels["function"]
+        for family in metrics.registry.collect()
+        if family.name == "modbus_gateway_requests"
+        for sample in family.samples
+    }
+    assert units == {"other", "5", "0"}
+    assert "other" in functions and len(functions) <= 20
+    value = metrics.registry.get_sample_value
+    assert (
+        value(
+            "modbus_gateway_requests_total",
+            {
+                "line": "a",
+                "unit": "5",
+                "function": "read_holding_registers",
+                "outcome": "target_failed",
+            },
+        )
+        == 1
+    )
