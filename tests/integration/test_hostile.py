@@ -456,6 +456,18 @@ def test_idle_http_connections_cannot_lock_out_scrapes_or_masters(
             sock.close()
 
 
+def test_a_noisy_line_is_live_and_ready(gateway_with: GatewayOnSim) -> None:
+    sim, gw = gateway_with({1: plc(1)}, line={"timeout": 0.05, "retries": 0})
+    sim.faults(1).crc_error_rate = 1.0  # every answer garbled: the line is open, but noisy
+    with gw.connect() as master:
+        for _ in range(5):
+            assert master.request(1, READ_1) == bytes((0x83, 0x0B))
+    assert http_get(gw, "/healthz")[0] == 200
+    assert http_get(gw, "/readyz")[0] == 200  # its faults are in the metrics, not here
+    crc = series("modbus_gateway_crc_errors_total", line="a", unit="1")
+    assert value(gw, crc) >= 5
+
+
 def test_a_streaming_route_outlives_the_header_timeout(
     make_sim: SimFactory, make_gateway: GatewayFactory
 ) -> None:
