@@ -44,6 +44,7 @@ from prometheus_client.metrics_core import Metric
 from prometheus_client.registry import Collector
 
 from ..config import MetricsConfig
+from ..logs import RateLimitedLogger
 
 log = logging.getLogger("gateway.http")
 
@@ -218,6 +219,7 @@ class HttpEndpoint:
         self._server: asyncio.Server | None = None
         self._open: dict[_Connection, None] = {}  # in opening order
         self.refused = 0  #: connections closed at once at the cap
+        self._faults: RateLimitedLogger | None = None  # bound to the loop in start()
         self._routes: dict[str, Route] = {
             "/metrics": self._metrics,
             "/healthz": self._healthz,
@@ -244,6 +246,7 @@ class HttpEndpoint:
 
     async def start(self, host: str, port: int) -> None:
         """Bind and serve."""
+        self._faults = RateLimitedLogger(log, asyncio.get_running_loop())
         self._server = await asyncio.start_server(
             self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD
         )
@@ -263,6 +266,14 @@ class HttpEndpoint:
         """Register a new connection, making room at the cap; ``None`` when it is refused."""
         if len(self._open) >= self.max_connections:
             waiting = next((c for c in self._open if c.reading_head), None)
+            if self._faults is not None:
+                self._faults.note(
+                    "HTTP endpoint", "connection limit",
+                    f"{self.max_connections} connections open (metrics.max_connections); "
+                    + ("closing the oldest still sending its request"
+                       if waiting is not None else "refusing new ones"),
+                    plural="connections past the limit",
+                )  # fmt: skip
             if waiting is None:
                 self.refused += 1
                 writer.transport.abort()
