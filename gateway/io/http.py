@@ -112,6 +112,11 @@ class ScrapeRenderer:
         self.last_cost = 0.0  #: seconds the last rendering held the loop, all turns together
         self.renderings = 0
 
+    @property
+    def not_before(self) -> float:
+        """The loop time before which the next rendering does not start."""
+        return self._not_before
+
     async def render(self, accept: str) -> tuple[bytes, str]:
         """The exposition for a scraper's Accept header, rendered after this call: body, type."""
         encoder, content_type = choose_encoder(accept)
