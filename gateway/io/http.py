@@ -16,7 +16,7 @@ stream and status page); every route is served under the same limits:
 ``/metrics`` is rendered by ``ScrapeRenderer``: fresh for every scrape (never
 a cached copy), at most ``SAMPLES_PER_TURN`` samples per turn of the event
 loop, and scrapes
-spaced so that rendering takes at most a tenth of the loop's time, however
+spaced so that rendering takes at most 5 % of the loop's time, however
 many clients scrape in a loop. Scrapes waiting at the same time share one
 rendering.
 
@@ -52,9 +52,9 @@ _MAX_REQUEST_HEAD = 8192
 _INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
 _OPENMETRICS_EOF = b"# EOF\n"
 #: Share of the event loop's time that rendering /metrics may take, however often it is asked.
-SCRAPE_LOOP_SHARE = 0.1
+SCRAPE_LOOP_SHARE = 0.05
 #: Samples encoded per turn of the event loop: a family of 247 slaves' series is several slices.
-SAMPLES_PER_TURN = 64
+SAMPLES_PER_TURN = 32
 
 
 #: A route: method, target with query, lower-case headers, the streams. It answers on the
