@@ -141,11 +141,15 @@ class LineConfig:
     stop_bits: float = 1
     timeout: float = 0.367  # auto_timeout(9600): "auto" is computed from the line's settings
     retries: int = 1
-    retry_writes: bool = False
+    retry_unsafe: bool = False
     frame_gap: float | None = None
     broadcast: bool = True
     broadcast_turnaround: float = 0.1
     max_queue: int = 256
+    max_queue_per_master: int = 32
+    late_answer_window: float | None = None
+    noisy_after: float | None = None
+    probe_share: float = 0.05
     rs485: bool = False
     rs485_rts_level_for_tx: bool = True
     rs485_rts_level_for_rx: bool = False
@@ -162,6 +166,19 @@ class LineConfig:
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
         return self.slave_timeouts.get(slave, self.timeout)
+
+    def late_window_for(self, slave: int) -> float:
+        """How long a lost answer of ``slave`` may still arrive: 2 x its timeout by default."""
+        if self.late_answer_window is not None:
+            return self.late_answer_window
+        return 2 * self.timeout_for(slave)
+
+    @property
+    def noisy_deadline(self) -> float:
+        """How long requests wait for a usable gap before the line is declared noisy."""
+        if self.noisy_after is not None:
+            return self.noisy_after
+        return 3 * max(self.timeout, *self.slave_timeouts.values(), 0.0)
 
     @property
     def is_url(self) -> bool:
@@ -380,7 +397,12 @@ _LINE_KEYS = {
     "stop_bits",
     "timeout",
     "retries",
+    "retry_unsafe",
     "retry_writes",
+    "max_queue_per_master",
+    "late_answer_window",
+    "noisy_after",
+    "probe_share",
     "frame_gap",
     "broadcast",
     "broadcast_turnaround",
@@ -489,11 +511,15 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         stop_bits=stop_bits,
         timeout=timeout,
         retries=check.integer(table, "retries", prefix, 1, 0, 10),
-        retry_writes=check.boolean(table, "retry_writes", prefix, False),
+        retry_unsafe=_retry_unsafe(check, table, prefix),
         frame_gap=frame_gap,
         broadcast=check.boolean(table, "broadcast", prefix, True),
         broadcast_turnaround=check.number(table, "broadcast_turnaround", prefix, 0.1, 0.0, 10.0),
         max_queue=check.integer(table, "max_queue", prefix, 256, 1, 100_000),
+        max_queue_per_master=check.integer(table, "max_queue_per_master", prefix, 32, 1, 10_000),
+        late_answer_window=_optional_number(check, table, "late_answer_window", prefix, 60.0),
+        noisy_after=_optional_number(check, table, "noisy_after", prefix, 3600.0),
+        probe_share=check.number(table, "probe_share", prefix, 0.05, 0.0, 1.0),
         rs485=check.boolean(table, "rs485", prefix, False),
         rs485_rts_level_for_tx=check.boolean(table, "rs485_rts_level_for_tx", prefix, True),
         rs485_rts_level_for_rx=check.boolean(table, "rs485_rts_level_for_rx", prefix, False),
@@ -522,6 +548,26 @@ def auto_timeout(
     """
     longest = transmission_time(MAX_RTU_FRAME, baudrate, data_bits, parity, stop_bits)
     return round(SLAVE_TURNAROUND_S + longest, 3)
+
+
+def _retry_unsafe(check: _Checker, table: Mapping[str, Any], prefix: str) -> bool:
+    """``retry_unsafe``, or its former name ``retry_writes`` (it now covers more than writes)."""
+    if "retry_unsafe" in table and "retry_writes" in table:
+        check.fail(
+            f"{prefix}retry_writes",
+            "is the former name of retry_unsafe; keep only retry_unsafe",
+        )
+    key = "retry_writes" if "retry_writes" in table else "retry_unsafe"
+    return check.boolean(table, key, prefix, False)
+
+
+def _optional_number(
+    check: _Checker, table: Mapping[str, Any], key: str, prefix: str, high: float
+) -> float | None:
+    """A number of seconds, or ``None`` (the default derived from the timeouts) when absent."""
+    if key not in table or table[key] == "auto":
+        return None
+    return check.number(table, key, prefix, 0.0, 0.0, high)
 
 
 def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[int, float]:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import time
 from bisect import bisect_left
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from enum import StrEnum
 from itertools import accumulate
 from typing import Protocol
@@ -43,20 +42,12 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from . import __version__
+from .core.line import LineStats
+from .core.outcome import Outcome
 from .core.pdu import function_name
 
 #: Outcomes of a request from a TCP master, the ``outcome`` label's whole vocabulary.
-OUTCOMES = (
-    "ok",  # a normal response from the slave
-    "slave_exception",  # the slave answered with a Modbus exception
-    "no_route",  # 0x0A: no line for the unit, the line is down, or its queue is full
-    "target_failed",  # 0x0B: slave silent or garbled after the retries
-    "rejected",  # answered locally: a request no slave could accept
-    "broadcast",  # sent to unit 0, no answer expected
-    "dropped",  # the master left before its answer was ready
-    "cached",  # answered from the read cache
-    "denied",  # refused by the listener's policy (0x01), never sent to the line
-)
+OUTCOMES = tuple(outcome.value for outcome in Outcome)
 
 
 class CloseReason(StrEnum):
@@ -107,19 +98,9 @@ _LATENCY_BUCKETS = (
 _WAIT_BUCKETS = (0.0, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
 
-@dataclass(slots=True)
-class LineCounters:
-    """Per-line traffic counts kept as plain integers, read only when scraped.
-
-    Each transaction bumps several of these; a Prometheus child's ``inc`` takes a
-    lock and a few microseconds, an integer add takes nanoseconds.
-    """
-
-    frames_sent: int = 0
-    frames_received: int = 0
-    bytes_written: int = 0
-    bytes_read: int = 0
-    queue_depth: int = 0
+#: Per-line traffic counts kept as plain integers by the line core, read only when scraped
+#: (a Prometheus child's ``inc`` takes a lock and microseconds, an integer add nanoseconds).
+LineCounters = LineStats
 
 
 class _LineCountersCollector(Collector):
@@ -296,6 +277,27 @@ class GatewayMetrics:
             p + "slave_up", "1 when the slave answers, 0 while it is isolated as dead.",
             ["line", "unit"], registry=r,
         )  # fmt: skip
+        self.slave_suspect = Gauge(
+            p + "slave_suspect",
+            "1 while the slave is suspect (missed its last answer): its requests wait behind "
+            "the healthy slaves', one at a time.",
+            ["line", "unit"], registry=r,
+        )  # fmt: skip
+        self.line_noisy = Gauge(
+            p + "line_noisy",
+            "1 while the line has had no usable gap for too long (requests answered 0x0B).",
+            ["line"], registry=r,
+        )  # fmt: skip
+        self.line_noisy_total = Counter(
+            p + "line_noisy_episodes",
+            "Times the line was declared noisy (no usable gap within noisy_after).",
+            ["line"], registry=r,
+        )  # fmt: skip
+        self.late_windows = Counter(
+            p + "late_answer_windows",
+            "Late-answer windows opened: an attempt failed and its answer may still arrive.",
+            ["line"], registry=r,
+        )  # fmt: skip
         self.coalesced = Counter(
             p + "coalesced_requests",
             "Read requests served by another master's identical transaction.",
@@ -363,6 +365,8 @@ class GatewayMetrics:
         for reason in DISCARD_REASONS:
             self.discarded_frames.labels(line, reason)
         self.line_lost.labels(line)
+        self.line_noisy_total.labels(line)
+        self.late_windows.labels(line)
 
     def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
         """Create the per-slave fault series at 0 for each routed ``(line, slave)``."""

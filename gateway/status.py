@@ -13,21 +13,15 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from .core.outcome import SlaveState as SlaveState  # the status vocabulary is the core's
+
 
 class LineState(enum.Enum):
     """How a serial line is doing."""
 
     UP = "up"  # the port is open and answers come back clean
     DOWN = "down"  # the port is closed (unplugged, wrong device): requests get 0x0A
-    NOISY = "noisy"  # open, but garbled frames were seen recently
-
-
-class SlaveState(enum.Enum):
-    """How one slave address on a line is doing."""
-
-    UP = "up"  # answered its last transaction
-    SUSPECT = "suspect"  # silent lately, not yet isolated
-    DOWN = "down"  # isolated as dead: answered 0x0B at once, probed now and then
+    NOISY = "noisy"  # open, but no usable gap for noisy_after: requests get 0x0B
 
 
 @dataclass(frozen=True, slots=True)

@@ -89,6 +89,41 @@ READ_FUNCTIONS = frozenset(
 )
 
 
+#: Functions without side effects: a timeout or garbled answer may be retried safely.
+#: FC 8 only with subfunction 0 (return query data) and FC 43 only as 43/14 (read device
+#: identification); see ``is_safe_to_retry``.
+SAFE_TO_RETRY = frozenset(
+    {
+        READ_COILS,
+        READ_DISCRETE_INPUTS,
+        READ_HOLDING_REGISTERS,
+        READ_INPUT_REGISTERS,
+        READ_EXCEPTION_STATUS,
+        GET_COMM_EVENT_COUNTER,
+        GET_COMM_EVENT_LOG,
+        REPORT_SERVER_ID,
+        READ_FILE_RECORD,
+        READ_FIFO_QUEUE,
+    }
+)
+
+
+def is_safe_to_retry(pdu: bytes) -> bool:
+    """True when sending ``pdu`` twice cannot change the slave (no write, no state change).
+
+    Diagnostics other than subfunction 0 clear counters or restart the port, FC 23
+    writes, and user-defined codes may do anything: those are sent once.
+    """
+    function = pdu[0]
+    if function in SAFE_TO_RETRY:
+        return True
+    if function == DIAGNOSTICS:
+        return len(pdu) >= 3 and pdu[1] == 0 and pdu[2] == 0
+    if function == ENCAPSULATED_INTERFACE:
+        return len(pdu) >= 2 and pdu[1] == MEI_READ_DEVICE_ID
+    return False
+
+
 def function_name(function: int) -> str:
     """A bounded, human-readable name for a function code (``other`` when unknown)."""
     return FUNCTION_NAMES.get(function & 0x7F, "other")

@@ -1,4 +1,4 @@
-"""Sub-millisecond waits on an asyncio loop.
+"""Sub-millisecond deadlines on an asyncio loop.
 
 The loop's timers are millisecond-grained (uvloop rounds ``call_at`` to 1 ms,
 and epoll timeouts are in ms), which is too coarse for a 1.75 ms t3.5. A Linux
@@ -18,6 +18,7 @@ import ctypes.util
 import os
 import sys
 import time
+from collections.abc import Callable
 
 SPIN_MARGIN = 0.00025
 _FALLBACK_MARGIN = 0.0015
@@ -48,7 +49,12 @@ def _load_libc() -> ctypes.CDLL | None:
 
 
 class PreciseClock:
-    """Waits until a ``time.monotonic()`` deadline, accurate to a few microseconds."""
+    """One re-armable deadline on ``time.monotonic()``, met to a few microseconds.
+
+    A line driver arms it with the core's next deadline (``arm``); the callback runs
+    at that time, never before it. Re-arming replaces the deadline; ``disarm``
+    cancels it. One clock serves one line.
+    """
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -59,52 +65,77 @@ class PreciseClock:
             self._libc.prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0)
             fd = self._libc.timerfd_create(_CLOCK_MONOTONIC, _TFD_NONBLOCK | _TFD_CLOEXEC)
             self._fd = fd if fd >= 0 else -1
-        self._waiter: asyncio.Future[None] | None = None
+        if self._fd >= 0:
+            loop.add_reader(self._fd, self._on_timerfd)
+        self._deadline = 0.0  # 0: not armed
+        self._callback: Callable[[], None] | None = None
+        self._fallback: asyncio.TimerHandle | None = None
 
     @property
     def uses_timerfd(self) -> bool:
         """True when waits use a kernel timerfd (Linux)."""
         return self._fd >= 0
 
+    @property
+    def deadline(self) -> float:
+        """The armed deadline, 0 when disarmed."""
+        return self._deadline
+
     def close(self) -> None:
-        """Release the timerfd."""
+        """Disarm and release the timerfd."""
+        self.disarm()
         if self._fd >= 0:
             self._loop.remove_reader(self._fd)
             os.close(self._fd)
             self._fd = -1
 
-    async def sleep_until(self, deadline: float) -> None:
-        """Return at ``deadline`` (``time.monotonic()`` seconds), never before it."""
+    def arm(self, deadline: float, callback: Callable[[], None]) -> None:
+        """Call ``callback`` at ``deadline`` (``time.monotonic()`` seconds), replacing any other."""
+        self._callback = callback
+        if deadline == self._deadline:
+            return
+        self._deadline = deadline
         early = deadline - SPIN_MARGIN
-        if time.monotonic() < early:
-            if self._fd >= 0:
-                await self._timerfd_wait(early)
-            else:
-                coarse = deadline - _FALLBACK_MARGIN - time.monotonic()
-                if coarse > 0:
-                    await asyncio.sleep(coarse)
-        while time.monotonic() < deadline:
-            pass
+        if self._fd >= 0:
+            assert self._libc is not None
+            when = max(early, 1e-6)  # 0 would disarm the timerfd
+            seconds = int(when)
+            spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
+            self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
+            return
+        if self._fallback is not None:
+            self._fallback.cancel()
+        delay = max(0.0, deadline - _FALLBACK_MARGIN - time.monotonic())
+        self._fallback = self._loop.call_later(delay, self._fire)
 
-    async def _timerfd_wait(self, when: float) -> None:
-        assert self._libc is not None
-        seconds = int(when)
-        spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
-        self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
-        waiter = self._loop.create_future()
-        self._waiter = waiter
-        self._loop.add_reader(self._fd, self._on_timer)
-        try:
-            await waiter
-        finally:
-            self._loop.remove_reader(self._fd)
-            self._waiter = None
+    def disarm(self) -> None:
+        """Cancel the armed deadline."""
+        self._deadline = 0.0
+        self._callback = None
+        if self._fallback is not None:
+            self._fallback.cancel()
+            self._fallback = None
+        if self._fd >= 0 and self._libc is not None:
+            spec = _Itimerspec(_Timespec(0, 0), _Timespec(0, 0))
+            self._libc.timerfd_settime(self._fd, 0, ctypes.byref(spec), None)
 
-    def _on_timer(self) -> None:
+    def _on_timerfd(self) -> None:
         try:
             os.read(self._fd, 8)
         except BlockingIOError:
             return
-        waiter = self._waiter
-        if waiter is not None and not waiter.done():
-            waiter.set_result(None)
+        self._fire()
+
+    def _fire(self) -> None:
+        self._fallback = None
+        deadline = self._deadline
+        callback = self._callback
+        if not deadline or callback is None:
+            return
+        if deadline - time.monotonic() > 2 * _FALLBACK_MARGIN:
+            return  # a wake-up for an earlier deadline, re-armed since: wait for this one
+        while time.monotonic() < deadline:  # the last stretch, at most SPIN_MARGIN
+            pass
+        self._deadline = 0.0
+        self._callback = None
+        callback()

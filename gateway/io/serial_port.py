@@ -291,22 +291,6 @@ class SerialLink:
             self._lost(error)
             raise SerialPortError(f"{self._port.name}: write failed: {error}") from error
 
-    def discard_input(self) -> int:
-        """Read and drop whatever is waiting in the input buffer; return how many bytes."""
-        dropped = 0
-        while not self._closed:
-            try:
-                chunk = os.read(self._fd, _READ_CHUNK)
-            except BlockingIOError:
-                break
-            except OSError as error:
-                self._lost(error)
-                break
-            if not chunk:
-                break
-            dropped += len(chunk)
-        return dropped
-
     def close(self) -> None:
         """Stop watching the port and close it."""
         if self._closed:

@@ -100,6 +100,10 @@ class Router:
     def __init__(self, routes: Mapping[int, Target], broadcast_buses: list[Bus]) -> None:
         self.routes = dict(routes)
         self.broadcast_buses = broadcast_buses
+        self.buses = list({id(t.bus): t.bus for t in self.routes.values()}.values())
+        for bus in broadcast_buses:
+            if bus not in self.buses:
+                self.buses.append(bus)
 
     def lookup(self, unit: int) -> Target | None:
         """The route for ``unit``, ``None`` when there is none."""
@@ -435,6 +439,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         for request in self._pending:
             request.cancelled = True
         self._pending.clear()
+        for bus in self._server.router.buses:
+            bus.cancel(self)  # its waiting requests leave the lines' queues now
 
     def _stalled(self) -> None:
         self._stall_timer = None

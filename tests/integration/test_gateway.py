@@ -452,9 +452,11 @@ def test_bad_crc_half_the_time_is_hidden_by_the_retries(gateway_with: GatewayOnS
 def test_a_late_reply_is_never_taken_for_the_next_answer(gateway_with: GatewayOnSim) -> None:
     """The slave answers 1.2 s late; the gateway gave up after 0.8 s and asked something else.
 
-    The late answer (2 registers) arrives while the gateway waits for the answer to a
-    3-register read of the same unit: it is thrown away, and the real answer, 0.2 s
-    later, is passed on. (Margins of 0.2 s or more, for busy machines.)
+    A read of another function cannot be confused with the lost answer, so it goes at
+    once; the late answer arrives while the gateway waits for it and is thrown away,
+    and the real answer, 0.2 s later, is passed on. The slave has shown it is done
+    with the lost request: the same read as the lost one is served again at once.
+    (Margins of 0.2 s or more, for busy machines.)
     """
     sim, gw = gateway_with({1: plc(1)}, line={"timeout": 0.8, "retries": 0})
     sim.faults(1).reply_delay = 1.2
@@ -463,17 +465,51 @@ def test_a_late_reply_is_never_taken_for_the_next_answer(gateway_with: GatewayOn
         # The simulator reads the delay when it serves the next request, right after the
         # late answer: the real one comes 0.2 s later, 0.2 s before the gateway gives up.
         sim.faults(1).reply_delay = 0.2
-        reply = client.request(1, read_pdu(3, 2000, 3))
-        assert reply != registers_reply(3, [1000, 1001])
-        assert reply == registers_reply(3, [2000, 2001, 2002])
+        reply = client.request(1, read_pdu(4, 2000, 2))
+        assert reply == registers_reply(4, [0x4000 + 2000, 0x4000 + 2001])
         sim.faults(1).reply_delay = 0.0
-        # Nothing else comes after: the next request gets its own answer.
         assert client.request(1, read_pdu(3, 3000, 2)) == registers_reply(3, [3000, 3001])
     assert sim.stats().responses == 3
     discarded = gw.gateway.metrics.registry.get_sample_value(
-        "modbus_gateway_discarded_frames_total", {"line": "a", "reason": "mismatch"}
+        "modbus_gateway_discarded_frames_total", {"line": "a", "reason": "unexpected_function"}
     )
     assert discarded == 1
+
+
+def test_a_read_like_the_lost_one_waits_out_the_late_answer_window(
+    gateway_with: GatewayOnSim,
+) -> None:
+    """After a timeout, a read whose answer looks like the lost one's never reaches the slave
+    while that answer may still come: it is answered 0x0B instead of wrong data.
+
+    Unit 2 (another slave) is served meanwhile, and once the window is over the same
+    read goes to unit 1 again.
+    """
+    sim, gw = gateway_with(
+        {1: plc(1), 2: plc(2)},
+        line={"timeout": 0.5, "retries": 0, "late_answer_window": 2.5},
+    )
+    sim.faults(1).reply_delay = 1.3  # its answer arrives 0.8 s after the gateway gave up
+    with gw.connect() as client:
+        started = time.monotonic()
+        assert client.request(1, read_pdu(3, 1000, 2)) == h("83 0B")
+        sim.faults(1).reply_delay = 0.0
+        # Same function and byte count: it could take the late answer. Held, then 0x0B.
+        assert client.request(1, read_pdu(3, 2000, 2)) == h("83 0B")
+        assert client.request(2, read_pdu(3, 2000, 2)) == registers_reply(3, [2000, 2001])
+        assert sim.stats().requests == 2  # the held read never went on the line
+        # Once the window is over the slave is asked again (it is suspect, not dead).
+        while time.monotonic() - started < 5.0:
+            reply = client.request(1, read_pdu(3, 3000, 2))
+            if reply == registers_reply(3, [3000, 3001]):
+                break
+            assert reply == h("83 0B")
+        else:
+            pytest.fail("unit 1 was not served again after its late-answer window")
+    late = gw.gateway.metrics.registry.get_sample_value(
+        "modbus_gateway_late_answer_windows_total", {"line": "a"}
+    )
+    assert late == 1
 
 
 class ScriptedSlave:

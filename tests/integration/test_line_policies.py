@@ -43,12 +43,17 @@ def registers(pdu: bytes) -> list[int]:
 def test_a_dead_slave_is_isolated_then_probed_back(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with(
         {1: plc(1), 2: plc(2)},
+        # No late-answer window: a silent slave sends nothing late (the window's own tests
+        # are in test_gateway and tests/unit/test_line_core).
         line={"timeout": 0.05, "retries": 0, "dead_after": 3, "probe_interval": 0.2,
-              "probe_max_interval": 0.4},
+              "probe_max_interval": 0.4, "late_answer_window": 0},
     )  # fmt: skip
     sim.faults(2).silent = True
     with gw.connect() as master:
-        for _ in range(3):
+        assert master.request(2, READ_10) == bytes([0x83, 0x0B])
+        assert sample(gw, "modbus_gateway_slave_suspect", line="a", unit="2") == 1
+        assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 1
+        for _ in range(2):
             assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert sim.stats().silent_drops == 3
         assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 0

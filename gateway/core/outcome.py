@@ -1,0 +1,47 @@
+"""One vocabulary for what became of a request, and for the line's notable events.
+
+Every layer speaks it: the line core decides an ``Outcome``, the TCP side writes the
+matching reply, metrics use the values as label values (so the set is fixed and small).
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class Outcome(StrEnum):
+    """What became of one request from a master; the ``outcome`` label's whole vocabulary."""
+
+    OK = "ok"  # a normal response from the slave
+    SLAVE_EXCEPTION = "slave_exception"  # the slave answered with a Modbus exception
+    NO_ROUTE = "no_route"  # 0x0A: no line for the unit, the line is down, or it is full
+    TARGET_FAILED = "target_failed"  # 0x0B: slave silent, garbled, isolated, or line noisy
+    BUSY = "busy"  # 0x06: this master's own queue on the line is full
+    REJECTED = "rejected"  # answered locally: a request no slave could accept
+    DENIED = "denied"  # refused by the listener's policy (0x01), never sent to the line
+    BROADCAST = "broadcast"  # sent to unit 0, no answer expected
+    DROPPED = "dropped"  # the master left before its answer was ready
+    CACHED = "cached"  # answered from the read cache
+
+
+class SlaveState(StrEnum):
+    """How the line treats one slave address (dead-slave isolation)."""
+
+    UP = "up"  # answers: served in the masters' fair order
+    SUSPECT = "suspect"  # missed its last answer: behind the healthy slaves, one at a time
+    DOWN = "down"  # missed several in a row: answered 0x0B at once, probed now and then
+
+
+class LineEvent(StrEnum):
+    """Notable events the line core reports for metrics and logs (never per-frame traffic)."""
+
+    TIMEOUT = "timeout"  # an attempt got no answer in time
+    CRC_ERROR = "crc_error"  # an answer arrived with a bad CRC
+    GARBLED = "garbled"  # something that is no answer arrived and the attempt failed
+    RETRY = "retry"  # a request is sent again
+    DISCARDED = "discarded"  # bytes or frames thrown away (``reason`` says why)
+    SLAVE_STATE = "slave_state"  # a slave changed state (``state`` says to what)
+    LINE_NOISY = "line_noisy"  # no usable gap for too long: the queue was answered 0x0B
+    LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
+    LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
+    COALESCED = "coalesced"  # a read joined an identical queued read
