@@ -182,7 +182,7 @@ class Transmit(NamedTuple):
     """Write ``frame`` to the line now (the core has checked the quiet time)."""
 
     frame: bytes
-    slave: int
+    request: LineRequest
     queue_wait: float
     retry: bool
 
@@ -673,21 +673,29 @@ class LineCore:
         return chosen
 
     def _first_eligible(self, master: _Master, now: float) -> LineRequest | None:
-        """The oldest request of ``master`` that may go now, keeping its order per slave."""
-        blocked: set[int] | None = None
+        """The oldest request of ``master`` that may go now.
+
+        A request held by a late-answer window holds back the master's later requests
+        to that slave, unless all of them are free of side effects (reads may pass reads;
+        nothing passes a write, and a write passes nothing).
+        """
+        blocked: dict[int, bool] | None = None  # slave -> only safe requests held so far
         slaves = self._slaves
         for request in master.queue:
             if request.broadcast:
                 return None if blocked else request
             slave = request.slave
-            if blocked is not None and slave in blocked:
+            safe = fc.is_safe_to_retry(request.pdu) if blocked else True
+            if blocked is not None and slave in blocked and not (blocked[slave] and safe):
+                blocked[slave] = False
                 continue
             record = slaves.get(slave)
             if record is None or not self._guarded(record, request, now):
                 return request
             if blocked is None:
-                blocked = set()
-            blocked.add(slave)
+                blocked = {}
+                safe = fc.is_safe_to_retry(request.pdu)
+            blocked[slave] = blocked.get(slave, True) and safe
         return None
 
     @staticmethod
@@ -733,7 +741,7 @@ class LineCore:
         stats.bytes_written += len(frame)
         if retry:
             self.notes.append(Note(LineEvent.RETRY, slave))
-        self.transmits.append(Transmit(frame, slave, now - request.enqueued_at, retry))
+        self.transmits.append(Transmit(frame, request, now - request.enqueued_at, retry))
 
     def _send_broadcast(self, request: LineRequest, master: _Master | None, now: float) -> None:
         frame = encode_rtu(0, request.pdu)
@@ -742,7 +750,7 @@ class LineCore:
         self.stats.frames_sent += 1
         self.stats.bytes_written += len(frame)
         self._cache.clear()  # what was read while it waited in the queue is stale now
-        self.transmits.append(Transmit(frame, 0, now - request.enqueued_at, False))
+        self.transmits.append(Transmit(frame, request, now - request.enqueued_at, False))
         self._deliver(request, b"", Outcome.BROADCAST, -1.0)
         if master is not None:
             master.vtime = max(master.vtime, self._vclock) + (self._quiet_since - now)
@@ -1001,6 +1009,8 @@ class LineCore:
         """The isolated slaves' share of line time banked so far (negative: in debt)."""
         if now > self._credit_at:
             banked = self._credit + self._share * (now - self._credit_at)
+            if banked > -1e-9:  # paid off: rounding must not leave a debt too small to wait for
+                banked = max(banked, 0.0)
             self._credit = min(banked, self._credit_cap)
             self._credit_at = now
         return self._credit

@@ -1,0 +1,287 @@
+"""The line core against simulated slaves of any timing, checked on every step.
+
+Hypothesis drives ``LineCore`` with masters submitting reads and writes, time moving
+in steps, slaves that answer at once, late by any amount, garbled, never, or not for
+some function codes, and a babbling transceiver. The slaves are sequential, like
+every Modbus serial slave: they answer their requests in the order received.
+
+Checked on every step:
+* every request is answered at most once, and at the end exactly once;
+* nothing is transmitted before the line's quiet time plus the gap;
+* a normal answer reaches only the request it answers: each answer carries a
+  nonce the slave drew for the transmission it answers, and that transmission
+  must be of this request (or of the identical read it joined, sent after it came);
+* a request with side effects is never transmitted twice;
+* no master has more requests waiting than its bound.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+from gateway.config import LineConfig
+from gateway.core import pdu as fc
+from gateway.core.line import LineCore, LineRequest
+from gateway.core.outcome import Outcome
+from gateway.core.rtu import encode_rtu
+from gateway.core.timing import character_time
+
+BAUD = 19200
+CHAR = character_time(BAUD, 8, "N", 1)
+TIMEOUT = 0.1
+MASTERS = ("a", "b", "c")
+SLAVES = (1, 2, 3, 4)
+PER_MASTER = 6
+
+
+@dataclass
+class Slave:
+    """How one simulated slave behaves; every draw may change it."""
+
+    delay: float | None = 0.002  # seconds after the request ends; None: never answers
+    garble: bool = False  # its next answer arrives with a bad CRC
+    ignores: frozenset[int] = frozenset()  # function codes it never answers
+    busy_until: float = 0.0  # sequential: the end of its previous answer
+
+
+@dataclass
+class Sent:
+    """One transmission and the nonce its answer carries."""
+
+    request: LineRequest
+    at: float
+
+
+@dataclass(order=True)
+class Emission:
+    at: float
+    seq: int
+    data: bytes = field(compare=False)
+
+
+class LineMachine(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.config = LineConfig(
+            name="p", device="/dev/null", baudrate=BAUD, timeout=TIMEOUT, retries=1,
+            max_queue_per_master=PER_MASTER, max_queue=12, dead_after=3, probe_interval=0.3,
+            probe_max_interval=0.6, noisy_after=0.5,
+        )  # fmt: skip
+        self.core = LineCore(self.config, 0.0)
+        self.now = 0.0
+        self.core.port_opened(self.now)
+        self.slaves = {unit: Slave() for unit in SLAVES}
+        self.emissions: list[Emission] = []
+        self.seq = 0
+        self.nonces: dict[int, Sent] = {}
+        self.next_nonce = 1
+        self.answers: dict[int, int] = {}  # id(request) -> times answered
+        self.requests: list[LineRequest] = []
+        self.transmissions: dict[int, int] = {}  # id(request) -> frames sent
+        self.last_tx_end = 0.0
+        self.last_rx = 0.0
+        self.turnaround_until = 0.0
+        self.problems: list[str] = []
+
+    # -- the core's actions ------------------------------------------------------------
+
+    def pump(self) -> None:
+        core = self.core
+        for transmit in core.transmits:
+            self.check_quiet(transmit.frame)
+            request = transmit.request
+            self.transmissions[id(request)] = self.transmissions.get(id(request), 0) + 1
+            end = self.now + len(transmit.frame) * CHAR
+            self.last_tx_end = end
+            if request.broadcast:
+                self.turnaround_until = end + self.config.broadcast_turnaround
+            else:
+                self.slave_hears(request, end)
+        core.transmits.clear()
+        for delivery in core.deliveries:
+            self.check_answer(delivery.request, delivery.pdu, delivery.outcome)
+        core.deliveries.clear()
+        core.notes.clear()
+
+    def check_quiet(self, frame: bytes) -> None:
+        quiet = max(self.last_tx_end, self.last_rx, self.turnaround_until)
+        if self.now + 1e-9 < quiet + self.config.gap:
+            self.problems.append(
+                f"frame {frame.hex()} at {self.now:.6f}, quiet only since {quiet:.6f}"
+            )
+
+    def slave_hears(self, request: LineRequest, end: float) -> None:
+        slave = self.slaves.get(request.slave)
+        if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
+            return
+        nonce = self.next_nonce
+        self.next_nonce += 1
+        self.nonces[nonce] = Sent(request, self.now)
+        function = request.pdu[0]
+        if function in (fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS):
+            quantity = (request.pdu[3] << 8) | request.pdu[4]
+            values = [nonce & 0xFFFF] * quantity
+            pdu = bytes((function, 2 * quantity)) + struct.pack(f">{quantity}H", *values)
+        else:
+            pdu = fc.write_response(request.pdu)
+        frame = bytearray(encode_rtu(request.slave, pdu))
+        if slave.garble:
+            frame[-1] ^= 0x5A
+        start = max(end + slave.delay, slave.busy_until)
+        at = start + len(frame) * CHAR
+        slave.busy_until = at
+        self.seq += 1
+        self.emissions.append(Emission(at, self.seq, bytes(frame)))
+        self.emissions.sort()
+
+    def check_answer(self, request: LineRequest, pdu: bytes, outcome: str) -> None:
+        key = id(request)
+        self.answers[key] = self.answers.get(key, 0) + 1
+        if self.answers[key] > 1:
+            self.problems.append(f"request {request.pdu.hex()} answered twice")
+        if outcome != Outcome.OK or request.pdu[0] not in (3, 4):
+            return
+        nonce = struct.unpack(">H", pdu[2:4])[0]
+        sent = self.nonces.get(nonce)
+        if sent is None:
+            self.problems.append(f"answer with unknown nonce {nonce}")
+            return
+        answered = sent.request
+        if answered is not request and (
+            answered.pdu != request.pdu
+            or answered.slave != request.slave
+            or sent.at < request.enqueued_at
+        ):
+            self.problems.append(
+                f"answer to {answered.slave}:{answered.pdu.hex()} (sent {sent.at:.4f}) "
+                f"delivered to {request.slave}:{request.pdu.hex()} "
+                f"(submitted {request.enqueued_at:.4f})"
+            )
+
+    # -- time ----------------------------------------------------------------------------
+
+    def advance_to(self, target: float) -> None:
+        stalled = 0
+        for _ in range(100_000):
+            timer = self.core.get_timer()
+            emission = self.emissions[0].at if self.emissions else float("inf")
+            when = min(timer if timer is not None else float("inf"), emission)
+            if when > target:
+                break
+            stalled = stalled + 1 if when <= self.now else 0
+            assert stalled < 50, (
+                f"the core asks for its timer at {when} again and again: {vars(self.core)}"
+            )
+            self.now = max(self.now, when)
+            if emission <= self.now and self.emissions:
+                data = self.emissions.pop(0).data
+                self.last_rx = self.now
+                self.core.receive(data, self.now)
+            else:
+                self.core.handle_timer(self.now)
+            self.pump()
+        self.now = max(self.now, target)
+
+    # -- rules ---------------------------------------------------------------------------
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        slave=st.sampled_from((*SLAVES, 7)),  # 7: absent
+        kind=st.sampled_from(("read", "read", "read", "input", "write", "user")),
+        address=st.integers(0, 3),
+        quantity=st.integers(1, 3),
+    )
+    def submit(self, master: str, slave: int, kind: str, address: int, quantity: int) -> None:
+        if kind == "read":
+            pdu = struct.pack(">BHH", 3, address, quantity)
+        elif kind == "input":
+            pdu = struct.pack(">BHH", 4, address, quantity)
+        elif kind == "write":
+            pdu = struct.pack(">BHH", 6, address, quantity)
+        else:
+            pdu = bytes((0x41, address))
+        request = LineRequest(slave, pdu, master, lambda answer, outcome: None)
+        self.requests.append(request)
+        self.core.submit(request, self.now)
+        self.pump()
+
+    @rule(master=st.sampled_from(MASTERS))
+    def broadcast(self, master: str) -> None:
+        request = LineRequest(0, bytes.fromhex("0600010001"), master, lambda a, o: None, True)
+        self.requests.append(request)
+        self.core.submit(request, self.now)
+        self.pump()
+
+    @rule(step=st.sampled_from((0.0005, 0.002, 0.01, 0.05, 0.15, 0.4)))
+    def wait(self, step: float) -> None:
+        self.advance_to(self.now + step)
+
+    @rule(
+        slave=st.sampled_from(SLAVES),
+        delay=st.one_of(
+            st.none(),
+            st.floats(0.0, 0.02),  # at once
+            st.floats(TIMEOUT * 0.8, TIMEOUT * 4),  # around and well past the timeout
+        ),
+        garble=st.booleans(),
+        ignores=st.sampled_from((frozenset(), frozenset({0x41}), frozenset({4}))),
+    )
+    def behave(
+        self, slave: int, delay: float | None, garble: bool, ignores: frozenset[int]
+    ) -> None:
+        self.slaves[slave] = Slave(delay, garble, ignores, self.slaves[slave].busy_until)
+
+    @rule(length=st.integers(1, 6), seed=st.integers(0, 255))
+    def babble(self, length: int, seed: int) -> None:
+        self.last_rx = self.now
+        self.core.receive(bytes((seed + 37 * i) & 0xFF for i in range(length)), self.now)
+        self.pump()
+
+    @precondition(lambda self: self.core.up)
+    @rule()
+    def lose_port(self) -> None:
+        self.core.port_lost(self.now)
+        self.pump()
+        self.core.port_opened(self.now)
+        self.pump()
+
+    # -- invariants ----------------------------------------------------------------------
+
+    @invariant()
+    def nothing_went_wrong(self) -> None:
+        assert not self.problems, self.problems
+
+    @invariant()
+    def queues_stay_bounded(self) -> None:
+        for master in MASTERS:
+            assert self.core.queued_for(master) <= PER_MASTER
+
+    @invariant()
+    def side_effects_are_sent_once(self) -> None:
+        for request in self.requests:
+            if not request.broadcast and not fc.is_safe_to_retry(request.pdu):
+                assert self.transmissions.get(id(request), 0) <= 1, request.pdu.hex()
+
+    def teardown(self) -> None:
+        # Let everything finish: every request is answered exactly once.
+        for slave in self.slaves.values():
+            slave.delay = 0.001
+        self.advance_to(self.now + 60.0)
+        assert not self.problems, self.problems
+        unanswered = [r.pdu.hex() for r in self.requests if self.answers.get(id(r), 0) != 1]
+        assert unanswered == []
+        assert self.core.idle
+
+
+LineMachine.TestCase.settings = settings(
+    max_examples=200,
+    stateful_step_count=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+TestLineCore = LineMachine.TestCase

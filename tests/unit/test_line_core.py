@@ -1,0 +1,490 @@
+"""The line core with literal times: no event loop, no port, no sleeping.
+
+Each test drives ``LineCore`` the way the driver does (``submit``, ``receive``,
+``handle_timer`` with a ``now``) and reads its decisions: the frames it writes,
+the answers it delivers, the deadline it asks for.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import replace
+from typing import Any
+
+import pytest
+
+from gateway.config import LineConfig
+from gateway.core.line import LineCore, LineRequest, answer_signature
+from gateway.core.outcome import LineEvent, Outcome, SlaveState
+from gateway.core.rtu import encode_rtu
+from gateway.core.timing import character_time
+
+BAUD = 19200
+CHAR = character_time(BAUD, 8, "N", 1)
+GAP = LineConfig(name="t", device="/dev/null", baudrate=BAUD).gap  # t3.5
+
+
+def read(address: int, quantity: int = 2, function: int = 3) -> bytes:
+    return struct.pack(">BHH", function, address, quantity)
+
+
+def registers_answer(slave: int, request: bytes, first: int) -> bytes:
+    """A normal FC 3/4 answer whose first register is ``first`` (the rest count up)."""
+    quantity = (request[3] << 8) | request[4]
+    values = [(first + index) & 0xFFFF for index in range(quantity)]
+    pdu = bytes((request[0], 2 * quantity)) + struct.pack(f">{quantity}H", *values)
+    return encode_rtu(slave, pdu)
+
+
+class Line:
+    """A core, the frames it sent and the answers it delivered."""
+
+    def __init__(self, **settings: Any) -> None:
+        defaults: dict[str, Any] = {"baudrate": BAUD, "timeout": 0.5, "retries": 1}
+        self.config = LineConfig(name="t", device="/dev/null", **{**defaults, **settings})
+        self.core = LineCore(self.config, -1.0)
+        self.core.port_opened(-1.0)  # quiet since long before the tests' times
+        self.answers: dict[int, list[tuple[bytes, str]]] = {}
+        self.requests: list[LineRequest] = []
+
+    def submit(self, slave: int, pdu: bytes, now: float, master: str = "m") -> LineRequest:
+        index = len(self.requests)
+
+        def reply(answer: bytes, outcome: str) -> None:
+            self.answers.setdefault(index, []).append((answer, outcome))
+
+        request = LineRequest(slave, pdu, master, reply)
+        self.requests.append(request)
+        self.core.submit(request, now)
+        self.flush()
+        return request
+
+    def flush(self) -> None:
+        """Hand answers back (what the driver's pump does)."""
+        deliveries, self.core.deliveries = self.core.deliveries, []
+        for delivery in deliveries:
+            delivery.request.reply(delivery.pdu, delivery.outcome)
+
+    def sent(self) -> list[bytes]:
+        frames = [transmit.frame for transmit in self.core.transmits]
+        self.core.transmits.clear()
+        return frames
+
+    def notes(self, event: LineEvent) -> list[Any]:
+        found = [note for note in self.core.notes if note.event is event]
+        return found
+
+    def receive(self, frame: bytes, now: float) -> None:
+        self.core.receive(frame, now)
+        self.flush()
+
+    def timer(self, now: float | None = None) -> float:
+        """Fire the core's timer (at its own deadline unless ``now`` is given)."""
+        deadline = self.core.get_timer()
+        assert deadline is not None
+        at = deadline if now is None else now
+        self.core.handle_timer(at)
+        self.flush()
+        return at
+
+    def answer_of(self, request: LineRequest) -> tuple[bytes, str]:
+        got = self.answers[self.requests.index(request)]
+        assert len(got) == 1, got
+        return got[0]
+
+
+def tx_time(frame: bytes) -> float:
+    return len(frame) * CHAR
+
+
+# --------------------------------------------------------------------------- the common case
+
+
+def test_a_read_goes_at_once_and_its_answer_comes_back() -> None:
+    line = Line()
+    request = line.submit(1, read(100), 0.0)
+    assert line.sent() == [encode_rtu(1, read(100))]
+    assert line.core.get_timer() == pytest.approx(tx_time(encode_rtu(1, read(100))) + 0.5)
+    line.receive(registers_answer(1, read(100), 100), 0.01)
+    pdu, outcome = line.answer_of(request)
+    assert outcome == Outcome.OK
+    assert pdu == registers_answer(1, read(100), 100)[1:-2]
+
+
+def test_nothing_is_sent_before_the_gap_after_the_last_byte() -> None:
+    line = Line()
+    line.submit(1, read(100), 0.0)
+    line.sent()
+    line.submit(1, read(200), 0.001)
+    assert line.sent() == []  # one transaction at a time
+    line.receive(registers_answer(1, read(100), 100), 0.010)
+    assert line.sent() == []
+    assert line.core.get_timer() == pytest.approx(0.010 + GAP)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(200))]
+
+
+def test_bytes_on_an_idle_line_are_discarded_and_postpone_the_next_frame() -> None:
+    line = Line()
+    line.receive(b"\x01\x02\x03", 1.0)
+    assert [note.detail for note in line.notes(LineEvent.DISCARDED)] == ["late"]
+    line.submit(1, read(100), 1.0005)
+    assert line.sent() == []
+    assert line.core.get_timer() == pytest.approx(1.0 + GAP)
+
+
+# --------------------------------------------------------------------------- retries
+
+
+@pytest.mark.parametrize(
+    ("pdu", "retried"),
+    [
+        (read(1), True),
+        (read(1, function=4), True),
+        (bytes.fromhex("0800000000"), True),  # diagnostics 0: return query data
+        (bytes.fromhex("2b0e0100"), True),  # read device identification
+        (bytes.fromhex("11"), True),  # report server id
+        (bytes.fromhex("0600010003"), False),  # write single register
+        (bytes.fromhex("0800010000"), False),  # diagnostics 1: restart communications
+        (bytes.fromhex("08000a0000"), False),  # diagnostics 10: clear counters
+        (bytes.fromhex("1700000001000000010200aa"), False),  # FC 23 writes
+        (bytes.fromhex("41010203"), False),  # user-defined
+        (bytes.fromhex("64"), False),  # user-defined
+    ],
+)
+def test_only_requests_without_side_effects_are_retried(pdu: bytes, retried: bool) -> None:
+    line = Line(timeout=0.1, retries=2, dead_after=0)
+    request = line.submit(1, pdu, 0.0)
+    frames = line.sent()
+    while 0 not in line.answers:
+        line.timer()
+        frames += line.sent()
+    assert len(frames) == (3 if retried else 1)
+    assert line.answer_of(request) == (bytes((pdu[0] | 0x80, 0x0B)), Outcome.TARGET_FAILED)
+
+
+def test_retry_unsafe_retries_writes() -> None:
+    line = Line(timeout=0.1, retries=1, retry_unsafe=True, dead_after=0)
+    line.submit(1, bytes.fromhex("0600010003"), 0.0)
+    line.sent()
+    line.timer()
+    assert line.sent() == [encode_rtu(1, bytes.fromhex("0600010003"))]
+
+
+def test_a_damaged_answer_is_retried_at_once_without_a_window() -> None:
+    line = Line()
+    request = line.submit(1, read(100), 0.0)
+    line.sent()
+    damaged = bytearray(registers_answer(1, read(100), 100))
+    damaged[-1] ^= 0xFF
+    line.receive(bytes(damaged), 0.01)
+    assert line.notes(LineEvent.LATE_WINDOW) == []
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100))]
+    line.receive(registers_answer(1, read(100), 100), 0.03)
+    assert line.answer_of(request)[1] == Outcome.OK
+
+
+# --------------------------------------------------------------------------- late answers
+
+
+def test_a_late_answer_never_reaches_a_read_that_looks_like_the_lost_one() -> None:
+    line = Line(timeout=0.5, retries=0, late_answer_window=2.0)
+    lost = line.submit(1, read(100), 0.0)
+    line.sent()
+    failed_at = line.timer()  # the timeout
+    assert line.answer_of(lost)[1] == Outcome.TARGET_FAILED
+    # Same slave, function and byte count: could take the late answer for its own.
+    held = line.submit(1, read(200), failed_at + 0.01)
+    # Another slave is served meanwhile.
+    other = line.submit(2, read(200), failed_at + 0.02)
+    assert line.sent() == [encode_rtu(2, read(200))]
+    line.receive(registers_answer(2, read(200), 7), failed_at + 0.05)
+    assert line.answer_of(other)[1] == Outcome.OK
+    # The late answer to the lost request arrives while the line is idle: thrown away.
+    line.core.handle_timer(failed_at + 0.06)
+    assert line.sent() == []
+    line.receive(registers_answer(1, read(100), 100), failed_at + 0.30)
+    assert requests_answered(line) == {0, 2}
+    # It completes the lost answer: nothing more is coming, the held read may go now.
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(200))]
+    line.receive(registers_answer(1, read(200), 200), failed_at + 0.40)
+    assert line.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
+
+
+def requests_answered(line: Line) -> set[int]:
+    return set(line.answers)
+
+
+def test_a_distinguishable_read_goes_and_its_answer_ends_the_window() -> None:
+    line = Line(timeout=0.5, retries=0, late_answer_window=2.0, dead_after=0)
+    line.submit(1, read(100, quantity=2), 0.0)
+    line.sent()
+    failed_at = line.timer()
+    line.submit(1, read(100, quantity=2), failed_at)  # held
+    line.submit(1, read(100, quantity=3), failed_at)  # 6 bytes, not 4: distinguishable
+    assert line.sent() == [encode_rtu(1, read(100, quantity=3))]
+    # The late 4-byte answer arrives first: discarded, the wait goes on.
+    line.receive(registers_answer(1, read(100, quantity=2), 1), failed_at + 0.1)
+    assert [n.detail for n in line.notes(LineEvent.DISCARDED)][-1] == "mismatch"
+    line.receive(registers_answer(1, read(100, quantity=3), 5), failed_at + 0.2)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100, quantity=2))]
+
+
+def test_the_window_ends_on_its_own_and_the_held_read_goes() -> None:
+    line = Line(timeout=0.5, retries=0, late_answer_window=1.5, dead_after=0)
+    line.submit(1, read(100), 0.0)
+    line.sent()
+    failed_at = line.timer()
+    line.submit(1, read(300), failed_at + 0.01)
+    assert line.sent() == []
+    assert line.core.get_timer() == pytest.approx(failed_at + 1.5)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(300))]
+
+
+def test_an_exception_to_a_read_of_the_same_function_keeps_the_window_open() -> None:
+    """An exception answer cannot be told from the lost request's: this read's own answer
+    may be the one still coming, so its signature joins the window."""
+    line = Line(timeout=0.5, retries=0, late_answer_window=1.0, dead_after=0)
+    line.submit(1, read(100, quantity=2), 0.0)
+    line.sent()
+    failed_at = line.timer()
+    line.submit(1, read(100, quantity=3), failed_at)
+    line.sent()
+    line.receive(encode_rtu(1, bytes.fromhex("8302")), failed_at + 0.1)
+    line.submit(1, read(500, quantity=3), failed_at + 0.2)
+    assert line.sent() == []  # 3 registers are now held too
+
+
+def test_answer_signatures() -> None:
+    assert answer_signature(read(1, 10)) == answer_signature(read(500, 10))
+    assert answer_signature(read(1, 10)) != answer_signature(read(1, 11))
+    assert answer_signature(read(1, 10)) != answer_signature(read(1, 10, function=4))
+    assert answer_signature(bytes.fromhex("0600010003")) != answer_signature(
+        bytes.fromhex("0600020003")
+    )
+    assert answer_signature(bytes.fromhex("41")) == bytes.fromhex("41")
+
+
+# --------------------------------------------------------------------------- isolation
+
+
+def test_a_silent_slave_turns_suspect_then_down_and_costs_the_others_little() -> None:
+    line = Line(timeout=0.5, retries=1, dead_after=2, late_answer_window=0, probe_interval=2.0)
+    first = line.submit(9, read(1), 0.0, master="a")
+    line.sent()
+    healthy = line.submit(1, read(1), 0.1, master="c")
+    now = line.timer()  # timeout: suspect
+    assert line.core.slave_state(9) is SlaveState.SUSPECT
+    # A healthy slave's request goes before the suspect slave's retry.
+    assert line.sent() == [encode_rtu(1, read(1))]
+    # At most one of its requests waits (the retry); the next is answered at once.
+    second = line.submit(9, read(2), now, master="b")
+    assert line.answer_of(second) == (bytes.fromhex("830b"), Outcome.TARGET_FAILED)
+    line.receive(registers_answer(1, read(1), 1), now + 0.01)
+    assert line.answer_of(healthy)[1] == Outcome.OK
+    # Nothing healthy waits: the retry goes, fails, and the slave is down.
+    now = line.timer()
+    assert line.sent() == [encode_rtu(9, read(1))]
+    now = line.timer()
+    assert line.core.slave_state(9) is SlaveState.DOWN
+    assert line.answer_of(first)[1] == Outcome.TARGET_FAILED
+    down = line.submit(9, read(3), now + 0.1)
+    assert line.answer_of(down)[1] == Outcome.TARGET_FAILED
+    assert line.sent() == []
+    # After the probe interval one request goes as a probe; its answer brings it back.
+    probe = line.submit(9, read(4), now + 2.0)
+    assert line.sent() == [encode_rtu(9, read(4))]
+    line.receive(registers_answer(9, read(4), 4), now + 2.05)
+    assert line.answer_of(probe)[1] == Outcome.OK
+    assert line.core.slave_state(9) is SlaveState.UP
+
+
+def test_a_function_the_slave_ignores_does_not_isolate_it() -> None:
+    line = Line(timeout=0.2, retries=0, dead_after=1, late_answer_window=0)
+    line.submit(1, read(1), 0.0)
+    line.sent()
+    line.receive(registers_answer(1, read(1), 1), 0.01)
+    now = 0.01 + GAP
+    for index in range(5):  # FC 65 is never answered by this slave
+        line.submit(1, bytes.fromhex("41"), now, master=f"hostile{index}")
+        if not line.sent():
+            line.timer()  # the gap
+            assert line.sent()
+        now = line.timer()  # the timeout
+    assert line.core.slave_state(1) is SlaveState.UP
+    assert len(line.notes(LineEvent.TIMEOUT)) == 5
+
+
+def test_suspect_slaves_get_at_most_their_share_while_healthy_requests_wait() -> None:
+    line = Line(timeout=0.5, retries=0, late_answer_window=0, probe_share=0.05, dead_after=5)
+    line.submit(9, read(1), 0.0, master="p")
+    line.sent()
+    line.submit(1, read(1000), 0.1, master="h")
+    now = line.timer()  # timeout: suspect, and 0.5 s of debt on the isolated share
+    suspect = line.submit(9, read(2), now, master="p")
+    # A healthy master keeps the line busy: each answer 20 ms after its request.
+    sent_to_suspect_at: list[float] = []
+    for index in range(400):
+        line.submit(1, read(index), now, master="h")
+        frames = line.sent()
+        while not frames:
+            now = line.timer()
+            frames = line.sent()
+        if frames[0][0] == 9:
+            sent_to_suspect_at.append(now)
+            break
+        now += 0.02
+        line.receive(registers_answer(1, read(index), index), now)
+    # The suspect request expired at its timeout (0x0B), long before the share allowed it.
+    assert line.answer_of(suspect)[1] == Outcome.TARGET_FAILED
+    assert sent_to_suspect_at == []
+
+
+# --------------------------------------------------------------------------- fairness and bounds
+
+
+def test_a_polite_master_is_next_after_a_deep_pipeline() -> None:
+    line = Line()
+    for index in range(16):
+        line.submit(1, read(index), 0.0, master="greedy")
+    line.sent()
+    polite = line.submit(2, read(7), 0.001, master="polite")
+    line.receive(registers_answer(1, read(0), 0), 0.01)
+    line.timer()
+    assert line.sent() == [encode_rtu(2, read(7))]
+    line.receive(registers_answer(2, read(7), 7), 0.02)
+    assert line.answer_of(polite)[1] == Outcome.OK
+
+
+def test_wire_time_not_request_count_is_shared() -> None:
+    """A master whose transactions take long gets fewer of them."""
+    line = Line(timeout=1.0)
+    for index in range(10):
+        line.submit(1, read(index), 0.0, master="slow")
+        line.submit(2, read(index), 0.0, master="fast")
+    order: list[int] = []
+    now = 0.0
+    for _ in range(12):
+        frames = line.sent()
+        while not frames:
+            now = line.timer()
+            frames = line.sent()
+        slave = frames[0][0]
+        order.append(slave)
+        now += 0.2 if slave == 1 else 0.02
+        request = read(int.from_bytes(frames[0][2:4], "big"))
+        line.receive(registers_answer(slave, request, 0), now)
+    assert order.count(2) >= 3 * order.count(1)
+
+
+def test_a_master_over_its_queue_bound_gets_0x06_and_others_are_untouched() -> None:
+    line = Line(max_queue_per_master=4)
+    requests = [line.submit(1, read(index), 0.0, master="greedy") for index in range(6)]
+    # One on the wire, four waiting: the sixth is over the bound.
+    assert line.answer_of(requests[5]) == (bytes.fromhex("8306"), Outcome.BUSY)
+    other = line.submit(1, read(99), 0.0, master="other")
+    assert line.requests.index(other) not in line.answers
+
+
+def test_a_full_line_takes_from_the_longest_queue_not_from_a_polite_master() -> None:
+    line = Line(max_queue=8, max_queue_per_master=100)
+    greedy = [line.submit(1, read(index), 0.0, master="greedy") for index in range(9)]
+    polite = line.submit(2, read(1), 0.0, master="polite")
+    assert line.requests.index(polite) not in line.answers
+    assert line.answer_of(greedy[8]) == (bytes.fromhex("830a"), Outcome.NO_ROUTE)
+
+
+# --------------------------------------------------------------------------- noise, broadcast, port
+
+
+def test_a_line_that_never_goes_quiet_answers_0x0b_then_recovers() -> None:
+    line = Line(timeout=0.5, noisy_after=1.0)
+    request = line.submit(1, read(1), 0.0)
+    line.sent()
+    line.receive(registers_answer(1, read(1), 1), 0.01)
+    waiting = line.submit(1, read(2), 0.011)
+    now = 0.011
+    while now < 1.5:  # a babbling transceiver: a byte every millisecond
+        now += 0.001
+        line.receive(b"\xff", now)
+        line.core.handle_timer(now)
+        line.flush()
+    assert line.answer_of(request)[1] == Outcome.OK
+    assert line.answer_of(waiting) == (bytes.fromhex("830b"), Outcome.TARGET_FAILED)
+    assert line.core.noisy
+    assert line.answer_of(line.submit(1, read(3), now))[1] == Outcome.TARGET_FAILED
+    line.timer()  # a gap
+    assert not line.core.noisy
+    line.submit(1, read(4), now + 0.01)
+    assert line.sent() == [encode_rtu(1, read(4))]
+
+
+def test_a_broadcast_is_answered_at_once_and_followed_by_the_turnaround() -> None:
+    line = Line(broadcast_turnaround=0.1)
+    request = LineRequest(0, bytes.fromhex("0600010003"), "m", lambda pdu, outcome: None, True)
+    line.core.submit(request, 0.0)
+    [frame] = line.sent()
+    assert frame == encode_rtu(0, bytes.fromhex("0600010003"))
+    assert line.core.deliveries[0].outcome == Outcome.BROADCAST
+    line.flush()
+    line.submit(1, read(1), 0.001)
+    assert line.sent() == []
+    assert line.core.get_timer() == pytest.approx(tx_time(frame) + 0.1 + GAP)
+
+
+def test_a_lost_port_answers_everything_0x0a() -> None:
+    line = Line()
+    on_wire = line.submit(1, read(1), 0.0)
+    queued = line.submit(1, read(2), 0.0)
+    line.core.port_lost(0.01)
+    line.flush()
+    assert line.answer_of(on_wire)[1] == Outcome.NO_ROUTE
+    assert line.answer_of(queued)[1] == Outcome.NO_ROUTE
+    assert line.answer_of(line.submit(1, read(3), 0.02))[1] == Outcome.NO_ROUTE
+
+
+# --------------------------------------------------------------------------- coalescing, cache
+
+
+def test_identical_queued_reads_share_one_transaction_but_not_across_a_write() -> None:
+    line = Line()
+    line.submit(1, read(50), 0.0, master="x")  # on the wire
+    first = line.submit(1, read(100), 0.0, master="a")
+    joined = line.submit(1, read(100), 0.0, master="b")
+    line.submit(1, bytes.fromhex("0600640001"), 0.0, master="c")
+    after_write = line.submit(1, read(100), 0.0, master="d")
+    assert len(line.notes(LineEvent.COALESCED)) == 1
+    assert first.followers == [joined]
+    assert after_write not in first.followers
+
+
+def test_the_cache_answers_within_max_age_and_a_write_empties_it() -> None:
+    from gateway.config import CacheRule
+
+    line = Line(cache=(CacheRule(1, 3, 0, 100, 1.0),))
+    line.submit(1, read(10), 0.0)
+    line.sent()
+    line.receive(registers_answer(1, read(10), 10), 0.01)
+    assert line.answer_of(line.submit(1, read(10), 0.5))[1] == Outcome.CACHED
+    line.submit(1, bytes.fromhex("06000a0001"), 0.6)
+    line.timer()
+    line.sent()
+    line.receive(encode_rtu(1, bytes.fromhex("06000a0001")), 0.65)
+    uncached = line.submit(1, read(10), 0.7)
+    assert line.requests.index(uncached) not in line.answers
+
+
+def test_reconfigure_switching_isolation_off_serves_the_slave_again() -> None:
+    line = Line(timeout=0.1, retries=0, dead_after=1, late_answer_window=0)
+    line.submit(3, read(1), 0.0)
+    line.sent()
+    line.timer()
+    assert line.core.slave_state(3) is SlaveState.DOWN
+    line.core.reconfigure(replace(line.config, dead_after=0), 0.2)
+    assert line.core.slave_state(3) is SlaveState.UP
+    line.submit(3, read(1), 0.3)
+    assert line.sent() == [encode_rtu(3, read(1))]
