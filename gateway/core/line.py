@@ -483,7 +483,7 @@ class LineCore:
         self._up = False
         self._noisy = False
         self._wanting_since = None
-        self._abandon_attempt()
+        self._abandon_attempt(now)
         self._fail_all(ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
 
     def stop(self, now: float) -> None:
@@ -493,7 +493,7 @@ class LineCore:
 
     def abandon(self, now: float) -> None:
         """Give up the attempt on the wire (a stop's grace is over): 0x0A for it."""
-        self._abandon_attempt()
+        self._abandon_attempt(now)
 
     def take_queued(self) -> list[LineRequest]:
         """Remove every waiting request unanswered (a reload moves them to a reopened line)."""
@@ -565,6 +565,8 @@ class LineCore:
 
     def handle_timer(self, now: float) -> None:
         """Time passed: end attempts, expire windows and waits, send what may go."""
+        if self._lane:
+            self._credit_now(now)  # so the share's next instant is never in the past
         attempt = self._attempt
         if attempt is not None:
             if now >= attempt.silence_at:
@@ -899,10 +901,16 @@ class LineCore:
             else:
                 self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
 
-    def _abandon_attempt(self) -> None:
+    def _abandon_attempt(self, now: float) -> None:
         attempt = self._attempt
         if attempt is not None:
             self._attempt = None
+            # Its answer may still come once the port is back: hold look-alikes meanwhile.
+            slave = attempt.request.slave
+            record = self._slaves.get(slave)
+            if record is None:
+                record = self._slaves[slave] = _Slave()
+            self._open_guard(slave, record, attempt.request, now)
             self._answer(attempt.request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
 
     def _go_noisy(self) -> None:

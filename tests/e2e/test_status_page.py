@@ -23,7 +23,13 @@ def test_the_status_page_in_chromium(gateway_with: GatewayOnSim, tmp_path: Path)
     chromium = require_tool("chromium")
     sim, gw = gateway_with(
         {1: plc(1), 2: zl69x(2)},
-        line={"timeout": 0.05, "retries": 0, "dead_after": 2, "probe_interval": 60},
+        line={
+            "timeout": 0.05,
+            "retries": 0,
+            "dead_after": 2,
+            "probe_interval": 60,
+            "late_answer_window": 0,
+        },  # silent: nothing comes late
     )
     assert gw.gateway.metrics_address is not None
     host, port = gw.gateway.metrics_address

@@ -163,7 +163,13 @@ def test_a_client_that_does_not_read_loses_events_not_the_gateways_time(
 def test_status_reports_lines_slaves_and_masters(gateway_with: GatewayOnSim) -> None:
     sim, gw = gateway_with(
         {1: plc(1), 2: plc(2)},
-        line={"timeout": 0.05, "retries": 0, "dead_after": 2, "probe_interval": 60},
+        line={
+            "timeout": 0.05,
+            "retries": 0,
+            "dead_after": 2,
+            "probe_interval": 60,
+            "late_answer_window": 0,
+        },  # silent: nothing comes late
     )
     first = status(gw)
     (line,) = first["lines"]
