@@ -57,6 +57,7 @@ class Bus:
         self._stopping = False
         self._pumping = False
         self._open_error = ""
+        self._suspects: set[int] = set()
         self.idle = asyncio.Event()
         self.idle.set()
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
@@ -285,9 +286,14 @@ class Bus:
         unit = UNIT_LABELS[note.slave]
         state = note.state
         self._metrics.slave_up.labels(self.name, unit).set(0 if state is SlaveState.DOWN else 1)
-        self._metrics.slave_suspect.labels(self.name, unit).set(
-            1 if state is SlaveState.SUSPECT else 0
-        )
+        # A series only for slaves that have been suspect: a scan of absent units must not
+        # add one per address (the labels stay bounded by what answered or failed).
+        if state is SlaveState.SUSPECT:
+            self._suspects.add(note.slave)
+            self._metrics.slave_suspect.labels(self.name, unit).set(1)
+        elif note.slave in self._suspects:
+            self._suspects.discard(note.slave)
+            self._metrics.slave_suspect.labels(self.name, unit).set(0)
         if state is SlaveState.DOWN:
             log.warning(
                 "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
