@@ -66,6 +66,8 @@ class ServerConfig:
     max_connections_per_source: int = 16
     evict_min_idle: float = 10.0
     send_timeout: float = 10.0
+    #: Seconds a TLS master has to complete its handshake before it is disconnected.
+    tls_handshake_timeout: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -388,6 +390,7 @@ _SERVER_KEYS = {
     "max_connections_per_source",
     "evict_min_idle",
     "send_timeout",
+    "tls_handshake_timeout",
 }
 _LINE_KEYS = {
     "device",
@@ -458,6 +461,9 @@ def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
         ),
         evict_min_idle=check.number(table, "evict_min_idle", prefix, 10.0, 0.0, 86_400.0),
         send_timeout=check.number(table, "send_timeout", prefix, 10.0, 0.0, 3600.0),
+        tls_handshake_timeout=check.number(
+            table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
+        ),
     )
 
 

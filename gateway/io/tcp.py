@@ -58,7 +58,7 @@ from ..status import MasterStatus
 from ..trace import FrameTracer
 from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
-from .tls import HANDSHAKE_TIMEOUT_S, HandshakeFailure, handshake_failure_reason, role_of
+from .tls import HandshakeFailure, handshake_failure_reason, role_of
 
 log = logging.getLogger("gateway.tcp")
 
@@ -625,7 +625,7 @@ class ModbusTcpServer:
         else:  # the handshake completes before the connection is made
             setup = self._loop.connect_accepted_socket(
                 lambda: connection, sock, ssl=self.ssl_context,
-                ssl_handshake_timeout=HANDSHAKE_TIMEOUT_S,
+                ssl_handshake_timeout=self.config.tls_handshake_timeout,
             )  # fmt: skip
         task = self._loop.create_task(setup)
         self._starting.add(task)

@@ -11,7 +11,7 @@ the session they negotiated.
 
 The TCP server (``gateway.io.tcp``) accepts on a ``tls`` listener itself: it
 screens the source address (allow list) and admits the connection before a
-single byte is read, runs the handshake with ``HANDSHAKE_TIMEOUT_S`` so that a
+single byte is read, runs the handshake (``server.tls_handshake_timeout``) so that a
 failure can be counted by reason (``handshake_failure_reason``), and only then
 hands the connection to the Modbus side, which takes the role once from the
 client certificate (``role_of``). ``ssl`` never shows a certificate's private
@@ -39,9 +39,6 @@ from ..core.policy import ROLE_OID, decode_role
 
 log = logging.getLogger("gateway.tls")
 
-#: A client that has not finished its handshake by then is disconnected.
-HANDSHAKE_TIMEOUT_S = 10.0
-
 
 class TlsSetupError(Exception):
     """A listener's certificate, key or CA file cannot be used; the message says which and why."""
@@ -55,7 +52,7 @@ class HandshakeFailure(enum.StrEnum):
     NO_CERTIFICATE = "no_certificate"  # the client sent no certificate
     UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # does not chain to the configured CAs
     EXPIRED_CERTIFICATE = "expired_certificate"  # expired or not yet valid
-    TIMEOUT = "timeout"  # no complete handshake within HANDSHAKE_TIMEOUT_S
+    TIMEOUT = "timeout"  # no complete handshake within server.tls_handshake_timeout
     CLOSED = "closed"  # the client went away during the handshake
     OTHER = "other"  # anything else (no common cipher, garbage instead of a ClientHello, ...)
 

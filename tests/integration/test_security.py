@@ -455,3 +455,30 @@ def closed_soon(sock: socket.socket) -> bool:
     except TimeoutError:
         return False
     return True
+
+
+def test_silent_tls_clients_are_cut_off_at_the_handshake_timeout(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
+) -> None:
+    """Connections that never send a ClientHello hold nothing past tls_handshake_timeout."""
+    sim = make_sim({1: plc(1)})
+    gw = make_gateway({
+        "server": {"tls_handshake_timeout": 0.5},
+        "lines": {"a": sim.line_table([1])},
+        "listeners": [tls_listener(pki)],
+    })  # fmt: skip
+    address = listener_address(gw, "tls")
+    silent = [socket.create_connection(address, timeout=DEADLINE_S) for _ in range(8)]
+    try:
+        started = time.monotonic()
+        with Master(address, context=client_context(pki, "operator")) as honest:
+            assert honest.request(1, bytes.fromhex("03 0000 0001"))[0] == 3
+        assert all(closed_soon(sock) for sock in silent)
+        waited = time.monotonic() - started
+        assert 0.4 < waited < 5.0, waited  # the timeout, not the default 10 s
+    finally:
+        for sock in silent:
+            sock.close()
+    labels = {"listener": "tls", "reason": "timeout"}
+    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 8)
+    assert sample(gw, "modbus_gateway_connections_open") == 0

@@ -18,6 +18,7 @@ from gateway.config import (
     policy_warnings,
 )
 from gateway.core.policy import Access, Policy, Principal
+from gateway.io.access import peer_address_of
 
 LINE = {"a": {"device": "/dev/null", "units": [1, 2]}}
 TLS = {"protocol": "tls", "cert": "s.pem", "key": "s.key", "ca": "ca.pem"}
@@ -197,3 +198,14 @@ def test_the_locked_down_example_means_what_its_comments_say() -> None:
         assert policy.decide(principal, unit, bytes.fromhex(pdu)).allowed is served, (
             principal, unit, pdu,
         )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("peer", "address"),
+    [(("10.0.0.7", 5020), "10.0.0.7"), (("::ffff:10.0.0.7", 5020, 0, 0), "10.0.0.7"),
+     (("fd00::1", 5020, 0, 0), "fd00::1"), ("/run/socket", None), ((), None)],
+)  # fmt: skip
+def test_peer_addresses_for_allow_lists_and_rules(peer: object, address: str | None) -> None:
+    """An IPv4 master reaching a dual-stack listener matches IPv4 networks."""
+    found = peer_address_of(peer)
+    assert (str(found) if found is not None else None) == address
