@@ -244,6 +244,7 @@ access = "read"
     )  # fmt: skip
     assert checked.returncode == 0, checked.stderr
     assert "policies.plant.rules[1] (listener 'secure'): adds nothing to " in checked.stderr
+    assert "listening on 127.0.0.1:8802 (secure, tls)" in checked.stdout
     broken = config_file(tmp_path, tls.replace(str(pki.server_key), str(tmp_path / "gone.key")))
     checked = subprocess.run(
         [sys.executable, "-m", "gateway", "check-config", str(broken)],
