@@ -218,6 +218,9 @@ class Gateway:
         down = [name for name, bus in self.buses.items() if not bus.up]
         if down:
             return False, "line(s) down: " + ", ".join(down)
+        noisy = [name for name, bus in self.buses.items() if bus.noisy]
+        if noisy:  # still ready (see the README's health semantics), but say which
+            return True, "ok; noisy line(s), requests answered 0x0B: " + ", ".join(noisy)
         return True, "ok"
 
     async def stop(self, grace: float = 5.0) -> None:

@@ -563,6 +563,47 @@ def test_request_on_the_wire_and_an_answer_in_single_bytes(scripted: ScriptedFac
         assert client.receive() == Reply(tid, 1, h("03 06 0001 0002 0003"))
 
 
+def test_a_babbling_line_answers_0x0b_then_serves_again(scripted: ScriptedFactory) -> None:
+    """A transceiver that never lets the line fall quiet: after noisy_after the waiting
+    request is answered 0x0B (nothing was sent: there was no gap), /readyz names the line,
+    and service resumes at the first gap."""
+    # 600 baud: t3.5 is 64 ms, so a busy machine's scheduling hiccups are no gap.
+    slave, gw = scripted(timeout=0.2, noisy_after=0.5, baudrate=600)
+    babbling = threading.Event()
+    stop = threading.Event()
+
+    def babble() -> None:  # the attacker: a byte every millisecond
+        while not stop.is_set():
+            slave.write(b"\xff")
+            babbling.set()
+            time.sleep(0.001)
+
+    thread = threading.Thread(target=babble)
+    thread.start()
+    try:
+        assert babbling.wait(DEADLINE_S)
+        with gw.connect() as client:
+            started = time.monotonic()
+            assert client.request(1, read_pdu(3, 0, 1)) == h("83 0B")
+            assert time.monotonic() - started >= 0.45
+            ready, why = gw.gateway.is_ready()
+            assert ready and why.endswith("noisy line(s), requests answered 0x0B: a"), why
+            assert client.request(1, read_pdu(3, 0, 1)) == h("83 0B")  # at once while noisy
+    finally:
+        stop.set()
+        thread.join()
+    with gw.connect() as client:
+        deadline = time.monotonic() + DEADLINE_S
+        while gw.gateway.buses["a"].noisy:
+            assert time.monotonic() < deadline, "the line stayed noisy after the babble stopped"
+            time.sleep(0.005)
+        tid = client.send(1, read_pdu(3, 0, 1))
+        assert slave.read(8) == encode_rtu(1, read_pdu(3, 0, 1))
+        slave.write(encode_rtu(1, h("03 02 1234")))
+        assert client.receive() == Reply(tid, 1, h("03 02 1234"))
+    assert gw.gateway.is_ready() == (True, "ok")
+
+
 @pytest.mark.parametrize(
     "discarded",
     [
