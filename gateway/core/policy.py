@@ -237,7 +237,7 @@ class Policy:
 
     @property
     def open(self) -> bool:
-        """True when nothing is restricted: every request goes straight to routing."""
+        """True when only FC 8/4 can be refused: callers may skip ``decide`` for other codes."""
         return self.rules is None and not self.read_only and not self.tls
 
     def decide(self, principal: Principal, unit: int, pdu: bytes) -> Decision:

@@ -287,6 +287,14 @@ class MasterConnection(asyncio.BufferedProtocol):
         tracer = server.tracer
         if tracer is not None:
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
+        # Authorization first: a master learns nothing about requests it may not send. An open
+        # policy can only refuse Force Listen Only Mode (FC 8/4), so only FC 8 asks it.
+        policy = server.policy
+        if not policy.open or function == fc.DIAGNOSTICS:
+            decision = policy.decide(self.principal, unit, pdu)
+            if decision.denied is not None:
+                self._deny(transaction_id, unit, function, decision)
+                return
         try:
             if function in server.config.refuse_functions:
                 raise ModbusError(
@@ -300,11 +308,6 @@ class MasterConnection(asyncio.BufferedProtocol):
             self._send(transaction_id, unit, fc.exception_pdu(function, error.code), "rejected")
             server.metrics.count_request("none", "other", function, "rejected")
             return
-        if not server.policy.open:
-            decision = server.policy.decide(self.principal, unit, pdu)
-            if decision.denied is not None:
-                self._deny(transaction_id, unit, function, decision)
-                return
         if unit == 0:
             self._broadcast(transaction_id, pdu, arrived)
             return

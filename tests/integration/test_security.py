@@ -26,6 +26,7 @@ from conftest import (
     DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
+    GatewayOnSim,
     LogCollector,
     RawClient,
     RunningGateway,
@@ -482,3 +483,26 @@ def test_silent_tls_clients_are_cut_off_at_the_handshake_timeout(
     labels = {"listener": "tls", "reason": "timeout"}
     assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 8)
     assert sample(gw, "modbus_gateway_connections_open") == 0
+
+
+def test_force_listen_only_mode_is_refused_on_a_listener_without_rules(
+    gateway_with: GatewayOnSim,
+) -> None:
+    sim, gw = gateway_with({1: plc(1)})
+    with gw.connect() as master:
+        before = sim.stats().requests
+        assert master.request(1, bytes.fromhex("08 0004 0000")) == exception(8)
+        assert sim.stats().requests == before  # the slave was never told to fall silent
+        assert master.request(1, bytes.fromhex("08 0000 A537")) == bytes.fromhex("08 0000 A537")
+        assert master.request(1, bytes.fromhex("06 0000 0001")) == bytes.fromhex("06 0000 0001")
+    assert denials(gw, "tcp", "none", "diagnostics") == 1
+
+
+def test_a_denied_request_gets_0x01_even_when_it_is_malformed(
+    plant: tuple[SimBus, RunningGateway], pki: Pki
+) -> None:
+    """A master without the right learns nothing: not even that its request was invalid."""
+    _, gw = plant
+    with Master(listener_address(gw, "tls"), context=client_context(pki, "viewer")) as viewer:
+        assert viewer.request(1, bytes.fromhex("06 0000")) == exception(6)  # short: 0x01
+        assert viewer.request(1, bytes.fromhex("03 0000 0000")) == exception(3, 3)  # granted
