@@ -19,6 +19,7 @@ from .procs import PYTHON, Server, SimOptions
 from .scenarios import (
     FAULT_BAUDRATE,
     HEALTHY_UNITS,
+    REFERENCE_BAUDRATE,
     UNPACED_BAUDRATE,
     UNPACED_MASTERS,
     Bench,
@@ -139,7 +140,7 @@ def floor(bench: Bench) -> ScenarioResult:
             pymodbus = bench._run(
                 "pymodbus forwarder, unpaced, 10 masters",
                 SimOptions(units=HEALTHY_UNITS),
-                forwarder_server(UNPACED_BAUDRATE),
+                forwarder_server(REFERENCE_BAUDRATE),
                 bench._poll_spec(masters, HEALTHY_UNITS),
                 reference=True,
             )
