@@ -763,6 +763,9 @@ class LineCore:
     def _complete(self, attempt: _Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire."""
         self._attempt = None
+        # Its answer ended the transaction: the gap counts from its last byte, even when it
+        # came sooner than the request's own transmission time says (a serial server, a pty).
+        self._quiet_since = now
         request = attempt.request
         wire = now - attempt.sent_at
         slave = request.slave

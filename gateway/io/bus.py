@@ -63,6 +63,7 @@ class Bus:
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
         self._m_wire = metrics.wire_duration.labels(self.name)
         self._m_line_up = metrics.line_up.labels(self.name)
+        self._m_coalesced = metrics.coalesced.labels(self.name)
         self._m_noisy = metrics.line_noisy.labels(self.name)
         self._m_line_up.set(0)
         self._m_noisy.set(0)
@@ -242,10 +243,13 @@ class Bus:
             delivery.request.reply(delivery.pdu, delivery.outcome)
 
     def _note(self, note: Note) -> None:
+        event = note.event
+        if event is LineEvent.COALESCED:  # the only note on the hot path
+            self._m_coalesced.inc()
+            return
         metrics = self._metrics
         unit = UNIT_LABELS[note.slave]
         subject = f"unit {unit} on line {self.name}"
-        event = note.event
         if event is LineEvent.TIMEOUT:
             metrics.timeouts.labels(self.name, unit).inc()
             self._fault_log.note(subject, "timeout", note.detail)
@@ -264,8 +268,6 @@ class Bus:
                 f"{note.amount} {note.detail} byte(s) or frame(s)",
                 level=logging.INFO,
             )
-        elif event is LineEvent.COALESCED:
-            metrics.coalesced.labels(self.name).inc()
         elif event is LineEvent.LATE_WINDOW:
             metrics.late_windows.labels(self.name).inc()
         elif event is LineEvent.SLAVE_STATE:

@@ -124,6 +124,17 @@ def test_nothing_is_sent_before_the_gap_after_the_last_byte() -> None:
     assert line.sent() == [encode_rtu(1, read(200))]
 
 
+def test_the_gap_counts_from_the_answer_even_when_it_beats_the_modelled_transmission() -> None:
+    """A serial server or a pty delivers the answer sooner than the baud rate says the request
+    took: the answer proves the line is free, so no timer is needed with frame_gap 0."""
+    line = Line(frame_gap=0.0)
+    line.submit(1, read(1), 0.0)
+    line.submit(1, read(2), 0.0, master="b")
+    line.sent()
+    line.receive(registers_answer(1, read(1), 1), 0.0001)  # the request "takes" 4 ms to send
+    assert line.sent() == [encode_rtu(1, read(2))]
+
+
 def test_bytes_on_an_idle_line_are_discarded_and_postpone_the_next_frame() -> None:
     line = Line()
     line.receive(b"\x01\x02\x03", 1.0)
