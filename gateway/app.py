@@ -45,7 +45,7 @@ log = logging.getLogger("gateway")
 #: Line settings that need the port reopened when they change.
 _PORT_SETTINGS = ("device", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
                   "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
-                  "rs485_delay_before_tx", "rs485_delay_after_tx")  # fmt: skip
+                  "rs485_delay_before_tx", "rs485_delay_after_tx", "kind")  # fmt: skip
 
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:

@@ -23,7 +23,7 @@ from .config import (
 )
 from .io.tls import TlsSetupError, server_context
 from .logs import setup_logging
-from .sim.demo import DEMO_UNITS, DemoLine
+from .sim.demo import DEMO_ASCII_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
 
 log = logging.getLogger("gateway")
@@ -109,7 +109,15 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--serial", metavar="DEVICE_OR_URL",
                         help="serial device or pyserial URL; without --config every unit "
                         "1..247 is routed to it")  # fmt: skip
+    parser.add_argument(
+        "--framing",
+        choices=["rtu", "ascii"],
+        help="what every serial line speaks: rtu (default) or ascii (7E1 unless --parity)",
+    )
     parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
+    parser.add_argument(
+        "--data-bits", type=int, choices=[7, 8], help="data bits of every line (8; ascii: 7)"
+    )
     parser.add_argument("--parity", choices=["N", "E", "O"], help="parity of every line")
     parser.add_argument("--stopbits", type=int, choices=[1, 2], help="stop bits of every line")
     parser.add_argument(
@@ -142,7 +150,7 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument(
         "--demo",
         action="store_true",
-        help="serve a built-in simulated RTU line (no hardware needed)",
+        help="serve built-in simulated RTU and ASCII lines (no hardware needed)",
     )
     parser.add_argument(
         "--trace",
@@ -191,7 +199,9 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
                 ["the configuration has several lines; set each device in the file instead"],
             )
     per_line = {
+        "kind": args.framing,
         "baudrate": args.baudrate,
+        "data_bits": args.data_bits,
         "parity": args.parity,
         "stop_bits": args.stopbits,
         "timeout": args.timeout,
@@ -343,6 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if demo is not None:
         demo.start()
         log.info("demo: simulated units %s on %s", DEMO_UNITS, demo.pty.path)
+        log.info("demo: ASCII units %s on %s", DEMO_ASCII_UNITS, demo.ascii_pty.path)
 
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)

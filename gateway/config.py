@@ -20,11 +20,13 @@ from typing import Any
 
 from .core import pdu as fc
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
-from .core.timing import t35, transmission_time
+from .core.timing import character_time, t35, transmission_time
 
 DEFAULT_LISTEN = "0.0.0.0:502"
 DEFAULT_METRICS = "127.0.0.1:9502"
 VALID_PARITIES = ("N", "E", "O")
+#: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
+VALID_LINE_KINDS = ("rtu", "ascii")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -164,6 +166,9 @@ class LineConfig:
     slave_timeouts: Mapping[int, float] = field(default_factory=dict)
     coalesce: bool = True
     cache: tuple[CacheRule, ...] = ()
+    kind: str = "rtu"
+    inter_char_timeout: float = 1.0  # ASCII: a frame whose characters stop this long is dropped
+    echo: bool = False  # the adapter echoes what the gateway sends: drop it
 
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
@@ -189,14 +194,25 @@ class LineConfig:
 
     @property
     def gap(self) -> float:
-        """Silence kept before every request: ``frame_gap`` when set, else t3.5."""
+        """Silence kept before every request: ``frame_gap`` when set, else t3.5.
+
+        ASCII frames end at their CR LF, not on silence: one character time is
+        kept, a turnaround for the slave's transceiver.
+        """
         if self.frame_gap is not None:
             return self.frame_gap
+        if self.kind == "ascii":
+            return character_time(self.baudrate, self.data_bits, self.parity, self.stop_bits)
         return t35(self.baudrate, self.data_bits, self.parity, self.stop_bits)
 
     @property
     def silence(self) -> float:
-        """Line silence that ends a frame whose length cannot be predicted."""
+        """Line silence that ends a frame whose length cannot be predicted.
+
+        For ASCII, the inter-character timeout that abandons a frame.
+        """
+        if self.kind == "ascii":
+            return self.inter_char_timeout
         floor = 0.05 if self.is_url else 0.0
         return max(t35(self.baudrate, self.data_bits, self.parity, self.stop_bits), floor)
 
@@ -422,6 +438,9 @@ _LINE_KEYS = {
     "slave_timeouts",
     "coalesce",
     "cache",
+    "kind",
+    "inter_char_timeout",
+    "echo",
 }
 
 
@@ -495,11 +514,15 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
             units = tuple(parse_units(table["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
+    kind = check.choice(table, "kind", prefix, "rtu", VALID_LINE_KINDS)
+    ascii_line = kind == "ascii"  # 7E1 by default (Modbus over Serial Line 2.5.2.1)
     baudrate = check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000)
-    data_bits = check.integer(table, "data_bits", prefix, 8, 7, 8)
-    parity = check.choice(table, "parity", prefix, "N", VALID_PARITIES, upper=True)
+    data_bits = check.integer(table, "data_bits", prefix, 7 if ascii_line else 8, 7, 8)
+    default_parity = "E" if ascii_line else "N"
+    parity = check.choice(table, "parity", prefix, default_parity, VALID_PARITIES, upper=True)
     stop_bits = float(stop_bits_raw)
-    timeout = auto_timeout(baudrate, data_bits, parity, stop_bits)
+    longest = MAX_ASCII_FRAME if ascii_line else MAX_RTU_FRAME
+    timeout = auto_timeout(baudrate, data_bits, parity, stop_bits, longest)
     if table.get("timeout", "auto") != "auto":
         timeout = check.number(table, "timeout", prefix, timeout, 0.001, 60.0)
     return LineConfig(
@@ -532,6 +555,9 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         rs485_delay_before_tx=check.number(table, "rs485_delay_before_tx", prefix, 0.0, 0.0, 1.0),
         rs485_delay_after_tx=check.number(table, "rs485_delay_after_tx", prefix, 0.0, 0.0, 1.0),
         units=units,
+        kind=kind,
+        inter_char_timeout=check.number(table, "inter_char_timeout", prefix, 1.0, 0.001, 60.0),
+        echo=check.boolean(table, "echo", prefix, False),
     )
 
 
@@ -539,10 +565,16 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
 SLAVE_TURNAROUND_S = 0.1
 #: The longest RTU frame (Modbus over Serial Line 2.5.1): 256 bytes.
 MAX_RTU_FRAME = 256
+#: The longest ASCII frame (2.5.2.1): 513 characters.
+MAX_ASCII_FRAME = 513
 
 
 def auto_timeout(
-    baudrate: int, data_bits: int = 8, parity: str = "N", stop_bits: float = 1
+    baudrate: int,
+    data_bits: int = 8,
+    parity: str = "N",
+    stop_bits: float = 1,
+    longest_frame: int = MAX_RTU_FRAME,
 ) -> float:
     """The default response timeout (``timeout = "auto"``) of a line with these settings.
 
@@ -550,9 +582,10 @@ def auto_timeout(
     the longest answer's transmission (256 characters) plus the slave's turnaround (0.1 s):
     0.367 s at 9600 8N1, 0.393 s at 9600 8E1. Two attempts (``retries = 1``) then end before
     a master's common 1 s timeout at 9600 baud and faster, so the master gets the gateway's
-    0x0B rather than a timeout of its own; slower lines get proportionally longer.
+    0x0B rather than a timeout of its own; slower lines get proportionally longer. ASCII
+    lines hold 513 characters instead: 0.634 s at 9600 7E1.
     """
-    longest = transmission_time(MAX_RTU_FRAME, baudrate, data_bits, parity, stop_bits)
+    longest = transmission_time(longest_frame, baudrate, data_bits, parity, stop_bits)
     return round(SLAVE_TURNAROUND_S + longest, 3)
 
 

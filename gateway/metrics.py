@@ -85,6 +85,7 @@ _FIXED_UNITS = frozenset({OTHER_UNIT, "0"})
 DISCARD_REASONS = (
     "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
     "short_frame", "oversize", "trailing_bytes",
+    "restarted", "bad_char",  # ASCII: ':' inside a frame, a character that is not hex
 )  # fmt: skip
 
 #: Label values for units, made once: ``str(unit)`` per request would allocate.
@@ -269,6 +270,10 @@ class GatewayMetrics:
             "Times the serial port went away (unplugged, I/O error), however briefly.",
             ["line"], registry=r,
         )  # fmt: skip
+        self.line_info = Gauge(
+            p + "line_info", "1 for each line, labelled with its kind (rtu, ascii, ...).",
+            ["line", "kind"], registry=r,
+        )  # fmt: skip
         self.line_up = Gauge(
             p + "line_up", "1 when the serial line is open, 0 when it is down.", ["line"],
             registry=r,
@@ -348,6 +353,7 @@ class GatewayMetrics:
         self.info = Info(p + "build", "Version and configured lines.", registry=r)
         self.info.info({"version": __version__, "lines": ""})
         self._line_counters: dict[str, LineCounters] = {}
+        self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
         self._request_children: dict[tuple[str, str, str, str], Counter] = {}
         self._heard: set[tuple[str, str]] = set()  #: (line, unit) of slaves that answered
@@ -359,6 +365,14 @@ class GatewayMetrics:
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
         self.info.info({"version": __version__, "lines": ",".join(names)})
+
+    def set_line_kind(self, line: str, kind: str) -> None:
+        """Label ``line`` with its kind in ``line_info`` (one series per line)."""
+        old = self._line_kinds.get(line)
+        if old is not None and old != kind:
+            self.line_info.remove(line, old)
+        self._line_kinds[line] = kind
+        self.line_info.labels(line, kind).set(1)
 
     def prepare_line(self, line: str) -> None:
         """Create a line's series at 0, so that ``rate()`` and alerts see the first fault."""

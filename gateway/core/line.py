@@ -1,22 +1,25 @@
 """The serial line as a pure state machine: every decision about the wire, no I/O.
 
-Theory of operation. ``LineCore`` owns one RTU line: which request goes next and
+Theory of operation. ``LineCore`` owns one serial line: which request goes next and
 when, the attempt on the wire, retries, late answers, dead-slave isolation,
 coalescing and the read cache. It never reads a clock or touches a port: every
 entry point takes ``now`` (seconds on one monotonic clock), ``get_timer()`` says
 when it next wants ``handle_timer``, and its decisions come out as actions the
 driver executes in order: ``transmits`` (write this frame now), ``deliveries``
 (this request's answer and outcome) and ``notes`` (events for metrics and logs).
+How frames look on the wire is the line's ``Framing`` (``gateway.core.framing``:
+RTU by default, ASCII); the decisions are the same for every framing.
 
 Invariants, each checked by the stateful tests in ``tests/property``:
 
 * **Exactly once.** Every submitted request gets exactly one ``Delivery``.
 * **Only its own answer.** A frame is delivered to a request only when it can be
-  the answer to the attempt on the wire (unit, function, length, echo: see
-  ``RtuResponseDecoder``). After an attempt fails without its answer (timeout, or
-  garbage that was not the answer itself), the slave's answer may still come: for
-  that slave's *late-answer window* no request that could be confused with the
-  lost one (same slave and function, whose exception replies look alike) is sent;
+  the answer to the attempt on the wire (unit, function, length, echo: see the
+  framing's response decoder, e.g. ``RtuResponseDecoder``). After an attempt fails
+  without its answer (timeout, or garbage that was not the answer itself), the
+  slave's answer may still come: for that slave's *late-answer window* no request
+  that could be confused with the lost one (same slave and function, whose
+  exception replies look alike) is sent;
   other slaves are served meanwhile. The window closes early once the slave
   answers a request sent after the loss that could not be confused with it: a
   slave answers one request at a time, so the lost answer will not follow. The
@@ -39,6 +42,9 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   it *down*: 0x0B at once, one probe per back-off interval. Suspect and down
   slaves share ``probe_share`` of the line's time; they also go whenever no
   healthy request is waiting.
+* **Own echo.** With ``echo`` (a half-duplex adapter that hears itself), the bytes
+  of the frame just sent are dropped when they come back first, exactly those; a
+  byte that differs ends the echo and is decoded as the line's.
 * **Bounded noise.** If no usable gap appears for ``noisy_after`` seconds while
   requests wait, they are answered 0x0B and the line is *noisy* (new requests are
   answered 0x0B at once) until a gap appears.
@@ -54,8 +60,9 @@ from typing import Final, NamedTuple, Protocol
 
 from . import pdu as fc
 from .errors import ExceptionCode, ResponseError
+from .framing import RTU, Framing, ResponseDecoder
 from .outcome import LineEvent, Outcome, SlaveState
-from .rtu import MAX_RTU_FRAME, RtuFrame, RtuResponseDecoder, encode_rtu
+from .rtu import MAX_RTU_FRAME, RtuFrame
 from .timing import character_time
 
 INFINITY: Final = float("inf")
@@ -135,6 +142,8 @@ class LinePolicy(Protocol):
     def silence(self) -> float: ...
     @property
     def noisy_deadline(self) -> float: ...
+    @property
+    def echo(self) -> bool: ...
 
     def timeout_for(self, slave: int) -> float: ...
 
@@ -230,7 +239,7 @@ class _Slave:
     guard_until: float = 0.0  # end of the late-answer window
     guard_signatures: set[bytes] = field(default_factory=set)  # answers that may still come
     guard_owner: LineRequest | None = None
-    guard_decoder: RtuResponseDecoder | None = None  # recognises the lost answer itself
+    guard_decoder: ResponseDecoder | None = None  # recognises the lost answer itself
 
 
 @dataclass(slots=True, eq=False)
@@ -238,7 +247,7 @@ class _Attempt:
     """The transaction on the wire."""
 
     request: LineRequest
-    decoder: RtuResponseDecoder
+    decoder: ResponseDecoder
     sent_at: float
     deadline: float
     from_credit: bool
@@ -250,8 +259,17 @@ class _Attempt:
 class LineCore:
     """One serial line's decisions; see the module docstring."""
 
-    def __init__(self, policy: LinePolicy, now: float, stats: LineStats | None = None) -> None:
+    def __init__(
+        self,
+        policy: LinePolicy,
+        now: float,
+        stats: LineStats | None = None,
+        framing: Framing = RTU,
+    ) -> None:
         self.stats = stats if stats is not None else LineStats()
+        self.framing = framing
+        self._encode = framing.encode  # bound once: for RTU, encode_rtu itself
+        self._new_decoder = framing.decoder  # for RTU, the RtuResponseDecoder class
         self.transmits: list[Transmit] = []
         self.deliveries: list[Delivery] = []
         self.notes: list[Note] = []
@@ -277,6 +295,7 @@ class LineCore:
         self._write_epoch: dict[int, int] = {}
         self._broadcast_epoch = 0
         self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
+        self._echo_left = b""  # the part of our own frame still to come back (``echo``)
         self._apply_policy(policy)
 
     # -- configuration -------------------------------------------------------------------
@@ -292,6 +311,7 @@ class LineCore:
         self._noisy_after = policy.noisy_deadline
         self._share = policy.probe_share
         self._credit_cap = self._share  # at most one second's share banked
+        self._echo = policy.echo
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
@@ -482,6 +502,7 @@ class LineCore:
         """The port went away: the attempt and the queue are answered 0x0A."""
         self._up = False
         self._noisy = False
+        self._echo_left = b""
         self._wanting_since = None
         self._abandon_attempt(now)
         self._fail_all(ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
@@ -524,6 +545,10 @@ class LineCore:
         self.stats.bytes_read += len(data)
         if now > self._quiet_since:
             self._quiet_since = now
+        if self._echo_left:
+            data = self._strip_echo(data)
+            if not data:
+                return
         attempt = self._attempt
         if attempt is None:
             self._discard("late", len(data))
@@ -728,11 +753,11 @@ class LineCore:
             request.sent = True
             self._close_to_joiners(request)
         slave = request.slave
-        frame = encode_rtu(slave, request.pdu)
+        frame = self._encode(slave, request.pdu)
         transmit_time = len(frame) * self._char_time
         self._attempt = _Attempt(
             request,
-            RtuResponseDecoder(slave, request.pdu),
+            self._new_decoder(slave, request.pdu),
             now,
             now + transmit_time + self.policy.timeout_for(slave),
             from_credit,
@@ -743,15 +768,19 @@ class LineCore:
         stats.bytes_written += len(frame)
         if retry:
             self.notes.append(Note(LineEvent.RETRY, slave))
+        if self._echo:
+            self._echo_left = frame
         self.transmits.append(Transmit(frame, request, now - request.enqueued_at, retry))
 
     def _send_broadcast(self, request: LineRequest, master: _Master | None, now: float) -> None:
-        frame = encode_rtu(0, request.pdu)
+        frame = self._encode(0, request.pdu)
         transmit_time = len(frame) * self._char_time
         self._quiet_since = now + transmit_time + self.policy.broadcast_turnaround
         self.stats.frames_sent += 1
         self.stats.bytes_written += len(frame)
         self._cache.clear()  # what was read while it waited in the queue is stale now
+        if self._echo:
+            self._echo_left = frame
         self.transmits.append(Transmit(frame, request, now - request.enqueued_at, False))
         self._deliver(request, b"", Outcome.BROADCAST, -1.0)
         if master is not None:
@@ -1047,7 +1076,7 @@ class LineCore:
         record.guard_until = max(record.guard_until, now + window)
         record.guard_signatures.add(answer_signature(request.pdu))
         record.guard_owner = request
-        record.guard_decoder = RtuResponseDecoder(slave, request.pdu)
+        record.guard_decoder = self._new_decoder(slave, request.pdu)
         self._guards[slave] = record
         self.notes.append(Note(LineEvent.LATE_WINDOW, slave, f"{window:g} s"))
 
@@ -1067,13 +1096,29 @@ class LineCore:
             decoder = record.guard_decoder
             if decoder is None:
                 continue
-            try:
-                frame = decoder.feed(data)
-            except ResponseError:
-                decoder.reset()
-                continue
-            if frame is not None:
-                self._clear_guard(slave)
+            chunk = data
+            while True:
+                try:
+                    frame = decoder.feed(chunk)
+                except ResponseError:
+                    chunk = decoder.leftover  # what followed the bad frame may be the answer
+                    decoder.reset()
+                    if chunk:
+                        continue
+                    break
+                if frame is not None:
+                    self._clear_guard(slave)
+                break
+
+    def _strip_echo(self, data: bytes) -> bytes:
+        """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""
+        echo = self._echo_left
+        count = min(len(echo), len(data))
+        if data[:count] == echo[:count]:
+            self._echo_left = echo[count:]
+            return data[count:]
+        self._echo_left = b""  # not our echo (a collision, or an adapter that suppresses it)
+        return data
 
     def _close_to_joiners(self, request: LineRequest) -> None:
         """From now on (its frame goes on the wire) no other read may join ``request``."""

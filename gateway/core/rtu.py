@@ -251,6 +251,24 @@ class RtuResponseDecoder:
         return RtuFrame(frame[0], pdu)
 
 
+def check_identity(unit: int, function: int, request_pdu: bytes, got_unit: int, pdu: bytes) -> None:
+    """Raise ``ResponseError`` unless ``pdu`` from ``got_unit`` can answer the request.
+
+    The checks of ``RtuResponseDecoder._check`` after its CRC (kept inline there: the
+    RTU hot path), for the other framings once their checksum is good.
+    """
+    if got_unit != unit:
+        raise ResponseError("unexpected_unit", f"response from unit {got_unit}, expected {unit}")
+    if pdu[0] & 0x7F != function:
+        raise ResponseError(
+            "unexpected_function", f"response for function {pdu[0] & 0x7F}, expected {function}"
+        )
+    if not pdu[0] & fc.EXCEPTION_FLAG:
+        mismatch = _mismatch(request_pdu, pdu)
+        if mismatch:
+            raise ResponseError("mismatch", mismatch)
+
+
 _REGISTER_READS: Final = frozenset(
     {fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS, fc.READ_WRITE_MULTIPLE_REGISTERS}
 )

@@ -19,6 +19,7 @@ from collections.abc import Hashable, Iterable
 from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
+from ..core.framing import framing_for
 from ..core.line import Delivery, LineCore, LineRequest, Note, Transmit
 from ..core.outcome import LineEvent, Outcome, SlaveState
 from ..logs import RateLimitedLogger
@@ -51,7 +52,9 @@ class Bus:
         self._metrics = metrics
         self._loop = loop
         self._clock = clock
-        self._core = LineCore(config, time.monotonic(), metrics.line_counters(self.name))
+        self._core = LineCore(
+            config, time.monotonic(), metrics.line_counters(self.name), framing_for(config.kind)
+        )
         self._link: SerialLink | None = None
         self._reopener: asyncio.Task[None] | None = None
         self._stopping = False
@@ -68,6 +71,7 @@ class Bus:
         self._m_line_up.set(0)
         self._m_noisy.set(0)
         metrics.prepare_line(self.name)
+        metrics.set_line_kind(self.name, config.kind)
         self._fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     # -- state ---------------------------------------------------------------------------

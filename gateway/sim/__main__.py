@@ -40,7 +40,8 @@ def _profile(text: str) -> tuple[str, int]:
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m gateway.sim", description="Serve simulated Modbus RTU devices on a pty."
+        prog="python -m gateway.sim",
+        description="Serve simulated Modbus RTU or ASCII devices on a pty.",
     )
     parser.add_argument(
         "--profile",
@@ -67,6 +68,14 @@ def _parser() -> argparse.ArgumentParser:
         "--realtime",
         action="store_true",
         help="serve under SCHED_FIFO when permitted, for timing that ignores other load",
+    )
+    parser.add_argument(
+        "--framing", choices=("rtu", "ascii"), default="rtu", help="the line's framing"
+    )
+    parser.add_argument(
+        "--echo",
+        action="store_true",
+        help="echo every byte the master sends (a half-duplex adapter without echo suppression)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the fault injection")
     parser.add_argument(
@@ -126,6 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             seed=args.seed,
             realtime=args.realtime,
             strict_baudrate=args.strict_baudrate,
+            framing=args.framing,
+            echo=args.echo,
         )
         for unit in args.silent:
             if unit not in devices:

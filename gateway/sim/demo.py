@@ -4,7 +4,9 @@ A newcomer with no RS485 hardware gets the gateway's real serial path (pyserial
 on a pty, the same worker and timing) answering three devices from the vendor
 documents: a PLC with a large register map at unit 1, a ZL-69X temperature
 controller at unit 2 and a power controller capped at 5-register reads at unit 3.
-The line is paced like a real 19200 baud line.
+The line is paced like a real 19200 baud line. A second line, ``demo-ascii``,
+speaks Modbus ASCII at 9600 baud with another ZL-69X at unit 4, as older meters
+and wallboxes do; 8N1 rather than ASCII's usual 7E1, because ptys refuse 7 data bits.
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from .pty import PtyPair, open_pty_pair
 
 DEMO_BAUDRATE = 19200
 DEMO_UNITS = {1: "plc", 2: "zl69x", 3: "power_controller"}
+DEMO_ASCII_BAUDRATE = 9600
+DEMO_ASCII_UNITS = {4: "zl69x"}
 
 
 class DemoLine:
-    """A pty pair with the demo devices on its simulator end."""
+    """Two pty pairs with the demo devices on their simulator ends (RTU and ASCII)."""
 
     def __init__(self) -> None:
         self.pty: PtyPair = open_pty_pair()
@@ -29,6 +33,13 @@ class DemoLine:
             self.pty.sim_fd,
             {1: plc(1), 2: zl69x(2), 3: power_controller(3)},
             baudrate=DEMO_BAUDRATE,
+        )
+        self.ascii_pty: PtyPair = open_pty_pair()
+        self.ascii_line = SimulatedLine(
+            self.ascii_pty.sim_fd,
+            {4: zl69x(4)},
+            baudrate=DEMO_ASCII_BAUDRATE,
+            framing="ascii",
         )
 
     def configure(self, raw: dict[str, Any], listen: str) -> dict[str, Any]:
@@ -41,7 +52,15 @@ class DemoLine:
                 "baudrate": DEMO_BAUDRATE,
                 "timeout": 0.5,
                 "units": sorted(DEMO_UNITS),
-            }
+            },
+            "demo-ascii": {
+                "device": self.ascii_pty.path,
+                "kind": "ascii",
+                "data_bits": 8,  # ptys refuse 7; ASCII lines default to 7E1
+                "parity": "N",
+                "baudrate": DEMO_ASCII_BAUDRATE,
+                "units": sorted(DEMO_ASCII_UNITS),
+            },
         }
         raw.pop("routes", None)
         return raw
@@ -49,8 +68,11 @@ class DemoLine:
     def start(self) -> None:
         """Start answering."""
         self.line.start()
+        self.ascii_line.start()
 
     def stop(self) -> None:
         """Stop answering and release the pty."""
         self.line.stop()
         self.pty.close()
+        self.ascii_line.stop()
+        self.ascii_pty.close()

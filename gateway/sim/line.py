@@ -18,6 +18,11 @@ With ``strict_baudrate`` a request is answered only while the master's end of
 the pty is set to the line's own baud rate (``wrong_baudrate`` counts the others). Colliding
 requests are still served afterwards, so a benchmark keeps running and the
 counters tell what a real bus would have garbled.
+
+``framing="ascii"`` speaks Modbus ASCII instead: requests are split at ':' and CR LF
+(a frame whose characters stop for ``inter_char_timeout`` is dropped), checked by
+LRC, and answered in ASCII. ``echo=True`` imitates a half-duplex adapter without
+echo suppression: every byte the master writes comes straight back to it.
 """
 
 from __future__ import annotations
@@ -35,7 +40,9 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from types import TracebackType
 
+from gateway.core.ascii import decode_ascii, encode_ascii
 from gateway.core.crc import check_crc
+from gateway.core.errors import ResponseError
 from gateway.core.rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, encode_rtu, request_length
 from gateway.core.timing import FIXED_T35_S, character_time, t35
 
@@ -151,7 +158,16 @@ class SimulatedLine:
         seed: int = 0,
         realtime: bool = False,
         strict_baudrate: bool = False,
+        framing: str = "rtu",
+        echo: bool = False,
+        inter_char_timeout: float = 1.0,
     ) -> None:
+        if framing not in ("rtu", "ascii"):
+            raise ValueError(f"framing {framing!r} is not rtu or ascii")
+        self._ascii = framing == "ascii"
+        self._encode = encode_ascii if self._ascii else encode_rtu
+        self._echo = echo
+        self._inter_char_timeout = inter_char_timeout
         for unit in devices:
             if not 1 <= unit <= 247:
                 raise ValueError(f"unit {unit} outside 1..247")
@@ -308,6 +324,8 @@ class SimulatedLine:
             if self._transmitting:
                 self._counters.collisions += 1
         self._rx_end = max(self._rx_end, now) + len(chunk) * self._char_time
+        if self._echo:
+            self._write_all(chunk)
         self._buffer += chunk
         if len(self._buffer) > _MAX_BUFFER:  # no master sends this: drop it, stay bounded
             self._counters.incomplete_frames += 1
@@ -327,6 +345,8 @@ class SimulatedLine:
 
         Returns None when the bytes never made a frame before t3.5 of silence.
         """
+        if self._ascii:
+            return self._take_ascii_frame()
         buffer = self._buffer
         while True:
             expected = request_length(buffer)
@@ -353,6 +373,52 @@ class SimulatedLine:
                 buffer.clear()
                 return None
 
+    def _take_ascii_frame(self) -> tuple[bytes, float, float, float] | None:
+        """Split the next ASCII request off the buffer (':' to LF), as ``_take_frame``.
+
+        Characters before a ':' are dropped; a ':' before the LF starts the frame again;
+        a frame whose characters stop for the inter-character timeout is dropped.
+        """
+        buffer = self._buffer
+        while True:
+            colon = buffer.find(b":")
+            if colon < 0:
+                buffer.clear()
+                return None
+            del buffer[:colon]
+            end = buffer.find(b"\n")
+            again = buffer.find(b":", 1)
+            if again >= 0 and (end < 0 or again < end):
+                self._counters.incomplete_frames += 1
+                del buffer[:again]
+                continue
+            if end >= 0:
+                frame = bytes(buffer[: end + 1])
+                del buffer[: end + 1]
+                start = self._frame_start
+                if buffer:
+                    finish = start + len(frame) * self._char_time
+                    self._frame_start = finish
+                else:
+                    finish = self._rx_end
+                return frame, start, finish, finish
+            if not self._poll(self._inter_char_timeout):
+                self._counters.incomplete_frames += 1
+                buffer.clear()
+                return None
+
+    def _decode(self, frame: bytes) -> tuple[int, bytes] | None:
+        """The unit and PDU of a request frame, ``None`` when its checksum (or form) is bad."""
+        if self._ascii:
+            try:
+                unit, pdu = decode_ascii(frame)
+            except ResponseError:
+                return None
+            return unit, pdu
+        if len(frame) < MIN_RTU_FRAME or not check_crc(frame):
+            return None
+        return frame[0], frame[1:-2]
+
     def _serve_frame(self, frame: bytes, start: float, end: float, known_at: float) -> None:
         counters = self._counters
         if self._char_time:
@@ -361,7 +427,8 @@ class SimulatedLine:
             if gap < self._t35:
                 counters.early_requests += 1
         self._line_free_at = end
-        if len(frame) < MIN_RTU_FRAME or not check_crc(frame):
+        decoded = self._decode(frame)
+        if decoded is None:
             counters.crc_errors_in += 1
             return
         if self._speed is not None and not self._at_our_speed():
@@ -369,7 +436,7 @@ class SimulatedLine:
             counters.wrong_baudrate += 1
             return
         counters.requests += 1
-        unit, pdu = frame[0], frame[1:-2]
+        unit, pdu = decoded
         if unit == BROADCAST_UNIT:
             counters.broadcasts += 1
             for address, member in self._devices.items():
@@ -391,10 +458,14 @@ class SimulatedLine:
         if faults.garbage_before_reply:
             frames.append(bytes(faults.garbage_before_reply))
         if faults.wrong_unit_reply:
-            frames.append(encode_rtu(unit % 247 + 1, response))
-        answer = encode_rtu(unit, response)
+            frames.append(self._encode(unit % 247 + 1, response))
+        answer = self._encode(unit, response)
         if faults.crc_error_rate > 0 and self._rng.random() < faults.crc_error_rate:
-            answer = answer[:-1] + bytes((answer[-1] ^ 0xFF,))
+            if self._ascii:  # another LRC character: the frame still ends in CR LF
+                wrong = b"0" if answer[-3:-2] != b"0" else b"1"
+                answer = answer[:-3] + wrong + answer[-2:]
+            else:
+                answer = answer[:-1] + bytes((answer[-1] ^ 0xFF,))
             counters.crc_errors_out += 1
         frames.append(answer)
         counters.responses += 1
@@ -429,6 +500,9 @@ class SimulatedLine:
         lateness = time.perf_counter() - finish
         if lateness > self._counters.max_lateness_s:
             self._counters.max_lateness_s = lateness
+        self._write_all(data)
+
+    def _write_all(self, data: bytes) -> None:
         view = memoryview(data)
         while view:
             try:

@@ -252,3 +252,30 @@ def test_check_config_on_an_unreadable_file_names_the_fault(
     )  # fmt: skip
     assert checked.returncode == 2
     assert str(path) in checked.stderr and expected in checked.stderr
+
+
+# --------------------------------------------------------------------------- line kinds
+
+
+def test_serial_with_framing_ascii(make_sim: SimFactory, run_gateway: RunGateway) -> None:
+    """ASCII lines default to 7E1; ptys refuse 7 data bits, so 8N1 here."""
+    sim = make_sim({9: plc(9)}, framing="ascii")
+    gateway = run_gateway(
+        "--serial", sim.path, "--framing", "ascii", "--data-bits", "8", "--parity", "N",
+        "--baudrate", "115200", "--listen", "127.0.0.1:0", "--metrics", "off",
+    )  # fmt: skip
+    with RawClient(gateway.address()) as client:
+        assert client.request(9, h("03 03E8 0002")) == h("03 04 03E8 03E9")
+        assert client.request(9, h("06 0005 0011")) == h("06 0005 0011")
+    assert sim.device(9).holding[5] == 0x11
+    assert sim.stats().crc_errors_in == 0
+    assert gateway.terminate() == 0
+
+
+def test_demo_has_an_ascii_device(run_gateway: RunGateway) -> None:
+    gateway = run_gateway("--demo", "--listen", "127.0.0.1:0", "--metrics", "off")
+    with RawClient(gateway.address()) as client:
+        # The ZL-69X's temperatures, over Modbus ASCII at 9600 7E1 (unit 4).
+        assert client.request(4, h("03 0000 0002")) == h("03 04 0113 FF9D")
+        assert client.request(1, h("03 0000 0001")) == h("03 02 0000")  # the RTU line too
+    assert gateway.terminate() == 0

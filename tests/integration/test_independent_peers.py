@@ -117,7 +117,15 @@ class PtyBridge:
 class PymodbusSlave:
     """pymodbus's RTU server on a device path, on its own event loop in a thread."""
 
-    def __init__(self, path: str, unit: int, holding: list[int], coils: list[bool]) -> None:
+    def __init__(
+        self,
+        path: str,
+        unit: int,
+        holding: list[int],
+        coils: list[bool],
+        framing: str = "rtu",
+    ) -> None:
+        from pymodbus import FramerType
         from pymodbus.server import ModbusSerialServer
         from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -136,7 +144,12 @@ class PymodbusSlave:
 
         async def start() -> None:
             # pymodbus binds its transport to the running loop when it is constructed.
-            self.server = ModbusSerialServer(device, port=path, baudrate=115200)
+            if framing == "ascii":  # 8N1: ptys refuse some parity settings (FIELD-NOTES)
+                self.server = ModbusSerialServer(
+                    device, port=path, baudrate=115200, framer=FramerType.ASCII
+                )
+            else:
+                self.server = ModbusSerialServer(device, port=path, baudrate=115200)
             await self.server.serve_forever(background=True)
 
         def serve() -> None:
@@ -156,11 +169,15 @@ class PymodbusSlave:
         self.loop.close()
 
 
-@pytest.fixture
+@pytest.fixture(params=["rtu", "ascii"])
 def pymodbus_slave_line(
-    make_gateway: GatewayFactory,
+    make_gateway: GatewayFactory, request: pytest.FixtureRequest
 ) -> Iterator[tuple[PymodbusSlave, RunningGateway]]:
-    """Our gateway on one end of a pty bridge, pymodbus as slave 5 on the other."""
+    """Our gateway on one end of a pty bridge, pymodbus as slave 5 on the other.
+
+    Once on an RTU line, once on an ASCII line (8N1 on ptys, which refuse some parities).
+    """
+    framing: str = request.param
     with ExitStack() as stack:
         bridge = PtyBridge()
         stack.callback(bridge.close)
@@ -169,9 +186,12 @@ def pymodbus_slave_line(
             5,
             holding=[10 * i for i in range(32)],
             coils=[i % 3 == 0 for i in range(32)],
+            framing=framing,
         )
         stack.callback(slave.close)
         table = {"device": bridge.left.path, "baudrate": 115200, "units": [5], "timeout": 0.5}
+        if framing == "ascii":
+            table.update(kind="ascii", data_bits=8, parity="N")
         gateway = make_gateway({"lines": {"a": table}})
         stack.callback(gateway.stop)  # first: before the slave and the ptys go
         yield slave, gateway

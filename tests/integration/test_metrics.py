@@ -236,6 +236,8 @@ def test_health_readiness_and_line_state(
     found = samples(gw)
     assert found[series("modbus_gateway_line_up", line="a")] == 1
     assert found[series("modbus_gateway_line_up", line="b")] == 0
+    assert found[series("modbus_gateway_line_info", line="a", kind="rtu")] == 1
+    assert found[series("modbus_gateway_line_info", line="b", kind="rtu")] == 1
     assert found[series("modbus_gateway_build_info", lines="a,b", version=__version__)] == 1
     with gw.connect() as master:
         assert master.request(7, READ_10) == bytes((0x83, 0x0A))

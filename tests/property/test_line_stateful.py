@@ -13,6 +13,10 @@ Checked on every step:
   must be of this request (or of the identical read it joined, sent after it came);
 * a request with side effects is never transmitted twice;
 * no master has more requests waiting than its bound.
+
+The machine runs once per framing: RTU (``TestLineCore``) and ASCII
+(``TestAsciiLineCore``), where answers and noise are ASCII characters; and once on
+an RTU line whose adapter echoes every frame the gateway sends (``TestEchoLineCore``).
 """
 
 from __future__ import annotations
@@ -26,13 +30,14 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from gateway.config import LineConfig
 from gateway.core import pdu as fc
+from gateway.core.ascii import encode_ascii
+from gateway.core.framing import ASCII, RTU, Framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
 
 BAUD = 19200
-CHAR = character_time(BAUD, 8, "N", 1)
 TIMEOUT = 0.1
 MASTERS = ("a", "b", "c")
 SLAVES = (1, 2, 3, 4)
@@ -62,17 +67,24 @@ class Emission:
     at: float
     seq: int
     data: bytes = field(compare=False)
+    answers: LineRequest | None = field(default=None, compare=False)  # None: not a slave's
 
 
 class LineMachine(RuleBasedStateMachine):
+    framing: Framing = RTU
+    line_settings: dict[str, object] = {}  # noqa: RUF012 (read only)
+
     def __init__(self) -> None:
         super().__init__()
         self.config = LineConfig(
             name="p", device="/dev/null", baudrate=BAUD, timeout=TIMEOUT, retries=1,
             max_queue_per_master=PER_MASTER, max_queue=12, dead_after=3, probe_interval=0.3,
-            probe_max_interval=0.6, noisy_after=0.5,
+            probe_max_interval=0.6, noisy_after=0.5, **self.line_settings,  # type: ignore[arg-type]
         )  # fmt: skip
-        self.core = LineCore(self.config, 0.0)
+        self.char = character_time(
+            BAUD, self.config.data_bits, self.config.parity, self.config.stop_bits
+        )
+        self.core = LineCore(self.config, 0.0, framing=self.framing)
         self.now = 0.0
         self.core.port_opened(self.now)
         self.slaves = {unit: Slave() for unit in SLAVES}
@@ -87,6 +99,7 @@ class LineMachine(RuleBasedStateMachine):
         self.last_rx = 0.0
         self.turnaround_until = 0.0
         self.problems: list[str] = []
+        self.heard_back: set[int] = set()  # id(request) of requests whose slave's answer came
 
     # -- the core's actions ------------------------------------------------------------
 
@@ -96,8 +109,12 @@ class LineMachine(RuleBasedStateMachine):
             self.check_quiet(transmit.frame)
             request = transmit.request
             self.transmissions[id(request)] = self.transmissions.get(id(request), 0) + 1
-            end = self.now + len(transmit.frame) * CHAR
+            end = self.now + len(transmit.frame) * self.char
             self.last_tx_end = end
+            if self.config.echo:  # the adapter hears the whole frame as it goes out
+                self.seq += 1
+                self.emissions.append(Emission(end, self.seq, transmit.frame))
+                self.emissions.sort()
             if request.broadcast:
                 self.turnaround_until = end + self.config.broadcast_turnaround
             else:
@@ -129,21 +146,31 @@ class LineMachine(RuleBasedStateMachine):
             pdu = bytes((function, 2 * quantity)) + struct.pack(f">{quantity}H", *values)
         else:
             pdu = fc.write_response(request.pdu)
-        frame = bytearray(encode_rtu(request.slave, pdu))
-        if slave.garble:
-            frame[-1] ^= 0x5A
+        frame = self.encode_garbled(request.slave, pdu, slave.garble)
         start = max(end + slave.delay, slave.busy_until)
-        at = start + len(frame) * CHAR
+        at = start + len(frame) * self.char
         slave.busy_until = at
         self.seq += 1
-        self.emissions.append(Emission(at, self.seq, bytes(frame)))
+        self.emissions.append(Emission(at, self.seq, bytes(frame), request))
         self.emissions.sort()
+
+    def encode_garbled(self, unit: int, pdu: bytes, garble: bool) -> bytes:
+        """The slave's answer on the wire; with ``garble``, its checksum damaged."""
+        frame = bytearray(encode_rtu(unit, pdu))
+        if garble:
+            frame[-1] ^= 0x5A
+        return bytes(frame)
+
+    def noise(self, length: int, seed: int) -> bytes:
+        return bytes((seed + 37 * i) & 0xFF for i in range(length))
 
     def check_answer(self, request: LineRequest, pdu: bytes, outcome: str) -> None:
         key = id(request)
         self.answers[key] = self.answers.get(key, 0) + 1
         if self.answers[key] > 1:
             self.problems.append(f"request {request.pdu.hex()} answered twice")
+        if outcome == Outcome.OK and request.pdu[0] == 6 and id(request) not in self.heard_back:
+            self.problems.append(f"write {request.pdu.hex()} answered before its slave did")
         if outcome != Outcome.OK or request.pdu[0] not in (3, 4):
             return
         nonce = struct.unpack(">H", pdu[2:4])[0]
@@ -179,7 +206,10 @@ class LineMachine(RuleBasedStateMachine):
             )
             self.now = max(self.now, when)
             if emission <= self.now and self.emissions:
-                data = self.emissions.pop(0).data
+                popped = self.emissions.pop(0)
+                data = popped.data
+                if popped.answers is not None:
+                    self.heard_back.add(id(popped.answers))
                 self.last_rx = self.now
                 self.core.receive(data, self.now)
             else:
@@ -239,7 +269,7 @@ class LineMachine(RuleBasedStateMachine):
     @rule(length=st.integers(1, 6), seed=st.integers(0, 255))
     def babble(self, length: int, seed: int) -> None:
         self.last_rx = self.now
-        self.core.receive(bytes((seed + 37 * i) & 0xFF for i in range(length)), self.now)
+        self.core.receive(self.noise(length, seed), self.now)
         self.pump()
 
     @precondition(lambda self: self.core.up)
@@ -285,3 +315,35 @@ LineMachine.TestCase.settings = settings(
     suppress_health_check=[HealthCheck.too_slow],
 )
 TestLineCore = LineMachine.TestCase
+
+
+class AsciiLineMachine(LineMachine):
+    """The same machine on an ASCII line (7E1): answers, damage and noise in characters."""
+
+    framing = ASCII
+    line_settings = {"kind": "ascii", "data_bits": 7, "parity": "E"}  # noqa: RUF012
+
+    def encode_garbled(self, unit: int, pdu: bytes, garble: bool) -> bytes:
+        frame = bytearray(encode_ascii(unit, pdu))
+        if garble:  # a different LRC character: the frame still ends in CR LF
+            frame[-3] = ord("0") if frame[-3] != ord("0") else ord("1")
+        return bytes(frame)
+
+    def noise(self, length: int, seed: int) -> bytes:
+        # Frame starts, hex characters, line ends and binary junk.
+        alphabet = b":0123456789ABCDEF\r\n\x00\xff:"
+        return bytes(alphabet[(seed + 7 * i) % len(alphabet)] for i in range(length))
+
+
+AsciiLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestAsciiLineCore = AsciiLineMachine.TestCase
+
+
+class EchoLineMachine(LineMachine):
+    """The RTU machine with ``echo = true``: every frame sent comes back before any answer."""
+
+    line_settings = {"echo": True}  # noqa: RUF012
+
+
+EchoLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestEchoLineCore = EchoLineMachine.TestCase

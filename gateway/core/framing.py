@@ -1,0 +1,96 @@
+"""How a line puts a PDU on the wire and finds the answer in what comes back.
+
+Theory of operation: ``LineCore`` decides *when* and *what* to send; a ``Framing``
+says *how*: ``encode(unit, pdu)`` gives the bytes of one request, and
+``decoder(unit, request_pdu)`` builds the object that collects the answer and checks
+it against the request (see ``ResponseDecoder``). The timing a framing implies (the
+gap before a request, the silence that ends or abandons a frame) reaches the core
+through the line's policy (``gap``, ``silence``), which knows the line's kind.
+
+The core binds ``encode`` and ``decoder`` once: for RTU they are ``encode_rtu`` and
+the ``RtuResponseDecoder`` class themselves, so the RTU path costs what it did
+before framings existed.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Final, Protocol
+
+from .ascii import AsciiResponseDecoder, encode_ascii
+from .rtu import RtuFrame, RtuResponseDecoder, encode_rtu
+
+
+class LineKind(StrEnum):
+    """What a downstream line speaks (``kind`` under ``[lines.NAME]``): a fixed label set."""
+
+    RTU = "rtu"
+    ASCII = "ascii"
+
+
+class ResponseDecoder(Protocol):
+    """Collects one answer and checks it against the request on the wire.
+
+    ``feed`` returns the checked frame once complete, ``None`` while incomplete, and
+    raises ``ResponseError`` for a frame that must not be passed on; bytes after the
+    frame (or after the point of the error) are left in ``leftover``.
+    """
+
+    leftover: bytes
+
+    @property
+    def buffered(self) -> int: ...
+
+    @property
+    def waits_for_silence(self) -> bool: ...
+
+    @property
+    def looks_like_answer(self) -> bool: ...
+
+    def feed(self, data: bytes | bytearray | memoryview) -> RtuFrame | None: ...
+
+    def end_of_frame(self) -> RtuFrame: ...
+
+    def reset(self) -> None: ...
+
+
+class DecoderFactory(Protocol):
+    """Builds the decoder for the answer to ``request_pdu`` from ``unit``."""
+
+    def __call__(self, unit: int, request_pdu: bytes) -> ResponseDecoder: ...
+
+
+class EncodeFunction(Protocol):
+    """Builds the bytes of one request frame."""
+
+    def __call__(self, unit: int, pdu: bytes) -> bytes: ...
+
+
+class Framing:
+    """A framing: its kind, its encoder and its answer decoder's factory."""
+
+    __slots__ = ("decoder", "encode", "kind")
+
+    def __init__(self, kind: LineKind, encode: EncodeFunction, decoder: DecoderFactory) -> None:
+        self.kind = kind
+        self.encode = encode
+        self.decoder = decoder
+
+    def __repr__(self) -> str:
+        return f"Framing({self.kind.value})"
+
+
+#: Modbus RTU: binary, CRC16, frames delimited by t3.5 of silence (or predicted length).
+RTU: Final = Framing(LineKind.RTU, encode_rtu, RtuResponseDecoder)
+#: Modbus ASCII: ':' hex characters, LRC, CR LF.
+ASCII: Final = Framing(LineKind.ASCII, encode_ascii, AsciiResponseDecoder)
+
+_BY_KIND: Final = {LineKind.RTU: RTU, LineKind.ASCII: ASCII}
+
+
+def framing_for(kind: str) -> Framing:
+    """The framing of a line kind (``ValueError`` for a kind without one)."""
+    try:
+        return _BY_KIND[LineKind(kind)]
+    except (ValueError, KeyError):
+        raise ValueError(f"line kind {kind!r} has no serial framing") from None
