@@ -26,7 +26,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from . import hostile, line_scenarios, scenarios, tls_scenarios
+from . import hostile, kind_scenarios, line_scenarios, scenarios, tls_scenarios
 from .procs import BenchError, environment_summary
 from .report import render_checks, render_table
 from .scenarios import Bench, ScenarioResult, Timing
@@ -40,6 +40,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **line_scenarios.SCENARIOS,
     **tls_scenarios.SCENARIOS,
     **hostile.SCENARIOS,
+    **kind_scenarios.SCENARIOS,
 }
 
 

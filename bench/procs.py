@@ -90,6 +90,7 @@ class SimOptions:
     realtime: bool = False  #: SCHED_FIFO for the simulator's thread (a real slave has its own CPU)
     late: Sequence[tuple[int, float, float, float]] = ()  #: (unit, share, min s, max s)
     die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
+    framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
 
 
 class Simulator:
@@ -128,6 +129,8 @@ class Simulator:
             command += ["--late", f"{unit}:{share}:{low}:{high}"]
         for unit in options.die_on_signal:
             command += ["--die-on-signal", str(unit)]
+        if options.framing != "rtu":
+            command += ["--framing", options.framing]
         return command
 
     def start(self) -> None:

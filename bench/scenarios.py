@@ -198,6 +198,7 @@ def gateway_server(
     timeout: float | None = None,
     retries: int | None = None,
     max_connections: int | None = None,
+    framing: str | None = None,
 ) -> ServerFactory:
     """A factory for ``python -m gateway`` with these flags on one line."""
 
@@ -210,6 +211,8 @@ def gateway_server(
             command += ["--timeout", repr(timeout)]
         if retries is not None:
             command += ["--retries", str(retries)]
+        if framing is not None:  # 8N1: ptys refuse 7 data bits
+            command += ["--framing", framing, "--data-bits", "8", "--parity", "N"]
         # The load generator's masters all connect from 127.0.0.1: no per-address limit.
         server = "[server]\nmax_connections_per_source = 0\n"
         if max_connections is not None:

@@ -217,6 +217,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--link", help="make this symlink point at the pty device")
     parser.add_argument("--realtime", action="store_true", help="SCHED_FIFO when permitted")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--framing", choices=("rtu", "ascii"), default="rtu")
     parser.add_argument("--silent", action="append", type=_unit, default=[], metavar="UNIT")
     parser.add_argument(
         "--crc-error-rate", action="append", type=_unit_rate, default=[], metavar="UNIT:RATE"
@@ -259,6 +260,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             turnaround=args.turnaround,
             seed=args.seed,
             realtime=args.realtime,
+            framing=args.framing,
         )
         for unit in args.silent:
             line.faults(unit).silent = True

@@ -86,6 +86,7 @@ DISCARD_REASONS = (
     "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
     "short_frame", "oversize", "trailing_bytes",
     "restarted", "bad_char",  # ASCII: ':' inside a frame, a character that is not hex
+    "unexpected_tid", "bad_header",  # Modbus TCP slaves: another transaction, a broken header
 )  # fmt: skip
 
 #: Label values for units, made once: ``str(unit)`` per request would allocate.

@@ -18,6 +18,7 @@ from enum import StrEnum
 from typing import Final, Protocol
 
 from .ascii import AsciiResponseDecoder, encode_ascii
+from .mbap import TransactionIds
 from .rtu import RtuFrame, RtuResponseDecoder, encode_rtu
 
 
@@ -26,6 +27,7 @@ class LineKind(StrEnum):
 
     RTU = "rtu"
     ASCII = "ascii"
+    TCP = "tcp"  # Modbus TCP slaves: MBAP under the gateway's own transaction ids
 
 
 class ResponseDecoder(Protocol):
@@ -88,9 +90,24 @@ ASCII: Final = Framing(LineKind.ASCII, encode_ascii, AsciiResponseDecoder)
 _BY_KIND: Final = {LineKind.RTU: RTU, LineKind.ASCII: ASCII}
 
 
+def mbap_framing(first_transaction_id: int = 0) -> Framing:
+    """A new MBAP framing for one downstream TCP line (it numbers that line's requests)."""
+    ids = TransactionIds(first_transaction_id)
+    return Framing(LineKind.TCP, ids.encode, ids.decoder)
+
+
 def framing_for(kind: str) -> Framing:
-    """The framing of a line kind (``ValueError`` for a kind without one)."""
+    """The framing of a line kind (``ValueError`` for a kind without one).
+
+    ``tcp`` gets a framing of its own each time: its transaction ids belong to one line.
+    """
     try:
-        return _BY_KIND[LineKind(kind)]
-    except (ValueError, KeyError):
-        raise ValueError(f"line kind {kind!r} has no serial framing") from None
+        line_kind = LineKind(kind)
+    except ValueError:
+        raise ValueError(f"line kind {kind!r} has no framing") from None
+    if line_kind is LineKind.TCP:
+        return mbap_framing()
+    framing = _BY_KIND.get(line_kind)
+    if framing is None:
+        raise ValueError(f"line kind {kind!r} has no framing")
+    return framing

@@ -68,7 +68,9 @@ from .timing import character_time
 INFINITY: Final = float("inf")
 
 #: Frames that are not garbage, just not this answer: discard them and go on waiting.
-DISCARD_KINDS: Final = frozenset({"unexpected_unit", "unexpected_function", "mismatch"})
+DISCARD_KINDS: Final = frozenset(
+    {"unexpected_unit", "unexpected_function", "mismatch", "unexpected_tid"}
+)
 
 
 def answer_signature(request: bytes) -> bytes:

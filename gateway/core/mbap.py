@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from .errors import FramingError
+from .errors import FramingError, ResponseError
+from .rtu import RtuFrame, check_identity
 
 HEADER_LENGTH = 7
 MIN_LENGTH_FIELD = 2  # unit id + function code
@@ -97,3 +98,101 @@ class MbapDecoder:
         frame = MbapFrame((buffer[0] << 8) | buffer[1], buffer[6], bytes(buffer[HEADER_LENGTH:end]))
         del buffer[:end]
         return frame
+
+
+class MbapResponseDecoder:
+    """Collects one Modbus TCP answer from a downstream slave and checks it.
+
+    The interface of ``RtuResponseDecoder``, for a line of ``kind = "tcp"``: the gateway
+    numbers its own requests, so the answer is the frame with the transaction id on the
+    wire (``unexpected_tid`` for any other, skipped like another unit's RTU frame); then
+    the function and the byte count or echo, as on RTU. The unit id is not checked: the
+    transaction id already names the request, and many TCP devices answer with a unit
+    id of their own. A header no Modbus TCP peer sends (``bad_header``) means the stream
+    is out of step: the driver should reconnect. No checksum: never ``looks_like_answer``.
+    """
+
+    __slots__ = ("_buffer", "_function", "_request_pdu", "_tid", "leftover")
+
+    def __init__(self, transaction_id: int, request_pdu: bytes) -> None:
+        self._tid = transaction_id
+        self._request_pdu = request_pdu
+        self._function = request_pdu[0]
+        self._buffer = bytearray()
+        self.leftover = b""
+
+    @property
+    def buffered(self) -> int:
+        """Bytes of the answer collected so far."""
+        return len(self._buffer)
+
+    @property
+    def waits_for_silence(self) -> bool:
+        """Never: every MBAP frame carries its length."""
+        return False
+
+    @property
+    def looks_like_answer(self) -> bool:
+        """Never: without a checksum, a frame is the answer or not an answer at all."""
+        return False
+
+    def feed(self, data: bytes | bytearray | memoryview) -> RtuFrame | None:
+        """Add received bytes; the checked answer once complete, ``None`` while incomplete.
+
+        The answer comes as (unit id, PDU), as every framing's answers do.
+        """
+        buffer = self._buffer
+        buffer += data
+        if len(buffer) < HEADER_LENGTH:
+            return None
+        protocol_id = (buffer[2] << 8) | buffer[3]
+        length = (buffer[4] << 8) | buffer[5]
+        if protocol_id != 0 or not MIN_LENGTH_FIELD <= length <= MAX_LENGTH_FIELD:
+            buffer.clear()
+            raise ResponseError(
+                "bad_header", f"MBAP header with protocol id {protocol_id}, length {length}"
+            )
+        end = HEADER_LENGTH - 1 + length
+        if len(buffer) < end:
+            return None
+        self.leftover = bytes(buffer[end:])
+        del buffer[end:]
+        tid = (buffer[0] << 8) | buffer[1]
+        pdu = bytes(buffer[HEADER_LENGTH:])
+        if tid != self._tid:
+            raise ResponseError(
+                "unexpected_tid", f"answer with transaction id {tid}, expected {self._tid}"
+            )
+        check_identity(buffer[6], self._function, self._request_pdu, buffer[6], pdu)
+        return RtuFrame(buffer[6], pdu)
+
+    def end_of_frame(self) -> RtuFrame:
+        """Not used on TCP (``waits_for_silence`` is never true)."""
+        raise ResponseError("incomplete", f"MBAP answer stopped after {len(self._buffer)} bytes")
+
+    def reset(self) -> None:
+        """Forget a discarded frame and wait for the real answer."""
+        self._buffer.clear()
+        self.leftover = b""
+
+
+class TransactionIds:
+    """The gateway's own transaction ids on one downstream TCP connection.
+
+    ``encode`` numbers each request (1, 2, ... 65535, 0, 1, ...); ``decoder`` then waits for
+    the answer with that number. The line core calls them in that order for every attempt.
+    """
+
+    __slots__ = ("current",)
+
+    def __init__(self, start: int = 0) -> None:
+        self.current = start & 0xFFFF
+
+    def encode(self, unit: int, pdu: bytes) -> bytes:
+        """The next request's ADU, under a new transaction id."""
+        self.current = (self.current + 1) & 0xFFFF
+        return encode_mbap(self.current, unit, pdu)
+
+    def decoder(self, unit: int, request_pdu: bytes) -> MbapResponseDecoder:
+        """The decoder of the answer to the request just encoded."""
+        return MbapResponseDecoder(self.current, request_pdu)
