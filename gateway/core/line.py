@@ -43,8 +43,9 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   slaves share ``probe_share`` of the line's time; they also go whenever no
   healthy request is waiting.
 * **Own echo.** With ``echo`` (a half-duplex adapter that hears itself), the bytes
-  of the frame just sent are dropped when they come back first, exactly those; a
-  byte that differs ends the echo and is decoded as the line's.
+  of the frame just sent are dropped when they come back, exactly those; bytes that
+  are not the echo are the line's, and the echo is still expected after them (until
+  the next frame is sent).
 * **Bounded noise.** If no usable gap appears for ``noisy_after`` seconds while
   requests wait, they are answered 0x0B and the line is *noisy* (new requests are
   answered 0x0B at once) until a gap appears.
@@ -1119,7 +1120,8 @@ class LineCore:
         if data[:count] == echo[:count]:
             self._echo_left = echo[count:]
             return data[count:]
-        self._echo_left = b""  # not our echo (a collision, or an adapter that suppresses it)
+        # Not our echo: a slave talking over our frame (its answer to an earlier request),
+        # or noise. Those bytes are the line's; the echo may still follow them.
         return data
 
     def _close_to_joiners(self, request: LineRequest) -> None:

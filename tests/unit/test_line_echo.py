@@ -99,3 +99,14 @@ def test_bytes_that_are_not_the_echo_are_the_lines() -> None:
     answer = encode_ascii(1, ANSWER)  # an adapter that suppresses its echo after all
     line.receive(answer, 0.01)
     assert line.answers == [(ANSWER, Outcome.OK)]
+
+
+def test_a_slave_talking_over_our_frame_does_not_make_the_echo_an_answer() -> None:
+    """An earlier request's late answer arrives before our echo: the echo is still dropped."""
+    line = Line()
+    frame = line.submit(WRITE, 0.0)
+    line.receive(bytes.fromhex("0103020001") + b"\x79\x84", 0.001)  # a late FC 3 answer
+    line.receive(frame, 0.002)  # then our echo
+    assert line.answers == []
+    line.receive(frame, 0.01)  # the slave's answer
+    assert line.answers == [(WRITE, Outcome.OK)]
