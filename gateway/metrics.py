@@ -289,6 +289,12 @@ class GatewayMetrics:
             "the healthy slaves', one at a time.",
             ["line", "unit"], registry=r,
         )  # fmt: skip
+        self.slaves_isolated = Gauge(
+            p + "slaves_isolated",
+            "Slaves of the line that are suspect or down now, heard from or not (slave_up and "
+            "slave_suspect name only slaves that have answered).",
+            ["line", "state"], registry=r,
+        )  # fmt: skip
         self.line_noisy = Gauge(
             p + "line_noisy",
             "1 while the line has had no usable gap for too long (requests answered 0x0B).",
@@ -381,6 +387,8 @@ class GatewayMetrics:
             self.discarded_frames.labels(line, reason)
         self.line_lost.labels(line)
         self.line_noisy_total.labels(line)
+        for state in ("suspect", "down"):
+            self.slaves_isolated.labels(line, state).set(0)
         self.late_windows.labels(line)
 
     def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
@@ -435,6 +443,10 @@ class GatewayMetrics:
         if child is None:
             child = self._request_child(key)
         child.inc()
+
+    def heard(self, line: str, unit: str) -> bool:
+        """True once the slave ``unit`` on ``line`` has answered a request (its labels exist)."""
+        return (line, unit) in self._heard
 
     def _request_child(self, key: tuple[str, str, str, str]) -> Counter:
         line, unit, function, outcome = key

@@ -243,6 +243,7 @@ class _Slave:
     guard_signatures: set[bytes] = field(default_factory=set)  # answers that may still come
     guard_owner: LineRequest | None = None
     guard_decoder: ResponseDecoder | None = None  # recognises the lost answer itself
+    guard_pending: int = 0  # the owner's attempts whose answers may still come
 
 
 @dataclass(slots=True, eq=False)
@@ -795,9 +796,6 @@ class LineCore:
     def _complete(self, attempt: _Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire."""
         self._attempt = None
-        # Its answer ended the transaction: the gap counts from its last byte, even when it
-        # came sooner than the request's own transmission time says (a serial server, a pty).
-        self._quiet_since = now
         request = attempt.request
         wire = now - attempt.sent_at
         slave = request.slave
@@ -1078,8 +1076,13 @@ class LineCore:
         window = self.policy.late_window_for(slave)
         record.guard_until = max(record.guard_until, now + window)
         record.guard_signatures.add(answer_signature(request.pdu))
-        record.guard_owner = request
-        record.guard_decoder = self._new_decoder(slave, request.pdu)
+        if record.guard_owner is request:
+            record.guard_pending += 1  # another attempt of it whose answer may still come
+        else:
+            # Answers come in order: the new owner's come after any earlier request's.
+            record.guard_owner = request
+            record.guard_decoder = self._new_decoder(slave, request.pdu)
+            record.guard_pending = 1
         self._guards[slave] = record
         self.notes.append(Note(LineEvent.LATE_WINDOW, slave, f"{window:g} s"))
 
@@ -1089,11 +1092,13 @@ class LineCore:
         record.guard_signatures.clear()
         record.guard_owner = None
         record.guard_decoder = None
+        record.guard_pending = 0
 
     def _watch_late(self, data: bytes) -> None:
-        """Bytes while nothing is on the wire: if they complete a lost answer, its window ends.
+        """Bytes while nothing is on the wire: lost answers arriving, thrown away.
 
-        The lost answer has arrived (and is thrown away): nothing more is coming for it.
+        When the answers of all the owner's failed attempts have arrived, nothing more is
+        coming for it and its window ends.
         """
         for slave, record in list(self._guards.items()):
             decoder = record.guard_decoder
@@ -1109,9 +1114,18 @@ class LineCore:
                     if chunk:
                         continue
                     break
-                if frame is not None:
+                if frame is None:
+                    if decoder.waits_for_silence:
+                        decoder.reset()  # noise with no length to wait for: start afresh
+                    break
+                chunk = decoder.leftover
+                decoder.reset()
+                record.guard_pending -= 1
+                if record.guard_pending <= 0:  # every lost attempt's answer has come
                     self._clear_guard(slave)
-                break
+                    break
+                if not chunk:
+                    break
 
     def _strip_echo(self, data: bytes) -> bytes:
         """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""

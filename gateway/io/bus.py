@@ -60,7 +60,6 @@ class Bus:
         self._stopping = False
         self._pumping = False
         self._open_error = ""
-        self._suspects: set[int] = set()
         self.idle = asyncio.Event()
         self.idle.set()
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
@@ -291,15 +290,17 @@ class Bus:
     def _slave_state(self, note: Note) -> None:
         unit = UNIT_LABELS[note.slave]
         state = note.state
-        self._metrics.slave_up.labels(self.name, unit).set(0 if state is SlaveState.DOWN else 1)
-        # A series only for slaves that have been suspect: a scan of absent units must not
-        # add one per address (the labels stay bounded by what answered or failed).
-        if state is SlaveState.SUSPECT:
-            self._suspects.add(note.slave)
-            self._metrics.slave_suspect.labels(self.name, unit).set(1)
-        elif note.slave in self._suspects:
-            self._suspects.discard(note.slave)
-            self._metrics.slave_suspect.labels(self.name, unit).set(0)
+        metrics = self._metrics
+        states = list(self._core.slave_states().values())
+        for counted in (SlaveState.SUSPECT, SlaveState.DOWN):
+            metrics.slaves_isolated.labels(self.name, counted.value).set(states.count(counted))
+        # Per-slave series only for slaves that have answered: a scan of every routed
+        # address (all 247 with --serial) must not add two series per absent unit.
+        if metrics.heard(self.name, unit):
+            metrics.slave_up.labels(self.name, unit).set(0 if state is SlaveState.DOWN else 1)
+            metrics.slave_suspect.labels(self.name, unit).set(
+                1 if state is SlaveState.SUSPECT else 0
+            )
         if state is SlaveState.DOWN:
             log.warning(
                 "line %s: slave %d silent %d times in a row; answering 0x0B at once, "

@@ -48,15 +48,18 @@ def test_a_dead_slave_is_isolated_then_probed_back(gateway_with: GatewayOnSim) -
         line={"timeout": 0.05, "retries": 0, "dead_after": 3, "probe_interval": 0.2,
               "probe_max_interval": 0.4, "late_answer_window": 0},
     )  # fmt: skip
-    sim.faults(2).silent = True
     with gw.connect() as master:
+        assert master.request(2, READ_10)[0] == 0x03  # heard from: it gets its own series
+        sim.faults(2).silent = True
         assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert sample(gw, "modbus_gateway_slave_suspect", line="a", unit="2") == 1
+        assert sample(gw, "modbus_gateway_slaves_isolated", line="a", state="suspect") == 1
         assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 1
         for _ in range(2):
             assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert sim.stats().silent_drops == 3
         assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 0
+        assert sample(gw, "modbus_gateway_slaves_isolated", line="a", state="down") == 1
         # Isolated: answered 0x0B at once, nothing sent on the line.
         assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert sim.stats().silent_drops == 3
@@ -200,11 +203,13 @@ def test_switching_isolation_off_on_reload_serves_the_slave_again(
 ) -> None:
     line = {"timeout": 0.05, "retries": 0, "dead_after": 1, "probe_interval": 60.0}
     sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line=line)
-    sim.faults(2).silent = True
     with gw.connect() as master:
+        assert master.request(2, READ_10)[0] == 0x03  # heard from: it gets its own series
+        sim.faults(2).silent = True
         assert master.request(2, READ_10) == bytes([0x83, 0x0B])
         assert master.request(2, READ_10) == bytes([0x83, 0x0B])  # isolated: not sent
         assert sim.stats().silent_drops == 1
+        assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 0
         raw = {
             "server": {"listen": "127.0.0.1:0"},
             "metrics": {"listen": "127.0.0.1:0"},

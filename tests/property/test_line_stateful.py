@@ -50,6 +50,7 @@ class Slave:
 
     delay: float | None = 0.002  # seconds after the request ends; None: never answers
     garble: bool = False  # its next answer arrives with a bad CRC
+    noise: bool = False  # a burst of noise comes before each answer
     ignores: frozenset[int] = frozenset()  # function codes it never answers
     busy_until: float = 0.0  # sequential: the end of its previous answer
 
@@ -148,6 +149,11 @@ class LineMachine(RuleBasedStateMachine):
             pdu = fc.write_response(request.pdu)
         frame = self.encode_garbled(request.slave, pdu, slave.garble)
         start = max(end + slave.delay, slave.busy_until)
+        if slave.noise:  # noise right after the request, the answer after the delay
+            self.seq += 1
+            noise_at = max(end, slave.busy_until) + 3 * self.char
+            self.emissions.append(Emission(noise_at, self.seq, b"\xff\x00\x55"))
+            start = max(start, noise_at + 0.001)
         at = start + len(frame) * self.char
         slave.busy_until = at
         self.seq += 1
@@ -255,16 +261,22 @@ class LineMachine(RuleBasedStateMachine):
         slave=st.sampled_from(SLAVES),
         delay=st.one_of(
             st.none(),
-            st.floats(0.0, 0.02),  # at once
+            st.floats(0.0, 0.02),  # at once (and around the wait after noise)
             st.floats(TIMEOUT * 0.8, TIMEOUT * 4),  # around and well past the timeout
         ),
         garble=st.booleans(),
+        noise=st.booleans(),
         ignores=st.sampled_from((frozenset(), frozenset({0x41}), frozenset({4}))),
     )
     def behave(
-        self, slave: int, delay: float | None, garble: bool, ignores: frozenset[int]
+        self,
+        slave: int,
+        delay: float | None,
+        garble: bool,
+        noise: bool,
+        ignores: frozenset[int],
     ) -> None:
-        self.slaves[slave] = Slave(delay, garble, ignores, self.slaves[slave].busy_until)
+        self.slaves[slave] = Slave(delay, garble, noise, ignores, self.slaves[slave].busy_until)
 
     @rule(length=st.integers(1, 6), seed=st.integers(0, 255))
     def babble(self, length: int, seed: int) -> None:

@@ -124,15 +124,21 @@ def test_nothing_is_sent_before_the_gap_after_the_last_byte() -> None:
     assert line.sent() == [encode_rtu(1, read(200))]
 
 
-def test_the_gap_counts_from_the_answer_even_when_it_beats_the_modelled_transmission() -> None:
-    """A serial server or a pty delivers the answer sooner than the baud rate says the request
-    took: the answer proves the line is free, so no timer is needed with frame_gap 0."""
-    line = Line(frame_gap=0.0)
+def test_an_answer_during_the_requests_own_transmission_does_not_shorten_the_gap() -> None:
+    """An answer can complete before the request has left the wire (a late answer to an
+    earlier attempt of the same request, on a full-duplex line): the next frame still waits
+    for the request's own end plus the gap, or the two frames would run together."""
+    line = Line(frame_gap=0.0, timeout=0.1, retries=1, dead_after=0, late_answer_window=1.0)
     line.submit(1, read(1), 0.0)
-    line.submit(1, read(2), 0.0, master="b")
+    line.submit(1, read(2, quantity=3), 0.0, master="b")
     line.sent()
-    line.receive(registers_answer(1, read(1), 1), 0.0001)  # the request "takes" 4 ms to send
-    assert line.sent() == [encode_rtu(1, read(2))]
+    retry_at = line.timer()  # timeout: the retry goes (exempt from its own window)
+    [retry] = line.sent()
+    line.receive(registers_answer(1, read(1), 1), retry_at + 0.0001)  # the first answer
+    assert line.sent() == []
+    assert line.core.get_timer() == pytest.approx(retry_at + tx_time(retry))
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(2, quantity=3))]
 
 
 def test_bytes_on_an_idle_line_are_discarded_and_postpone_the_next_frame() -> None:
@@ -226,6 +232,27 @@ def test_a_late_answer_never_reaches_a_read_that_looks_like_the_lost_one() -> No
 
 def requests_answered(line: Line) -> set[int]:
     return set(line.answers)
+
+
+def test_the_window_waits_for_the_answers_of_every_lost_attempt() -> None:
+    """Both attempts of a read time out; the first attempt's answer arriving does not end the
+    window, since the second attempt's answer is still on its way."""
+    line = Line(timeout=0.1, retries=1, late_answer_window=2.0, dead_after=0)
+    line.submit(1, read(100), 0.0)
+    line.sent()
+    line.timer()  # first timeout: the retry goes
+    assert line.sent() == [encode_rtu(1, read(100))]
+    failed_at = line.timer()  # second timeout: 0x0B
+    assert line.answer_of(line.requests[0])[1] == Outcome.TARGET_FAILED
+    held = line.submit(1, read(200), failed_at + 0.01)
+    line.receive(registers_answer(1, read(100), 100), failed_at + 0.05)  # the first answer
+    line.core.handle_timer(failed_at + 0.06)
+    assert line.sent() == []  # the second is still to come
+    line.receive(registers_answer(1, read(100), 100), failed_at + 0.10)  # the second answer
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(200))]
+    line.receive(registers_answer(1, read(200), 200), failed_at + 0.2)
+    assert line.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
 
 
 def test_a_distinguishable_read_goes_and_its_answer_ends_the_window() -> None:
