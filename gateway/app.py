@@ -43,7 +43,7 @@ from .trace import Tracer
 log = logging.getLogger("gateway")
 
 #: Line settings that need the port reopened when they change.
-_PORT_SETTINGS = ("device", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
+_PORT_SETTINGS = ("device", "kind", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
                   "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
                   "rs485_delay_before_tx", "rs485_delay_after_tx", "kind")  # fmt: skip
 

@@ -114,6 +114,10 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
         choices=["rtu", "ascii"],
         help="what every serial line speaks: rtu (default) or ascii (7E1 unless --parity)",
     )
+    parser.add_argument("--rtu-over-tcp", metavar="HOST:PORT", type=_host_port,
+                        help="RTU over TCP to a serial device server (raw socket mode) "
+                        "instead of --serial; without --config every unit 1..247 is "
+                        "routed to it")  # fmt: skip
     parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
     parser.add_argument(
         "--data-bits", type=int, choices=[7, 8], help="data bits of every line (8; ascii: 7)"
@@ -198,6 +202,8 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
                 "--serial",
                 ["the configuration has several lines; set each device in the file instead"],
             )
+    if args.rtu_over_tcp:
+        _apply_network_line(lines, "rtu-over-tcp", args.rtu_over_tcp, "--rtu-over-tcp", args)
     per_line = {
         "kind": args.framing,
         "baudrate": args.baudrate,
@@ -212,6 +218,25 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
         if isinstance(table, dict):
             table.update({key: value for key, value in per_line.items() if value is not None})
     return raw
+
+
+def _apply_network_line(
+    lines: dict[str, Any], kind: str, address: str, flag: str, args: argparse.Namespace
+) -> None:
+    """``--rtu-over-tcp HOST:PORT``: the only line, or the one line of the file, reached there."""
+    if args.serial:
+        raise ConfigError(flag, ["give either --serial or " + flag + ", not both"])
+    if not lines:
+        lines["default"] = {"kind": kind, "address": address, "units": ["1-247"]}
+    elif len(lines) == 1:
+        table = next(iter(lines.values()))
+        if isinstance(table, dict):
+            table.pop("device", None)
+            table.update({"kind": kind, "address": address})
+    else:
+        raise ConfigError(
+            flag, ["the configuration has several lines; set each line's address in the file"]
+        )
 
 
 def _apply_tls_flags(raw: dict[str, Any], args: argparse.Namespace) -> None:

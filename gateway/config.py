@@ -26,11 +26,19 @@ DEFAULT_LISTEN = "0.0.0.0:502"
 DEFAULT_METRICS = "127.0.0.1:9502"
 VALID_PARITIES = ("N", "E", "O")
 #: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
-VALID_LINE_KINDS = ("rtu", "ascii")
+#: ``rtu-over-tcp``: RTU frames over a TCP connection to a serial device server (raw socket).
+VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
 VALID_PROTOCOLS = ("tcp", "tls")
+#: Line kinds reached over the network rather than through a device node.
+NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp"})
+#: Silence that ends a frame of unknown length on a network link (segments, device servers).
+NETWORK_SILENCE_S = 0.05
+#: Added to the automatic response timeout of a network line: the round trip and the device
+#: server's own buffering.
+NETWORK_ALLOWANCE_S = 0.1
 #: The IANA port of Modbus/TCP Security.
 DEFAULT_TLS_PORT = 802
 URL_SCHEMES = ("socket://", "rfc2217://", "loop://", "spy://")
@@ -166,9 +174,20 @@ class LineConfig:
     slave_timeouts: Mapping[int, float] = field(default_factory=dict)
     coalesce: bool = True
     cache: tuple[CacheRule, ...] = ()
+    #: ``rtu``, ``ascii`` (serial devices) or ``rtu-over-tcp`` (``device`` is then ``HOST:PORT``).
     kind: str = "rtu"
     inter_char_timeout: float = 1.0  # ASCII: a frame whose characters stop this long is dropped
     echo: bool = False  # the adapter echoes what the gateway sends: drop it
+    #: The device server's address (``rtu-over-tcp``; from ``address = "HOST:PORT"``).
+    host: str = ""
+    port: int = 0
+    #: Seconds to wait after a connection is made before the first request (some device
+    #: servers drop what arrives while they set up their serial side).
+    connect_delay: float = 0.0
+    #: Seconds a connection attempt to the device server may take.
+    connect_timeout: float = 3.0
+    #: ``silence`` when set: the quiet time that ends an answer of unpredictable length.
+    silence_setting: float | None = None
 
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
@@ -190,17 +209,24 @@ class LineConfig:
     @property
     def is_url(self) -> bool:
         """True for a pyserial URL (a serial server over the network) rather than a device node."""
-        return "://" in self.device
+        return "://" in self.device or self.networked
+
+    @property
+    def networked(self) -> bool:
+        """True for a line reached over a TCP connection (``kind = "rtu-over-tcp"``)."""
+        return self.kind in NETWORK_LINE_KINDS
 
     @property
     def gap(self) -> float:
-        """Silence kept before every request: ``frame_gap`` when set, else t3.5.
+        """Silence kept before every request: ``frame_gap`` when set, else t3.5 (0 over TCP).
 
         ASCII frames end at their CR LF, not on silence: one character time is
         kept, a turnaround for the slave's transceiver.
         """
         if self.frame_gap is not None:
             return self.frame_gap
+        if self.networked:  # the device server keeps t3.5 on its serial side itself
+            return 0.0
         if self.kind == "ascii":
             return character_time(self.baudrate, self.data_bits, self.parity, self.stop_bits)
         return t35(self.baudrate, self.data_bits, self.parity, self.stop_bits)
@@ -211,9 +237,11 @@ class LineConfig:
 
         For ASCII, the inter-character timeout that abandons a frame.
         """
+        if self.silence_setting is not None:
+            return self.silence_setting
         if self.kind == "ascii":
             return self.inter_char_timeout
-        floor = 0.05 if self.is_url else 0.0
+        floor = NETWORK_SILENCE_S if self.is_url else 0.0
         return max(t35(self.baudrate, self.data_bits, self.parity, self.stop_bits), floor)
 
 
@@ -441,6 +469,10 @@ _LINE_KEYS = {
     "kind",
     "inter_char_timeout",
     "echo",
+    "address",
+    "connect_delay",
+    "connect_timeout",
+    "silence",
 }
 
 
@@ -492,13 +524,21 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         check.fail(f"lines.{name}", "must be a table ([lines.NAME]) with at least a device")
         return None
     check.unknown_keys(table, _LINE_KEYS, prefix)
+    kind = check.choice(table, "kind", prefix, "rtu", VALID_LINE_KINDS)
+    host, port = "", 0
     device = table.get("device")
-    if not isinstance(device, str) or not device:
+    if kind in NETWORK_LINE_KINDS:
+        host, port, device = _network_address(check, table, prefix, kind)
+    elif "address" in table:
+        check.fail(f"{prefix}address", f'only a network line takes it (kind = "rtu-over-tcp"); '
+                   f"a {kind} line names its serial port with device")  # fmt: skip
+    if kind not in NETWORK_LINE_KINDS and (not isinstance(device, str) or not device):
         check.fail(
             f"{prefix}device",
             'missing; set the serial device or URL, like "/dev/ttyUSB0" '
             'or "socket://10.0.0.5:4001"',
         )
+    if not isinstance(device, str):
         device = ""
     stop_bits_raw = table.get("stop_bits", 1)
     if stop_bits_raw not in (1, 1.5, 2) or isinstance(stop_bits_raw, bool):
@@ -514,7 +554,6 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
             units = tuple(parse_units(table["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
-    kind = check.choice(table, "kind", prefix, "rtu", VALID_LINE_KINDS)
     ascii_line = kind == "ascii"  # 7E1 by default (Modbus over Serial Line 2.5.2.1)
     baudrate = check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000)
     data_bits = check.integer(table, "data_bits", prefix, 7 if ascii_line else 8, 7, 8)
@@ -523,6 +562,8 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
     stop_bits = float(stop_bits_raw)
     longest = MAX_ASCII_FRAME if ascii_line else MAX_RTU_FRAME
     timeout = auto_timeout(baudrate, data_bits, parity, stop_bits, longest)
+    if kind in NETWORK_LINE_KINDS:
+        timeout = round(timeout + NETWORK_ALLOWANCE_S, 3)
     if table.get("timeout", "auto") != "auto":
         timeout = check.number(table, "timeout", prefix, timeout, 0.001, 60.0)
     return LineConfig(
@@ -558,7 +599,37 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         kind=kind,
         inter_char_timeout=check.number(table, "inter_char_timeout", prefix, 1.0, 0.001, 60.0),
         echo=check.boolean(table, "echo", prefix, False),
+        host=host,
+        port=port,
+        connect_delay=check.number(table, "connect_delay", prefix, 0.0, 0.0, 60.0),
+        connect_timeout=check.number(table, "connect_timeout", prefix, 3.0, 0.01, 600.0),
+        silence_setting=_optional_number(check, table, "silence", prefix, 10.0),
     )
+
+
+def _network_address(
+    check: _Checker, table: Mapping[str, Any], prefix: str, kind: str
+) -> tuple[str, int, str]:
+    """``address = "HOST:PORT"`` of a network line: host, port and the text shown as its device."""
+    if "device" in table:
+        check.fail(f"{prefix}device", f'a {kind} line is reached at address = "HOST:PORT", '
+                   "not a device; rename the key to address")  # fmt: skip
+    value = table.get("address")
+    if not isinstance(value, str) or not value:
+        check.fail(f"{prefix}address", f'missing; a {kind} line needs the device server\'s '
+                   'address, like "10.0.0.5:4001"')  # fmt: skip
+        return "", 0, ""
+    try:
+        host, port = parse_host_port(value)
+    except ValueError as error:
+        check.fail(f"{prefix}address", str(error))
+        return "", 0, ""
+    if port == 0 or host in ("0.0.0.0", "::"):
+        check.fail(f"{prefix}address", f"{value!r} is not a place to connect to; "
+                   'write the device server\'s address, like "10.0.0.5:4001"')  # fmt: skip
+        return "", 0, ""
+    shown = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    return host, port, shown
 
 
 #: Time a slave is given to start its answer, on top of the longest answer's transmission.
@@ -732,7 +803,7 @@ def _check_shared_devices(check: _Checker, lines: tuple[LineConfig, ...]) -> Non
     for line in lines:
         if not line.device:
             continue
-        identity = _device_identity(line.device)
+        identity = line.device if line.is_url else _device_identity(line.device)
         owner = owners.setdefault(identity, line.name)
         if owner != line.name:
             check.fail(

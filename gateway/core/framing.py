@@ -28,6 +28,7 @@ class LineKind(StrEnum):
     RTU = "rtu"
     ASCII = "ascii"
     TCP = "tcp"  # Modbus TCP slaves: MBAP under the gateway's own transaction ids
+    RTU_OVER_TCP = "rtu-over-tcp"  # RTU frames over TCP to a serial device server
 
 
 class ResponseDecoder(Protocol):
@@ -87,7 +88,7 @@ RTU: Final = Framing(LineKind.RTU, encode_rtu, RtuResponseDecoder)
 #: Modbus ASCII: ':' hex characters, LRC, CR LF.
 ASCII: Final = Framing(LineKind.ASCII, encode_ascii, AsciiResponseDecoder)
 
-_BY_KIND: Final = {LineKind.RTU: RTU, LineKind.ASCII: ASCII}
+_BY_KIND: Final = {LineKind.RTU: RTU, LineKind.ASCII: ASCII, LineKind.RTU_OVER_TCP: RTU}
 
 
 def mbap_framing(first_transaction_id: int = 0) -> Framing:

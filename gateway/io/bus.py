@@ -7,6 +7,11 @@ driver feeds it the port's bytes (``receive``), the precise clock's deadline
 frames to write, answers to hand back, notes to count and log; and arms the one
 deadline ``get_timer()`` names through ``PreciseClock``. It also reopens a lost
 port with back-off.
+
+What carries the bytes is a ``Link``: the serial port (``kind = "rtu"``), or a TCP
+connection to a serial device server (``kind = "rtu-over-tcp"``), connected without
+blocking the loop and reconnected with the same back-off as a port is reopened.
+While the link is down the core answers 0x0A, whatever the kind.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock
+from .link import Link, LinkError, TcpLink, connect_tcp
 from .serial_port import SerialLink, SerialPortError, open_serial
 
 log = logging.getLogger("gateway.bus")
@@ -55,7 +61,7 @@ class Bus:
         self._core = LineCore(
             config, time.monotonic(), metrics.line_counters(self.name), framing_for(config.kind)
         )
-        self._link: SerialLink | None = None
+        self._link: Link | None = None
         self._reopener: asyncio.Task[None] | None = None
         self._stopping = False
         self._pumping = False
@@ -97,8 +103,10 @@ class Bus:
     # -- lifecycle -----------------------------------------------------------------------
 
     def start(self) -> None:
-        """Open the port, or begin retrying."""
-        if not self._try_open():
+        """Open the port, or begin retrying (a network line connects in the background)."""
+        if self.config.networked:
+            self._schedule_reopen(first_delay=0.0)
+        elif not self._try_open():
             self._schedule_reopen()
 
     async def stop(self, grace: float) -> None:
@@ -235,7 +243,7 @@ class Bus:
                 self._m_queue_wait.observe(transmit.queue_wait)
             try:
                 link.write(transmit.frame)
-            except SerialPortError:
+            except LinkError:
                 return  # the link called ``_on_lost``: the core answered 0x0A
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
@@ -336,19 +344,66 @@ class Bus:
         self._pump()
         return True
 
-    def _schedule_reopen(self) -> None:
-        if self._reopener is None or self._reopener.done():
-            self._reopener = self._loop.create_task(self._reopen(), name=f"reopen-{self.name}")
+    async def _try_connect(self) -> bool:
+        """Connect to the device server (then wait ``connect_delay``); False on failure."""
+        config = self.config
+        try:
+            sock = await connect_tcp(config.host, config.port, config.connect_timeout)
+        except OSError as error:
+            reason = f"line {self.name!r}: cannot connect to {config.device}: {error}"
+            if reason != self._open_error:  # first failure, or a new reason: say it once
+                self._open_error = reason
+                log.error("%s; retrying", reason)
+            return False
+        lost: list[OSError] = []
+        link = TcpLink(sock, config.device, self._loop, self._discard, lost.append)
+        if config.connect_delay > 0:
+            # Some device servers drop what arrives while they set up their serial side:
+            # nothing is sent (the line stays down, 0x0A) and nothing read counts.
+            try:
+                await asyncio.sleep(config.connect_delay)
+            except asyncio.CancelledError:
+                link.close()
+                raise
+        if lost or link.closed:
+            reason = f"line {self.name!r}: {config.device} closed the connection at once"
+            if reason != self._open_error:
+                self._open_error = reason
+                log.error("%s; retrying", reason)
+            return False
+        self._open_error = ""
+        link.on_data, link.on_lost = self._on_data, self._on_lost
+        self._link = link
+        self._m_line_up.set(1)
+        log.info("line %s: connected to %s (rtu over tcp)", self.name, config.device)
+        self._core.port_opened(time.monotonic())
+        self._pump()
+        return True
 
-    async def _reopen(self) -> None:
-        delay = _REOPEN_FIRST_DELAY
+    @staticmethod
+    def _discard(_data: bytes) -> None:
+        """Bytes read during the connect delay: not an answer to anything."""
+
+    def _schedule_reopen(self, first_delay: float = _REOPEN_FIRST_DELAY) -> None:
+        if self._reopener is None or self._reopener.done():
+            self._reopener = self._loop.create_task(
+                self._reopen(first_delay), name=f"reopen-{self.name}"
+            )
+
+    async def _reopen(self, first_delay: float = _REOPEN_FIRST_DELAY) -> None:
+        delay = first_delay
         while not self._stopping:
-            await asyncio.sleep(delay)
-            if self._try_open():
-                log.info("line %s: back up", self.name)
+            if delay > 0:
+                await asyncio.sleep(delay)
+            if self._stopping:
+                return
+            opened = await self._try_connect() if self.config.networked else self._try_open()
+            if opened:
+                if delay > 0:
+                    log.info("line %s: back up", self.name)
                 self._reopener = None
                 return
-            delay = min(delay * 2, _REOPEN_MAX_DELAY)
+            delay = min(max(delay * 2, _REOPEN_FIRST_DELAY), _REOPEN_MAX_DELAY)
 
     # -- status: the status page's only view of a line ------------------------------------
 
@@ -368,7 +423,7 @@ class Bus:
             state = LineState.UP
         return LineStatus(
             name=self.name,
-            kind="url" if config.is_url else "serial",
+            kind=config.kind if config.networked else "url" if config.is_url else "serial",
             device=config.device,
             state=state,
             queued=self.queued,

@@ -32,6 +32,7 @@ import serial
 import serial.rs485
 
 from ..config import LineConfig
+from .link import LinkError
 
 _PARITIES = {"N": serial.PARITY_NONE, "E": serial.PARITY_EVEN, "O": serial.PARITY_ODD}
 _STOP_BITS = {
@@ -42,7 +43,7 @@ _STOP_BITS = {
 _READ_CHUNK = 4096
 
 
-class SerialPortError(OSError):
+class SerialPortError(LinkError):
     """A serial line that cannot be opened or configured, with the setting to blame."""
 
 
