@@ -32,6 +32,7 @@ from .core.policy import Policy
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
+from .io.rtu_listener import RtuOverTcpServer
 from .io.serial_port import check_device_free
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
@@ -166,7 +167,8 @@ class Gateway:
         router = self._build_router()
         for listener in listeners:
             built = tls.get(listener.name)
-            server = ModbusTcpServer(
+            kind = RtuOverTcpServer if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
+            server = kind(
                 self.config.server, router, self.metrics, listener,
                 self._policy(self.config, listener), built.context if built else None,
             )  # fmt: skip
@@ -196,6 +198,9 @@ class Gateway:
             listener = server.listener
             if listener.tls:
                 log.info("listening on %s:%d (Modbus/TCP Security), listener %s, %d line(s)",
+                         host, port, listener.name, len(self.buses))  # fmt: skip
+            elif listener.protocol == "rtu-over-tcp":
+                log.info("listening on %s:%d (RTU over TCP), listener %s, %d line(s)",
                          host, port, listener.name, len(self.buses))  # fmt: skip
             else:
                 log.info("listening on %s:%d (Modbus TCP), listener %s, %d line(s)",

@@ -94,6 +94,9 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--tls-listen", metavar="HOST:PORT", type=_host_port,
                         help="Modbus/TCP Security (TLS) address, listener 'tls' (802 is the "
                         "standard port); needs --tls-cert, --tls-key, --tls-ca")  # fmt: skip
+    parser.add_argument("--rtu-over-tcp-listen", metavar="HOST:PORT", type=_host_port,
+                        help="also accept masters sending RTU frames over TCP here, listener "
+                        "'rtu-over-tcp'")  # fmt: skip
     parser.add_argument("--tls-cert", metavar="FILE",
                         help="the server's certificate chain, PEM (leaf first)")  # fmt: skip
     parser.add_argument("--tls-key", metavar="FILE", help="the server's private key, PEM")
@@ -187,6 +190,8 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
     if args.read_only:
         raw.setdefault("server", {})["read_only"] = True
     _apply_tls_flags(raw, args)
+    if args.rtu_over_tcp_listen:
+        _set_listener(raw, "rtu-over-tcp", {"listen": args.rtu_over_tcp_listen})
     if args.log_level:
         raw.setdefault("logging", {})["level"] = args.log_level
     if args.log_format:
@@ -237,6 +242,21 @@ def _apply_network_line(
         raise ConfigError(
             flag, ["the configuration has several lines; set each line's address in the file"]
         )
+
+
+def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, str]) -> None:
+    """Set the listener named ``protocol`` (added when the file has none)."""
+    listeners = raw.setdefault("listeners", [])
+    if not isinstance(listeners, list):
+        return  # build_config reports the type
+    entry = next(
+        (item for item in listeners if isinstance(item, dict) and item.get("name") == protocol),
+        None,
+    )
+    if entry is None:
+        entry = {"name": protocol, "protocol": protocol}
+        listeners.append(entry)
+    entry.update(values)
 
 
 def _apply_tls_flags(raw: dict[str, Any], args: argparse.Namespace) -> None:

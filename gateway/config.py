@@ -31,7 +31,7 @@ VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
-VALID_PROTOCOLS = ("tcp", "tls")
+VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp")
 #: Line kinds reached over the network rather than through a device node.
 NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
@@ -82,7 +82,8 @@ class ServerConfig:
 
 @dataclass(frozen=True)
 class ListenerConfig:
-    """One listening address: ``tcp`` (Modbus TCP) or ``tls`` (Modbus/TCP Security)."""
+    """One listening address: ``tcp`` (Modbus TCP), ``tls`` (Modbus/TCP Security) or
+    ``rtu-over-tcp`` (RTU frames over TCP)."""
 
     name: str
     protocol: str = "tcp"
@@ -1078,7 +1079,7 @@ def _build_listeners(
                 }
                 check.fail(f"{prefix}{file_key}", f"missing; a tls listener needs {what[file_key]}"
                            f" (or --tls-{file_key} FILE)")  # fmt: skip
-            if protocol == "tcp" and value is not None:
+            if protocol != "tls" and value is not None:
                 check.fail(f"{prefix}{file_key}", 'only a protocol = "tls" listener takes it')
             files[file_key] = value
         listeners.append(

@@ -489,6 +489,9 @@ class MasterConnection(asyncio.BufferedProtocol):
 class ModbusTcpServer:
     """One listener: accepts masters (allow lists, admission, eviction) and keeps the books."""
 
+    #: What serves one accepted master (``rtu_listener`` gives RTU framing its own).
+    connection_class: type[MasterConnection] = MasterConnection
+
     def __init__(
         self,
         config: ServerConfig,
@@ -616,7 +619,7 @@ class ModbusTcpServer:
             log.debug("master %s refused (%s)", peer, refusal)
             return
         sock.setblocking(False)
-        connection = MasterConnection(self, peer, source, time.monotonic(), ip)
+        connection = self.connection_class(self, peer, source, time.monotonic(), ip)
         self._connections[connection] = None
         self._per_source[source] = self._per_source.get(source, 0) + 1
         self.metrics.connections_accepted.inc()

@@ -192,8 +192,13 @@ def socat_line(
         stack.callback(server.kill)
         gateway = make_gateway({"lines": {"net": line_table(f"127.0.0.1:{server.port}", [1, 2])}})
         stack.callback(gateway.stop)
-        wait_until(lambda: gateway.call(lambda: gateway.gateway.buses["net"].up))
+        wait_until(lambda: line_up(gateway))
         yield sim, server, gateway
+
+
+def line_up(gateway: RunningGateway) -> bool:
+    """True once the gateway is connected to the device server (it connects in the background)."""
+    return gateway.call(lambda: gateway.gateway.buses["net"].up)
 
 
 def wait_until(condition: Any, timeout: float = DEADLINE_S) -> None:
@@ -253,6 +258,7 @@ def test_answers_cut_into_small_segments_are_framed_by_length(
         # its length cannot be predicted, so only silence (50 ms by default) ends it.
         server.extra[h("41")] = _rtu(h("01 41 AA BB CC DD"))
         gateway = make_gateway({"lines": {"net": line_table(f"127.0.0.1:{server.port}", [1])}})
+        wait_until(lambda: line_up(gateway))
         with gateway.connect() as client:
             for address in (0, 1000, 1100):
                 quantity = 125 if address else 10
@@ -307,6 +313,7 @@ def test_pymodbus_rtu_over_tcp_server_as_the_device_server(make_gateway: Gateway
     assert ready.wait(DEADLINE_S)
     try:
         gateway = make_gateway({"lines": {"net": line_table(f"127.0.0.1:{port}", [7])}})
+        wait_until(lambda: line_up(gateway))
         with gateway.connect() as client:
             assert client.request(7, h("03 0000 0004")) == h("03 08") + pack_registers(
                 [0, 10, 20, 30]
@@ -342,11 +349,11 @@ def test_device_server_absent_then_present(
         server = Socat(port, sim.path)
         server.start()
         try:
-            wait_until(lambda: gateway.call(lambda: gateway.gateway.buses["net"].up))
+            wait_until(lambda: line_up(gateway))
             assert client.request(1, h("03 0001 0001")) == h("03 02 0002")
         finally:
             server.kill()
-        wait_until(lambda: not gateway.call(lambda: gateway.gateway.buses["net"].up))
+        wait_until(lambda: not line_up(gateway))
         assert client.request(1, h("03 0000 0001")) == h("83 0A")
 
 
@@ -390,9 +397,9 @@ def test_device_server_killed_and_restarted_under_load(
             before = sum(answered)
             wait_until(lambda before=before: sum(answered) >= before + 50)
             server.kill()
-            wait_until(lambda: not gateway.call(lambda: gateway.gateway.buses["net"].up))
+            wait_until(lambda: not line_up(gateway))
             server.start()
-            wait_until(lambda: gateway.call(lambda: gateway.gateway.buses["net"].up))
+            wait_until(lambda: line_up(gateway))
         before = sum(answered)
         wait_until(lambda: sum(answered) >= before + 50)
     finally:

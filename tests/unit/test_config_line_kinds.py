@@ -98,3 +98,15 @@ def test_the_rtu_over_tcp_flag() -> None:
     both = build_parser().parse_args(["--rtu-over-tcp", "h:1", "--serial", "/dev/ttyS0"])
     with pytest.raises(ConfigError, match="either --serial or --rtu-over-tcp"):
         apply_overrides({}, both)
+
+
+def test_the_rtu_over_tcp_listener_flag_and_table() -> None:
+    args = build_parser().parse_args(["--serial", "/dev/ttyS0", "--rtu-over-tcp-listen", ":4001"])
+    config = build_config(apply_overrides({}, args))
+    (listener,) = config.listeners  # alone: as with --tls-listen, no implicit tcp listener
+    assert (listener.name, listener.protocol, listener.host, listener.port) == (
+        "rtu-over-tcp", "rtu-over-tcp", "0.0.0.0", 4001,
+    )  # fmt: skip
+    entry = {"name": "rtu", "protocol": "rtu-over-tcp", "listen": "0.0.0.0:4001", "cert": "a.pem"}
+    found = problems({"lines": {"a": {"device": "/dev/ttyS0"}}, "listeners": [entry]})
+    assert found == ['listeners[0].cert: only a protocol = "tls" listener takes it']

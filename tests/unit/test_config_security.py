@@ -68,7 +68,7 @@ def test_listener_faults_are_named() -> None:
     assert 'listeners[1].cert: only a protocol = "tls" listener takes it' in text
     assert "listeners[1].policy: 'nope' is not a [policies.NAME] table" in text
     assert "listeners[1].name: 'tcp' is used by another listener" in text
-    assert "listeners[2].protocol: 'udp' is not one of: tcp, tls" in text
+    assert "listeners[2].protocol: 'udp' is not one of: tcp, tls, rtu-over-tcp" in text
     assert "two listeners on 0.0.0.0:502" in text
 
 
