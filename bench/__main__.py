@@ -26,7 +26,14 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from . import hostile, kind_scenarios, line_scenarios, scenarios, tls_scenarios
+from . import (
+    hostile,
+    kind_scenarios,
+    line_scenarios,
+    scenarios,
+    tls_scenarios,
+    transport_scenarios,
+)
 from .procs import BenchError, environment_summary
 from .report import render_checks, render_table
 from .scenarios import Bench, ScenarioResult, Timing
@@ -39,6 +46,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **scenarios.SCENARIOS,
     **line_scenarios.SCENARIOS,
     **tls_scenarios.SCENARIOS,
+    **transport_scenarios.SCENARIOS,
     **hostile.SCENARIOS,
     **kind_scenarios.SCENARIOS,
 }

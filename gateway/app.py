@@ -34,6 +34,7 @@ from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.rtu_listener import RtuOverTcpServer
 from .io.serial_port import check_device_free
+from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, server_context
@@ -114,6 +115,7 @@ class Gateway:
         self.buses: dict[str, Bus] = {}
         self.server: ModbusTcpServer | None = None  #: the first listener
         self.servers: list[ModbusTcpServer] = []  #: every listener, in configuration order
+        self.serial_slaves: list[SerialSlave] = []  #: ``serial-slave`` listeners
         self._clocks: dict[str, PreciseClock] = {}  # one per bus: a clock has one sleeper
         self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
@@ -149,7 +151,7 @@ class Gateway:
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         loop = asyncio.get_running_loop()
-        listeners = self.config.listeners or (
+        listeners = tuple(lst for lst in self.config.listeners if lst.serial is None) or (
             ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
         )
         tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
@@ -175,6 +177,13 @@ class Gateway:
             server.tracer = self.tracer
             self.servers.append(server)
         self.server = self.servers[0]
+        for listener in self.config.listeners:
+            if listener.serial is not None:
+                check_device_free(listener.serial)
+                slave = SerialSlave(listener, router, self.metrics,
+                                    self._policy(self.config, listener), loop)  # fmt: skip
+                self.serial_slaves.append(slave)
+                slave.start()
         self.live = LiveView(self)
         for server in self.servers:
             listener = server.listener
@@ -236,6 +245,8 @@ class Gateway:
         log.info("stopping: no new connections, finishing the transactions on the wire")
         for server in self.servers:
             server.stop_accepting()
+        for slave in self.serial_slaves:
+            slave.stop()
         await asyncio.gather(*(bus.stop(grace) for bus in self.buses.values()))
         for server in self.servers:
             server.close_all(CloseReason.SHUTDOWN)
@@ -308,7 +319,8 @@ class Gateway:
             )
         running = {s.name: (s.listener.protocol, s.listener.host, s.listener.port)
                    for s in self.servers}  # fmt: skip
-        wanted = {lst.name: (lst.protocol, lst.host, lst.port) for lst in config.listeners}
+        wanted = {lst.name: (lst.protocol, lst.host, lst.port) for lst in config.listeners
+                  if lst.serial is None}  # fmt: skip
         if config.listeners and wanted != running:
             log.warning(
                 "reload: adding, removing or moving listeners needs a restart; the listeners "
@@ -334,6 +346,14 @@ class Gateway:
             )
             if server.name in tls:
                 server.ssl_context = tls[server.name].context
+        for slave in self.serial_slaves:
+            slave.router = router
+            listener = by_name.get(slave.name)
+            if listener is not None and listener.serial == slave.listener.serial:
+                slave.policy = self._policy(config, listener)
+            else:
+                log.warning("reload: serial-slave listener %s: device changes need a restart",
+                            slave.name)  # fmt: skip
         self.metrics.describe_lines([line.name for line in config.lines])
         log.info("reload: configuration from %s applied", config.source)
 

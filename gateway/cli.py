@@ -97,6 +97,10 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--rtu-over-tcp-listen", metavar="HOST:PORT", type=_host_port,
                         help="also accept masters sending RTU frames over TCP here, listener "
                         "'rtu-over-tcp'")  # fmt: skip
+    parser.add_argument("--serial-slave", metavar="DEVICE",
+                        help="also answer RTU masters on this serial device as the routed "
+                        "slaves (reverse mode), listener 'serial-slave'; the line format "
+                        "of --baudrate/--parity/--stopbits applies to it too")  # fmt: skip
     parser.add_argument("--tls-cert", metavar="FILE",
                         help="the server's certificate chain, PEM (leaf first)")  # fmt: skip
     parser.add_argument("--tls-key", metavar="FILE", help="the server's private key, PEM")
@@ -192,6 +196,11 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
     _apply_tls_flags(raw, args)
     if args.rtu_over_tcp_listen:
         _set_listener(raw, "rtu-over-tcp", {"listen": args.rtu_over_tcp_listen})
+    if args.serial_slave:
+        serial: dict[str, Any] = {"device": args.serial_slave}
+        formats = {"baudrate": args.baudrate, "parity": args.parity, "stop_bits": args.stopbits}
+        serial.update({key: value for key, value in formats.items() if value is not None})
+        _set_listener(raw, "serial-slave", serial)
     if args.log_level:
         raw.setdefault("logging", {})["level"] = args.log_level
     if args.log_format:
@@ -244,7 +253,7 @@ def _apply_network_line(
         )
 
 
-def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, str]) -> None:
+def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, Any]) -> None:
     """Set the listener named ``protocol`` (added when the file has none)."""
     listeners = raw.setdefault("listeners", [])
     if not isinstance(listeners, list):

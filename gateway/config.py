@@ -31,7 +31,7 @@ VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
-VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp")
+VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
 #: Line kinds reached over the network rather than through a device node.
 NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
@@ -96,6 +96,10 @@ class ListenerConfig:
     read_only: bool = False
     policy: str | None = None  #: a name in ``GatewayConfig.policies``; None: no rules
     key_prefix: str = "server."  #: where it was configured, for messages
+    #: ``serial-slave``: the serial line the gateway answers on as a slave (its device and
+    #: format), and the units it answers for (empty: every routed unit).
+    serial: LineConfig | None = None
+    units: tuple[int, ...] = ()
 
     @property
     def tls(self) -> bool:
@@ -814,6 +818,29 @@ def _check_shared_devices(check: _Checker, lines: tuple[LineConfig, ...]) -> Non
             )
 
 
+def _check_serial_slave_devices(
+    check: _Checker, lines: tuple[LineConfig, ...], listeners: Iterable[ListenerConfig]
+) -> None:
+    """A serial-slave listener's device is its own: not a line's, not another listener's."""
+    owners = {
+        (line.device if line.is_url else _device_identity(line.device)): f"line {line.name!r}"
+        for line in lines
+        if line.device
+    }
+    for listener in listeners:
+        serial = listener.serial
+        if serial is None or not serial.device:
+            continue
+        identity = serial.device if serial.is_url else _device_identity(serial.device)
+        owner = owners.setdefault(identity, f"listener {listener.name!r}")
+        if owner != f"listener {listener.name!r}":
+            check.fail(
+                f"{listener.key_prefix}device",
+                f"{serial.device!r} is the device of {owner} too; a serial-slave listener "
+                "needs a serial line of its own",
+            )
+
+
 def _hosts_overlap(first: str, second: str) -> bool:
     wildcard = ("0.0.0.0", "::", "")
     return first == second or first in wildcard or second in wildcard
@@ -1020,6 +1047,40 @@ def _build_policies(check: _Checker, raw: Mapping[str, Any]) -> dict[str, tuple[
 
 
 _LISTENER_KEYS = {"name", "protocol", "listen", "cert", "key", "ca", "allow", "read_only", "policy"}
+#: Keys of a ``serial-slave`` listener only: its serial line, and the units it answers for.
+_SERIAL_SLAVE_KEYS = {"device", "baudrate", "data_bits", "parity", "stop_bits", "units"}
+
+
+def _serial_slave_line(
+    check: _Checker, entry: Mapping[str, Any], prefix: str, name: str
+) -> tuple[LineConfig, tuple[int, ...]]:
+    """The serial line of a ``serial-slave`` listener, and the units it answers for."""
+    device = entry.get("device")
+    if not isinstance(device, str) or not device:
+        check.fail(f"{prefix}device", 'missing; a serial-slave listener answers on a serial '
+                   'device, like "/dev/ttyUSB1" (or --serial-slave DEVICE)')  # fmt: skip
+        device = ""
+    if "listen" in entry:
+        check.fail(f"{prefix}listen", "a serial-slave listener has a device, not an address")
+    stop_bits = entry.get("stop_bits", 1)
+    if stop_bits not in (1, 1.5, 2) or isinstance(stop_bits, bool):
+        check.fail(f"{prefix}stop_bits", f"{stop_bits!r} is not 1, 1.5 or 2")
+        stop_bits = 1
+    units: tuple[int, ...] = ()
+    if "units" in entry:
+        try:
+            units = tuple(parse_units(entry["units"]))
+        except ValueError as error:
+            check.fail(f"{prefix}units", str(error))
+    line = LineConfig(
+        name=f"listener {name}",
+        device=device,
+        baudrate=check.integer(entry, "baudrate", prefix, 9600, 50, 4_000_000),
+        data_bits=check.integer(entry, "data_bits", prefix, 8, 7, 8),
+        parity=check.choice(entry, "parity", prefix, "N", VALID_PARITIES, upper=True),
+        stop_bits=float(stop_bits),
+    )
+    return line, units
 
 
 def _build_listeners(
@@ -1031,7 +1092,8 @@ def _build_listeners(
     """``[server] listen`` (the shorthand tcp listener) and every ``[[listeners]]`` entry.
 
     The shorthand listener exists when ``[server] listen`` is written (or ``--listen``
-    given), or when no other listener is configured: as before listeners existed.
+    given), or when no other network listener is configured: as before listeners existed
+    (a ``serial-slave`` listener does not replace it).
     """
     server_table = check.table(raw, "server")
     entries = raw.get("listeners", [])
@@ -1039,7 +1101,10 @@ def _build_listeners(
         check.fail("listeners", "write listeners as [[listeners]] tables")
         entries = []
     listeners: list[ListenerConfig] = []
-    if "listen" in server_table or not entries:
+    networked = [
+        e for e in entries if not (isinstance(e, dict) and e.get("protocol") == "serial-slave")
+    ]
+    if "listen" in server_table or not networked:
         listeners.append(
             ListenerConfig(
                 name="tcp", protocol="tcp", host=server.host, port=server.port,
@@ -1052,12 +1117,30 @@ def _build_listeners(
             check.fail(key, "must be a table with name, protocol and listen")
             continue
         prefix = f"{key}."
-        check.unknown_keys(entry, _LISTENER_KEYS, prefix)
+        check.unknown_keys(entry, _LISTENER_KEYS | _SERIAL_SLAVE_KEYS, prefix)
         protocol = check.choice(entry, "protocol", prefix, "tcp", VALID_PROTOCOLS)
         name = entry.get("name", protocol)
         if not isinstance(name, str) or not name.replace("-", "_").isidentifier():
             check.fail(f"{prefix}name", f"{name!r}: write a short name of letters, digits, - or _")
             name = f"listener{index}"
+        if protocol == "serial-slave":
+            serial, units = _serial_slave_line(check, entry, prefix, name)
+            for other in ("cert", "key", "ca", "allow"):
+                if other in entry:
+                    check.fail(f"{prefix}{other}", "a serial-slave listener has no network "
+                               "peers: remove it")  # fmt: skip
+            listeners.append(
+                ListenerConfig(
+                    name=name, protocol=protocol, host="", port=0,
+                    read_only=check.boolean(entry, "read_only", prefix, False) or server.read_only,
+                    policy=_policy_name(check, entry, prefix), key_prefix=prefix,
+                    serial=serial, units=units,
+                )
+            )  # fmt: skip
+            continue
+        for serial_key in sorted(_SERIAL_SLAVE_KEYS & set(entry)):
+            check.fail(f"{prefix}{serial_key}", 'only a protocol = "serial-slave" listener '
+                       "takes it")  # fmt: skip
         default_port = DEFAULT_TLS_PORT if protocol == "tls" else 502
         address = check.address(entry, "listen", prefix, f"0.0.0.0:{default_port}")
         if address is None:
@@ -1144,10 +1227,11 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
             'no serial line configured; add [lines.a] with device = "/dev/ttyUSB0" '
             "(or run with --serial DEVICE, or --demo)",
         )
-    _check_shared_devices(check, lines)
     routes = _build_routes(check, raw, lines)
     policies = _build_policies(check, raw)
     listeners = _build_listeners(check, raw, server, policies)
+    _check_shared_devices(check, lines)
+    _check_serial_slave_devices(check, lines, listeners)
     if check.problems:
         raise ConfigError(source, check.problems)
     return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies)

@@ -110,3 +110,36 @@ def test_the_rtu_over_tcp_listener_flag_and_table() -> None:
     entry = {"name": "rtu", "protocol": "rtu-over-tcp", "listen": "0.0.0.0:4001", "cert": "a.pem"}
     found = problems({"lines": {"a": {"device": "/dev/ttyS0"}}, "listeners": [entry]})
     assert found == ['listeners[0].cert: only a protocol = "tls" listener takes it']
+
+
+def test_a_serial_slave_listener_and_its_flag() -> None:
+    args = build_parser().parse_args(
+        ["--serial", "/dev/ttyS0", "--serial-slave", "/dev/ttyS1", "--baudrate", "19200"]
+    )
+    config = build_config(apply_overrides({}, args))
+    tcp, slave = config.listeners  # the tcp listener stays: a serial-slave does not replace it
+    assert (tcp.protocol, slave.name, slave.protocol) == ("tcp", "serial-slave", "serial-slave")
+    assert slave.serial is not None
+    assert (slave.serial.device, slave.serial.baudrate, slave.units) == ("/dev/ttyS1", 19200, ())
+
+
+@pytest.mark.parametrize(
+    ("entry", "expected"),
+    [
+        ({"protocol": "serial-slave"},
+         'listeners[0].device: missing; a serial-slave listener answers on a serial device, '
+         'like "/dev/ttyUSB1" (or --serial-slave DEVICE)'),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS0"},
+         "listeners[0].device: '/dev/ttyS0' is the device of line 'a' too; a serial-slave "
+         "listener needs a serial line of its own"),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS1", "listen": "0.0.0.0:1"},
+         "listeners[0].listen: a serial-slave listener has a device, not an address"),
+        ({"protocol": "tcp", "listen": "0.0.0.0:1", "baudrate": 9600},
+         'listeners[0].baudrate: only a protocol = "serial-slave" listener takes it'),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS1", "units": [0]},
+         "listeners[0].units: unit 0 outside 1..247 (0 is broadcast, 248..255 are reserved)"),
+    ],
+)  # fmt: skip
+def test_serial_slave_mistakes(entry: dict[str, Any], expected: str) -> None:
+    raw = {"lines": {"a": {"device": "/dev/ttyS0", "units": [1]}}, "listeners": [entry]}
+    assert problems(raw) == [expected]
