@@ -99,8 +99,7 @@ class RtuStreamDecoder:
         frame = bytes(buffer[:length])
         if not check_crc(frame):
             return self._fail("bad_crc", f"CRC of a {length}-byte request does not match")
-        del buffer[:length]
-        self._silent = False
+        del buffer[:length]  # the silence, if any, also follows whatever is left
         number = self._next_id
         self._next_id = (number + 1) & 0xFFFF
         return MbapFrame(number, frame[0], frame[1:-2])

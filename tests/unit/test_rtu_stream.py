@@ -75,6 +75,14 @@ def test_an_unknown_function_ends_on_silence_only() -> None:
     assert not decoder.awaiting_silence
 
 
+def test_a_silence_seen_while_a_request_waited_ends_the_next_one_too() -> None:
+    decoder = RtuStreamDecoder()
+    decoder.feed(append_crc(h("01 03 0000 0001")) + append_crc(h("01 41 AA")))
+    decoder.silence()  # came while the master's first request was still being answered
+    assert decoder.next_frame() == MbapFrame(0, 1, h("03 0000 0001"))
+    assert decoder.next_frame() == MbapFrame(1, 1, h("41 AA"))
+
+
 def test_an_endless_request_of_unknown_length_is_refused() -> None:
     decoder = RtuStreamDecoder()
     decoder.feed(h("01 41") + bytes(255))
