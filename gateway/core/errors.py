@@ -52,9 +52,14 @@ class FramingError(ProtocolError):
 
 
 class ResponseError(ProtocolError):
-    """An RTU response that is not a valid answer to the request on the wire."""
+    """An RTU response that is not a valid answer to the request on the wire.
 
-    def __init__(self, kind: str, reason: str) -> None:
+    ``frame`` is the whole checked frame when it was intact but answers something else
+    (another unit, function or request): it may be a late answer the line still expects.
+    """
+
+    def __init__(self, kind: str, reason: str, frame: bytes = b"") -> None:
         super().__init__(reason)
         self.kind = kind
         self.reason = reason
+        self.frame = frame

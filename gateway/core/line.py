@@ -571,6 +571,8 @@ class LineCore:
                     # Another unit's frame, or a late answer to an earlier request: drop
                     # it and keep decoding whatever followed it in the same read.
                     self._discard(error.kind, 1, attempt.request.slave)
+                    if self._guards and error.frame:
+                        self._late_frame(error.frame)
                 else:
                     self._garbled(attempt, error, decoder.looks_like_answer, now)
                     if self._attempt is not attempt:  # failed: the rest is late bytes
@@ -1120,12 +1122,39 @@ class LineCore:
                     break
                 chunk = decoder.leftover
                 decoder.reset()
-                record.guard_pending -= 1
-                if record.guard_pending <= 0:  # every lost attempt's answer has come
-                    self._clear_guard(slave)
+                if self._late_answer_arrived(slave, record) or not chunk:
                     break
-                if not chunk:
-                    break
+
+    def _late_frame(self, frame: bytes) -> None:
+        """An intact frame the attempt on the wire discarded: is it a lost answer?"""
+        slave = frame[0]
+        record = self._guards.get(slave)
+        if record is None or record.guard_owner is None:
+            return
+        try:
+            answer = self._new_decoder(slave, record.guard_owner.pdu).feed(frame)
+        except ResponseError:
+            return
+        if answer is not None:
+            self._late_answer_arrived(slave, record)
+
+    def _late_answer_arrived(self, slave: int, record: _Slave) -> bool:
+        """A lost attempt's answer came (and was thrown away); ``True`` when the window ended.
+
+        The slave is alive, only slow: it is no longer suspect or down.
+        """
+        record.guard_pending -= 1
+        record.misses = 0
+        if record.state is not SlaveState.UP:
+            self._set_state(slave, record, SlaveState.UP)
+            waiting = self._lane.get(slave)
+            if waiting is not None:  # served in the masters' fair order again
+                self._lane_remove(waiting)
+                self._queue_at_front(waiting)
+        if record.guard_pending <= 0:  # every lost attempt's answer has come
+            self._clear_guard(slave)
+            return True
+        return False
 
     def _strip_echo(self, data: bytes) -> bytes:
         """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""

@@ -236,18 +236,19 @@ class RtuResponseDecoder:
             raise ResponseError("crc", "response CRC mismatch")
         if frame[0] != self._unit:
             raise ResponseError(
-                "unexpected_unit", f"response from unit {frame[0]}, expected {self._unit}"
+                "unexpected_unit", f"response from unit {frame[0]}, expected {self._unit}", frame
             )
         if frame[1] & 0x7F != self._function:
             raise ResponseError(
                 "unexpected_function",
                 f"response for function {frame[1] & 0x7F}, expected {self._function}",
+                frame,
             )
         pdu = frame[1:-2]
         if not pdu[0] & fc.EXCEPTION_FLAG:
             mismatch = _mismatch(self._request_pdu, pdu)
             if mismatch:
-                raise ResponseError("mismatch", mismatch)
+                raise ResponseError("mismatch", mismatch, frame)
         return RtuFrame(frame[0], pdu)
 
 

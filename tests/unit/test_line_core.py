@@ -255,6 +255,28 @@ def test_the_window_waits_for_the_answers_of_every_lost_attempt() -> None:
     assert line.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
 
 
+def test_a_late_answer_during_another_slaves_transaction_ends_the_window() -> None:
+    """The lost answer arrives while another slave's request is on the wire: discarded there,
+    it still tells the line that slave 1 is alive and done, so it is served again at once."""
+    line = Line(timeout=0.5, retries=0, late_answer_window=2.0)
+    line.submit(1, read(100), 0.0)
+    line.sent()
+    failed_at = line.timer()
+    assert line.core.slave_state(1) is SlaveState.SUSPECT
+    other = line.submit(2, read(7), failed_at + 0.01)
+    held = line.submit(1, read(200), failed_at + 0.01, master="b")
+    assert line.sent() == [encode_rtu(2, read(7))]
+    line.receive(registers_answer(1, read(100), 100), failed_at + 0.02)  # slave 1, late
+    assert [n.detail for n in line.notes(LineEvent.DISCARDED)][-1] == "unexpected_unit"
+    assert line.core.slave_state(1) is SlaveState.UP
+    line.receive(registers_answer(2, read(7), 7), failed_at + 0.03)
+    assert line.answer_of(other)[1] == Outcome.OK
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(200))]
+    line.receive(registers_answer(1, read(200), 200), failed_at + 0.1)
+    assert line.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
+
+
 def test_a_distinguishable_read_goes_and_its_answer_ends_the_window() -> None:
     line = Line(timeout=0.5, retries=0, late_answer_window=2.0, dead_after=0)
     line.submit(1, read(100, quantity=2), 0.0)
