@@ -14,6 +14,7 @@ from conftest import GatewayFactory, SimFactory
 from metrics_harness import samples, series
 from test_sim import FUNCTION_VECTORS
 
+from gateway.config import build_config
 from gateway.sim import UnitFaults, plc
 
 #: ptys refuse some parities (FIELD-NOTES): ASCII lines in tests run 8N1.
@@ -89,3 +90,23 @@ def test_an_echoing_adapter_without_echo_set_fails_reads(
     gw = make_gateway({"lines": {"a": sim.line_table([1], retries=0)}})
     with gw.connect() as master:
         assert master.request(1, h("03 0000 0002")) == h("83 0B")
+
+
+def test_a_reload_that_changes_the_kind_reopens_the_line(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    sim = make_sim({1: plc(1)}, framing="ascii")
+    tables: dict[str, Any] = {"lines": {"a": sim.line_table([1], retries=0, timeout=0.1)}}
+    gw = make_gateway(tables)
+    with gw.connect() as master:
+        assert master.request(1, h("03 0000 0002")) == h("83 0B")  # RTU to an ASCII slave
+        raw = {
+            "server": {"listen": "127.0.0.1:0"},
+            "metrics": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1], retries=0, **ASCII_ON_PTY)},
+        }
+        gw.run(gw.gateway.reload(build_config(raw, "<reload>")))
+        assert master.request(1, h("03 0000 0002")) == h("03 04 0000 0002")
+    found = samples(gw)
+    assert found[series("modbus_gateway_line_info", line="a", kind="ascii")] == 1
+    assert series("modbus_gateway_line_info", line="a", kind="rtu") not in found
