@@ -37,7 +37,6 @@ faults a client can repeat at will are rate-limited per source and kind.
 from __future__ import annotations
 
 import asyncio
-import enum
 import errno
 import logging
 import socket
@@ -45,7 +44,7 @@ import ssl
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import cast
+from typing import Final, cast
 
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
@@ -77,13 +76,17 @@ LOG_INTERVAL_S = 60.0
 _ACCEPT_RESOURCE_ERRORS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 
 
-class ReadPause(enum.Flag):
-    """Why a connection is not read from; reading resumes when no reason is left."""
+class ReadPause:
+    """Why a connection is not read from (bits); reading resumes when no reason is left.
 
-    NONE = 0
-    PIPELINE = enum.auto()  #: ``max_pipeline`` requests in flight
-    BACKLOG = enum.auto()  #: too many replies not yet sent (the master does not read)
-    BATCH = enum.auto()  #: this turn's batch is used up; the rest waits for the next turn
+    Plain integers, not an ``enum.Flag``: each Flag operation costs microseconds in
+    Python, and these are tested and set several times per request.
+    """
+
+    NONE: Final = 0
+    PIPELINE: Final = 1  #: ``max_pipeline`` requests in flight
+    BACKLOG: Final = 2  #: too many replies not yet sent (the master does not read)
+    BATCH: Final = 4  #: this turn's batch is used up; the rest waits for the next turn
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,7 +143,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self._transport: asyncio.Transport | None = None
         self._pending: set[Request] = set()
         self._in_flight = 0
-        self._pauses = ReadPause.NONE
+        self._pauses: int = ReadPause.NONE
         self._batch: list[bytes] | None = None  # replies of the running batch, one write
         self._next_batch: asyncio.Handle | None = None
         self._closed = False
@@ -204,13 +207,13 @@ class MasterConnection(asyncio.BufferedProtocol):
 
     # -- reading: pauses and batches ---------------------------------------------------
 
-    def _pause(self, reason: ReadPause) -> None:
+    def _pause(self, reason: int) -> None:
         was = self._pauses
         self._pauses = was | reason
         if not was and self._transport is not None and not self._closed:
             self._transport.pause_reading()
 
-    def _resume(self, reason: ReadPause) -> None:
+    def _resume(self, reason: int) -> None:
         was = self._pauses
         self._pauses = was & ~reason
         if was and not self._pauses and self._transport is not None and not self._closed:
