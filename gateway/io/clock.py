@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable
 
 SPIN_MARGIN = 0.00025
+#: Deadlines further away than this wait on the loop's timer before the precise one.
+COARSE_LIMIT = 0.02
 _FALLBACK_MARGIN = 0.0015
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = 0o4000
@@ -70,6 +72,7 @@ class PreciseClock:
         self._deadline = 0.0  # 0: not armed
         self._callback: Callable[[], None] | None = None
         self._fallback: asyncio.TimerHandle | None = None
+        self._fd_armed = False
 
     @property
     def uses_timerfd(self) -> bool:
@@ -90,23 +93,28 @@ class PreciseClock:
             self._fd = -1
 
     def arm(self, deadline: float, callback: Callable[[], None]) -> None:
-        """Call ``callback`` at ``deadline`` (``time.monotonic()`` seconds), replacing any other."""
+        """Call ``callback`` at ``deadline`` (``time.monotonic()`` seconds), replacing any other.
+
+        A deadline more than ``COARSE_LIMIT`` away (a response timeout) first waits on the
+        loop's own timer, which costs no system call, and is re-armed precisely when near:
+        most are replaced long before they come (the answer arrives).
+        """
         self._callback = callback
         if deadline == self._deadline:
             return
         self._deadline = deadline
-        early = deadline - SPIN_MARGIN
-        if self._fd >= 0:
-            assert self._libc is not None
-            when = max(early, 1e-6)  # 0 would disarm the timerfd
-            seconds = int(when)
-            spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
-            self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
+        now = time.monotonic()
+        if self._fd < 0 or deadline - now > COARSE_LIMIT:
+            self._disarm_timerfd()
+            if self._fallback is not None:
+                self._fallback.cancel()
+            delay = max(0.0, deadline - _FALLBACK_MARGIN - now)
+            self._fallback = self._loop.call_later(delay, self._fire)
             return
         if self._fallback is not None:
             self._fallback.cancel()
-        delay = max(0.0, deadline - _FALLBACK_MARGIN - time.monotonic())
-        self._fallback = self._loop.call_later(delay, self._fire)
+            self._fallback = None
+        self._arm_timerfd(deadline)
 
     def disarm(self) -> None:
         """Cancel the armed deadline."""
@@ -115,15 +123,28 @@ class PreciseClock:
         if self._fallback is not None:
             self._fallback.cancel()
             self._fallback = None
-        if self._fd >= 0 and self._libc is not None:
+        self._disarm_timerfd()
+
+    def _arm_timerfd(self, deadline: float) -> None:
+        assert self._libc is not None
+        when = max(deadline - SPIN_MARGIN, 1e-6)  # 0 would disarm the timerfd
+        seconds = int(when)
+        spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
+        self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
+        self._fd_armed = True
+
+    def _disarm_timerfd(self) -> None:
+        if self._fd_armed and self._libc is not None:
             spec = _Itimerspec(_Timespec(0, 0), _Timespec(0, 0))
             self._libc.timerfd_settime(self._fd, 0, ctypes.byref(spec), None)
+            self._fd_armed = False
 
     def _on_timerfd(self) -> None:
         try:
             os.read(self._fd, 8)
         except BlockingIOError:
             return
+        self._fd_armed = False
         self._fire()
 
     def _fire(self) -> None:
@@ -132,9 +153,16 @@ class PreciseClock:
         callback = self._callback
         if not deadline or callback is None:
             return
-        if deadline - time.monotonic() > 2 * _FALLBACK_MARGIN:
-            return  # a wake-up for an earlier deadline, re-armed since: wait for this one
-        while time.monotonic() < deadline:  # the last stretch, at most SPIN_MARGIN
+        remaining = deadline - time.monotonic()
+        if remaining > COARSE_LIMIT or (self._fd < 0 and remaining > 2 * _FALLBACK_MARGIN):
+            self._fallback = self._loop.call_later(remaining - _FALLBACK_MARGIN, self._fire)
+            return  # woken early (or re-armed since): wait again
+        if self._fd >= 0 and remaining > 2 * SPIN_MARGIN and not self._fd_armed:
+            self._arm_timerfd(deadline)  # near now: the precise timer takes over
+            return
+        if remaining > 2 * _FALLBACK_MARGIN:
+            return  # a wake-up for an earlier deadline; the timerfd waits for this one
+        while time.monotonic() < deadline:  # the last stretch
             pass
         self._deadline = 0.0
         self._callback = None
