@@ -134,8 +134,14 @@ class Browser:
     def _page_url(self, port: int) -> str:
         end = time.monotonic() + self.deadline
         while time.monotonic() < end:
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as reply:
-                targets = json.load(reply)
+            try:
+                with urllib.request.urlopen(
+                    f"http://127.0.0.1:{port}/json/list", timeout=max(0.1, end - time.monotonic())
+                ) as reply:
+                    targets = json.load(reply)
+            except OSError:  # the port is announced a moment before it answers, on a busy machine
+                time.sleep(0.05)
+                continue
             pages = [t for t in targets if t.get("type") == "page"]
             if pages:
                 return str(pages[0]["webSocketDebuggerUrl"])
