@@ -803,18 +803,10 @@ class LineCore:
         slave = request.slave
         function = request.pdu[0]
         self.stats.frames_received += 1
-        record = self._slaves.get(slave)
-        if record is None:
-            record = self._slaves[slave] = _Slave()
+        record = self._record(slave)
         record.answered.add(function)
-        record.misses = 0
+        self._alive(slave, record)
         response = frame.pdu
-        if record.state is not SlaveState.UP:
-            self._set_state(slave, record, SlaveState.UP)
-            waiting = self._lane.get(slave)
-            if waiting is not None:  # served in the masters' fair order again
-                self._lane_remove(waiting)
-                self._queue_at_front(waiting)
         if record.guard_until and request is not record.guard_owner:
             if response[0] & fc.EXCEPTION_FLAG:
                 if function in {signature[0] for signature in record.guard_signatures}:
@@ -863,9 +855,7 @@ class LineCore:
         slave = request.slave
         function = request.pdu[0]
         wire = now - attempt.sent_at
-        record = self._slaves.get(slave)
-        if record is None:
-            record = self._slaves[slave] = _Slave()
+        record = self._record(slave)
         if not damaged:
             self._open_guard(slave, record, request, now)
         before = record.state
@@ -942,9 +932,7 @@ class LineCore:
             self._attempt = None
             # Its answer may still come once the port is back: hold look-alikes meanwhile.
             slave = attempt.request.slave
-            record = self._slaves.get(slave)
-            if record is None:
-                record = self._slaves[slave] = _Slave()
+            record = self._record(slave)
             self._open_guard(slave, record, attempt.request, now)
             self._answer(attempt.request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
 
@@ -1138,19 +1126,30 @@ class LineCore:
         if answer is not None:
             self._late_answer_arrived(slave, record)
 
+    def _record(self, slave: int) -> _Slave:
+        """What the line knows of ``slave``, created on first need."""
+        record = self._slaves.get(slave)
+        if record is None:
+            record = self._slaves[slave] = _Slave()
+        return record
+
+    def _alive(self, slave: int, record: _Slave) -> None:
+        """The slave answered: no missed answers in a row, and back in the fair order."""
+        record.misses = 0
+        if record.state is not SlaveState.UP:
+            self._set_state(slave, record, SlaveState.UP)
+            waiting = self._lane.get(slave)
+            if waiting is not None:
+                self._lane_remove(waiting)
+                self._queue_at_front(waiting)
+
     def _late_answer_arrived(self, slave: int, record: _Slave) -> bool:
         """A lost attempt's answer came (and was thrown away); ``True`` when the window ended.
 
         The slave is alive, only slow: it is no longer suspect or down.
         """
         record.guard_pending -= 1
-        record.misses = 0
-        if record.state is not SlaveState.UP:
-            self._set_state(slave, record, SlaveState.UP)
-            waiting = self._lane.get(slave)
-            if waiting is not None:  # served in the masters' fair order again
-                self._lane_remove(waiting)
-                self._queue_at_front(waiting)
+        self._alive(slave, record)
         if record.guard_pending <= 0:  # every lost attempt's answer has come
             self._clear_guard(slave)
             return True
