@@ -125,6 +125,9 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
                         help="RTU over TCP to a serial device server (raw socket mode) "
                         "instead of --serial; without --config every unit 1..247 is "
                         "routed to it")  # fmt: skip
+    parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
+                        help="a Modbus TCP slave (or another gateway) instead of --serial; "
+                        "without --config every unit 1..247 is routed to it")  # fmt: skip
     parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
     parser.add_argument(
         "--data-bits", type=int, choices=[7, 8], help="data bits of every line (8; ascii: 7)"
@@ -218,6 +221,10 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
             )
     if args.rtu_over_tcp:
         _apply_network_line(lines, "rtu-over-tcp", args.rtu_over_tcp, "--rtu-over-tcp", args)
+    if args.modbus_tcp:
+        if args.rtu_over_tcp:
+            raise ConfigError("--modbus-tcp", ["give either --rtu-over-tcp or --modbus-tcp"])
+        _apply_network_line(lines, "tcp", args.modbus_tcp, "--modbus-tcp", args)
     per_line = {
         "kind": args.framing,
         "baudrate": args.baudrate,

@@ -27,13 +27,14 @@ DEFAULT_METRICS = "127.0.0.1:9502"
 VALID_PARITIES = ("N", "E", "O")
 #: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
 #: ``rtu-over-tcp``: RTU frames over a TCP connection to a serial device server (raw socket).
-VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp")
+#: ``tcp``: a Modbus TCP slave (MBAP under the gateway's own transaction ids).
+VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
 VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
 #: Line kinds reached over the network rather than through a device node.
-NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp"})
+NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
 NETWORK_SILENCE_S = 0.05
 #: Added to the automatic response timeout of a network line: the round trip and the device
@@ -535,8 +536,8 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
     if kind in NETWORK_LINE_KINDS:
         host, port, device = _network_address(check, table, prefix, kind)
     elif "address" in table:
-        check.fail(f"{prefix}address", f'only a network line takes it (kind = "rtu-over-tcp"); '
-                   f"a {kind} line names its serial port with device")  # fmt: skip
+        check.fail(f"{prefix}address", 'only a network line takes it (kind = "rtu-over-tcp" '
+                   f'or "tcp"); a {kind} line names its serial port with device')  # fmt: skip
     if kind not in NETWORK_LINE_KINDS and (not isinstance(device, str) or not device):
         check.fail(
             f"{prefix}device",

@@ -200,6 +200,14 @@ class Bus:
         if not self._stopping:
             self._schedule_reopen()
 
+    def _resync(self) -> None:
+        """Drop a connection whose byte stream can no longer be split into frames."""
+        link = self._link
+        if link is None or link.closed or self._stopping:
+            return
+        link.close()
+        self._on_lost(ConnectionError("a frame header no Modbus TCP slave sends; reconnecting"))
+
     # -- the pump ------------------------------------------------------------------------
 
     def _pump(self) -> None:
@@ -273,6 +281,8 @@ class Bus:
             metrics.retries.labels(self.name, unit).inc()
         elif event is LineEvent.DISCARDED:
             metrics.discarded_frames.labels(self.name, note.detail).inc()
+            if note.detail == "bad_header":  # a Modbus TCP stream out of step: reconnect
+                self._loop.call_soon(self._resync)
             self._fault_log.note(
                 f"line {self.name}",
                 "discarded input",
@@ -375,7 +385,7 @@ class Bus:
         link.on_data, link.on_lost = self._on_data, self._on_lost
         self._link = link
         self._m_line_up.set(1)
-        log.info("line %s: connected to %s (rtu over tcp)", self.name, config.device)
+        log.info("line %s: connected to %s (%s)", self.name, config.device, config.kind)
         self._core.port_opened(time.monotonic())
         self._pump()
         return True

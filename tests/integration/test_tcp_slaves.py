@@ -1,0 +1,161 @@
+"""``kind = "tcp"``: Modbus TCP slaves behind the gateway (TCP-to-TCP proxying).
+
+pymodbus's Modbus TCP server is the slave: an independent reading of MBAP. The gateway
+numbers its own requests downstream, so a master's transaction id never reaches the
+slave and the answer is matched by the gateway's id.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from conftest import DEADLINE_S, GatewayFactory, RunningGateway
+from metrics_harness import samples, series
+
+from gateway.config import ConfigError, build_config
+from gateway.sim.device import pack_registers
+
+
+def h(text: str) -> bytes:
+    return bytes.fromhex(text)
+
+
+class PymodbusTcpSlave:
+    """pymodbus's Modbus TCP server (unit 7) on its own loop in a thread."""
+
+    def __init__(self) -> None:
+        from pymodbus.server import ModbusTcpServer
+        from pymodbus.simulator import DataType, SimData, SimDevice
+
+        device = SimDevice(
+            id=7,
+            simdata=(
+                [SimData(0, values=[i % 3 == 0 for i in range(32)], datatype=DataType.BITS)],
+                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
+                [SimData(0, values=[10 * i for i in range(32)], datatype=DataType.REGISTERS)],
+                [SimData(0, count=16, values=0, datatype=DataType.REGISTERS)],
+            ),
+        )
+        self.loop = asyncio.new_event_loop()
+        self.server: Any = None
+        ready = threading.Event()
+
+        async def start() -> None:
+            self.server = ModbusTcpServer(device, address=("127.0.0.1", 0))
+            await self.server.serve_forever(background=True)
+
+        def serve() -> None:
+            asyncio.set_event_loop(self.loop)
+            self.loop.run_until_complete(start())
+            ready.set()
+            self.loop.run_forever()
+
+        self._thread = threading.Thread(target=serve, name="pymodbus-tcp-slave", daemon=True)
+        self._thread.start()
+        assert ready.wait(DEADLINE_S), "pymodbus did not listen"
+        server: Any = self.server  # partly untyped; port 0 asked: read the one bound
+        self.port: int = server.transport.sockets[0].getsockname()[1]
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(DEADLINE_S)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(DEADLINE_S)
+        self.loop.close()
+
+
+@pytest.fixture
+def tcp_slave() -> Iterator[PymodbusTcpSlave]:
+    slave = PymodbusTcpSlave()
+    yield slave
+    slave.close()
+
+
+def wait_up(gateway: RunningGateway) -> None:
+    deadline = time.monotonic() + DEADLINE_S
+    while not gateway.call(lambda: gateway.gateway.buses["plc"].up):
+        assert time.monotonic() < deadline, "the gateway never connected to the slave"
+        time.sleep(0.01)
+
+
+def test_pymodbus_tcp_slave_behind_the_gateway(
+    tcp_slave: PymodbusTcpSlave, make_gateway: GatewayFactory
+) -> None:
+    table = {"kind": "tcp", "address": f"127.0.0.1:{tcp_slave.port}", "units": [7]}
+    gw = make_gateway({"lines": {"plc": table}})
+    wait_up(gw)
+    with gw.connect() as client:
+        tid = client.send(7, h("03 0000 0004"), tid=0xBEEF)
+        reply = client.receive()
+        assert (reply.transaction_id, reply.pdu) == (
+            tid,
+            h("03 08") + pack_registers([0, 10, 20, 30]),
+        )
+        assert client.request(7, h("10 0002 0002 04 1111 2222")) == h("10 0002 0002")
+        assert client.request(7, h("06 0005 ABCD")) == h("06 0005 ABCD")
+        assert client.request(7, h("03 0001 0005")) == h("03 0A") + pack_registers(
+            [10, 0x1111, 0x2222, 40, 0xABCD]
+        )
+        assert client.request(7, h("01 0000 000A")) == h("01 02 49 02")
+        assert client.request(7, h("05 0001 FF00")) == h("05 0001 FF00")
+        assert client.request(7, h("0F 0008 0002 01 03")) == h("0F 0008 0002")
+        assert client.request(7, h("01 0000 000A")) == h("01 02 4B 03")
+        assert client.request(7, h("03 0100 0001")) == h("83 02")  # pymodbus's own exception
+    found = samples(gw)
+    assert found[series("modbus_gateway_line_info", line="plc", kind="tcp")] == 1
+    assert found[series("modbus_gateway_discarded_frames_total", line="plc", reason="late")] == 0
+
+
+def test_a_tcp_slave_that_is_down_is_answered_0x0a(make_gateway: GatewayFactory) -> None:
+    # Nothing listens on port 9 of 127.0.0.1 here (discard): the connection is refused.
+    gw = make_gateway({"lines": {"plc": {"kind": "tcp", "address": "127.0.0.1:9", "units": [7]}}})
+    with gw.connect() as client:
+        assert client.request(7, h("03 0000 0001")) == h("83 0A")
+
+
+def test_a_tcp_line_takes_an_address_not_a_device() -> None:
+    with pytest.raises(ConfigError, match=r"lines\.plc\.device.*address"):
+        build_config({"lines": {"plc": {"kind": "tcp", "device": "/dev/ttyUSB0", "units": [7]}}})
+
+
+def test_a_slave_out_of_step_is_reconnected(make_gateway: GatewayFactory) -> None:
+    """A header no Modbus TCP slave sends: the connection is dropped and made again."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    connections: list[int] = []
+
+    def slave() -> None:
+        for number in (1, 2):
+            conn, _ = listener.accept()
+            connections.append(number)
+            with conn:
+                request = conn.recv(260)
+                if number == 1:
+                    conn.sendall(request[:2] + b"\x00\x01\x00\x03\x07\x83\x02")  # protocol id 1
+                    conn.recv(260)  # until the gateway closes it
+                else:
+                    conn.sendall(request[:4] + b"\x00\x05\x07\x03\x02\x12\x34")
+                    conn.recv(260)
+        listener.close()
+
+    thread = threading.Thread(target=slave, daemon=True)
+    thread.start()
+    table = {"kind": "tcp", "address": f"127.0.0.1:{port}", "units": [7], "retries": 0}
+    gw = make_gateway({"lines": {"plc": table}})
+    wait_up(gw)
+    with gw.connect() as client:
+        assert client.request(7, h("03 0000 0001")) == h("83 0A")  # the stream was dropped
+        wait_up(gw)  # the 0x0A came from dropping the connection: it is down until remade
+        assert client.request(7, h("03 0000 0001")) == h("03 02 1234")
+    assert connections == [1, 2]
+    found = samples(gw)
+    assert (
+        found[series("modbus_gateway_discarded_frames_total", line="plc", reason="bad_header")] == 1
+    )
+    gw.stop()
+    thread.join(DEADLINE_S)
