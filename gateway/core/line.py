@@ -63,7 +63,7 @@ from . import pdu as fc
 from .errors import ExceptionCode, ResponseError
 from .framing import RTU, Framing, ResponseDecoder
 from .outcome import LineEvent, Outcome, SlaveState
-from .rtu import MAX_RTU_FRAME, RtuFrame
+from .rtu import RtuFrame
 from .timing import character_time
 
 INFINITY: Final = float("inf")
@@ -1202,6 +1202,3 @@ class LineCore:
                 follower.answered = True
                 deliveries.append(Delivery(follower, pdu, outcome, -1.0))
         request.followers.clear()
-
-
-assert MAX_RTU_FRAME == 256  # the decoder bounds every buffer by it
