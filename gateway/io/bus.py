@@ -259,7 +259,11 @@ class Bus:
         for delivery in deliveries:
             if delivery.wire_time >= 0.0:
                 observe(delivery.wire_time)
-            delivery.request.reply(delivery.pdu, delivery.outcome)
+            try:
+                delivery.request.reply(delivery.pdu, delivery.outcome)
+            except Exception:  # a boundary: one master's broken reply path must not cost
+                # the rest of this batch their answers; logged in full, not swallowed
+                log.exception("line %s: handing an answer back failed", self.name)
 
     def _note(self, note: Note) -> None:
         event = note.event
