@@ -323,8 +323,11 @@ def _check_config(argv: Sequence[str]) -> int:
         print(f"{args.file}: warning: {warning}", file=sys.stderr)
     if warnings and args.strict:
         return 2
-    listening = ", ".join(f"{lst.host}:{lst.port} ({lst.name}, {lst.protocol})"
-                          for lst in config.listeners)  # fmt: skip
+    listening = ", ".join(
+        f"{lst.serial.device if lst.serial else f'{lst.host}:{lst.port}'} "
+        f"({lst.name}, {lst.protocol})"
+        for lst in config.listeners
+    )
     print(
         f"{args.file}: OK: {len(config.lines)} line(s), {len(config.routes)} routed unit(s), "
         f"listening on {listening}" + (f"; {len(warnings)} warning(s)" if warnings else "")

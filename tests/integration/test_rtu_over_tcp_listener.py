@@ -165,6 +165,23 @@ def test_a_bad_crc_closes_the_connection_and_is_counted(start: Start) -> None:
     assert count == 1
 
 
+def test_an_endless_request_of_unknown_length_closes_the_connection(start: Start) -> None:
+    _, gateway = start()
+    client = RtuClient(listener_address(gateway))
+    try:
+        client.sock.sendall(h("01 41") + bytes(300))  # no length to predict, no end in sight
+        assert client.closed_by_peer()
+    finally:
+        client.close()
+    registry = gateway.gateway.metrics.registry
+    count = gateway.call(
+        lambda: registry.get_sample_value(
+            "modbus_gateway_protocol_errors_total", {"kind": "too_long"}
+        )
+    )
+    assert count == 1
+
+
 def test_a_user_function_of_unknown_length_ends_on_silence(start: Start) -> None:
     _, gateway = start()
     client = RtuClient(listener_address(gateway))

@@ -134,6 +134,16 @@ def test_silence_for_other_units_bad_crcs_broadcasts_and_answers_of_other_slaves
     assert sim.stats().broadcasts == 1
 
 
+def test_a_babbling_line_is_bounded_and_the_next_request_is_answered(reverse: Any) -> None:
+    _, gateway, master = reverse()
+    for _ in range(6):  # 600 bytes of noise without a gap: more than two RTU frames
+        os.write(master.fd, bytes(range(100)))
+    master.silent_for(0.1)
+    assert master.request(1, h("03 0000 0001"), 4) == h("03 02 0000")
+    slave = gateway.gateway.serial_slaves[0]
+    assert gateway.call(lambda: slave.ignored) >= 1
+
+
 def test_the_answer_waits_for_t35_after_the_request(reverse: Any) -> None:
     _, _, master = reverse()
     for _ in range(5):
