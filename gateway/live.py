@@ -28,7 +28,6 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from http import HTTPStatus
 from importlib import resources
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs
@@ -37,7 +36,7 @@ from prometheus_client.registry import Collector
 
 from . import __version__
 from .core import pdu as fc
-from .io.http import Route
+from .io.http import Route, respond
 from .metrics import OUTCOMES
 from .status import GatewayStatus, LineState, quantile, to_json
 from .trace import Tracer, parse_function
@@ -460,22 +459,6 @@ def _sample_total(family: Collector) -> float:
 def status_page() -> bytes:
     """The self-contained status page (no external script, style or font)."""
     return resources.files("gateway").joinpath("data/status.html").read_bytes()
-
-
-async def respond(writer: asyncio.StreamWriter, status: int, content_type: str, body: bytes,
-                  method: str = "GET") -> None:  # fmt: skip
-    """Send a whole response and close the connection."""
-    head = (
-        f"HTTP/1.1 {status} {HTTPStatus(status).phrase}\r\nContent-Type: {content_type}\r\n"
-        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n"
-    ).encode()
-    try:
-        writer.write(head if method == "HEAD" else head + body)
-        await writer.drain()
-    except ConnectionError:
-        pass
-    finally:
-        writer.close()
 
 
 class LiveView:

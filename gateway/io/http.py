@@ -67,11 +67,14 @@ Route = Callable[
 async def respond(
     writer: asyncio.StreamWriter, status: int, content_type: str, body: bytes, method: str = "GET"
 ) -> None:
-    """Write a whole response (head only for HEAD) and close the connection."""
+    """Write a whole response (head only for HEAD) and close the connection.
+
+    Every answer here is a snapshot of now (metrics, health, status): never cached.
+    """
     reason = HTTPStatus(status).phrase
     head = (
         f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
-        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n"
     ).encode()
     try:
         writer.write(head if method == "HEAD" else head + body)
