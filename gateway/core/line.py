@@ -167,7 +167,6 @@ class LineRequest:
     cancelled: bool = False  # its master left
     answered: bool = False
     sent: bool = False  # its frame went on the wire at least once
-    in_lane: bool = False  # waits in the suspect lane, not in its master's queue
     single: bool = False  # one attempt only (it went through the lane: a probe)
     lane_deadline: float = INFINITY
     epoch: int = 0
@@ -539,7 +538,6 @@ class LineCore:
         self._queued = 0
         self.stats.queue_depth = 0
         for request in taken:
-            request.in_lane = False
             request.attempts = 0
             request.lane_deadline = INFINITY
         return taken
@@ -998,7 +996,6 @@ class LineCore:
 
     def _lane_put(self, request: LineRequest, now: float) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
-        request.in_lane = True
         request.single = True
         request.lane_deadline = now + self.policy.timeout_for(request.slave)
         self._lane[request.slave] = request
@@ -1008,7 +1005,6 @@ class LineCore:
 
     def _lane_remove(self, request: LineRequest) -> None:
         del self._lane[request.slave]
-        request.in_lane = False
         request.lane_deadline = INFINITY
         self._dequeued(self._masters.get(request.master), request)
 
