@@ -40,6 +40,21 @@ def stream_request_length(prefix: bytes | bytearray) -> int | None:
     return request_length(prefix)
 
 
+def heard_request(frame: bytes) -> tuple[int, bytes] | str | None:
+    """A frame heard between two silences on a line the gateway serves as a slave.
+
+    Returns ``(unit, pdu)`` for a request to act on, a reason (for the log) when the frame
+    is damaged, and ``None`` for an intact frame of another shape: another slave's answer on
+    the shared bus, to be ignored quietly.
+    """
+    if len(frame) < MIN_REQUEST or not check_crc(frame):
+        return "a frame with a bad CRC, or too short"
+    length = stream_request_length(frame)
+    if length is not None and length not in (NEED_MORE, len(frame)):
+        return None
+    return frame[0], frame[1:-2]
+
+
 class RtuStreamDecoder:
     """Incremental RTU request decoder for a byte stream; same interface as ``MbapDecoder``."""
 

@@ -30,11 +30,10 @@ import time
 
 from ..config import ListenerConfig
 from ..core import pdu as fc
-from ..core.crc import check_crc
 from ..core.errors import ExceptionCode, ModbusError
 from ..core.policy import Policy, Principal
-from ..core.rtu import MAX_RTU_FRAME, NEED_MORE
-from ..core.rtu_stream import encode_rtu_reply, stream_request_length
+from ..core.rtu import MAX_RTU_FRAME
+from ..core.rtu_stream import encode_rtu_reply, heard_request
 from ..core.timing import t35
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
@@ -169,14 +168,14 @@ class SerialSlave:
         self._frame(frame)
 
     def _frame(self, frame: bytes) -> None:
-        if len(frame) < 4 or not check_crc(frame):
-            self._ignore("a frame with a bad CRC, or too short")
+        heard = heard_request(frame)
+        if isinstance(heard, str):
+            self._ignore(heard)
             return
-        length = stream_request_length(frame)
-        if length is not None and length not in (NEED_MORE, len(frame)):
+        if heard is None:
             self.ignored += 1  # another slave's answer, or a request of another shape
             return
-        unit, pdu = frame[0], frame[1:-2]
+        unit, pdu = heard
         # A new request: whatever the master asked before, it no longer waits for.
         self._drop_pending()
         if unit == 0:

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from gateway.core.crc import append_crc
 from gateway.core.errors import FramingError
 from gateway.core.mbap import MbapFrame
-from gateway.core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
+from gateway.core.rtu_stream import RtuStreamDecoder, encode_rtu_reply, heard_request
 
 
 def h(text: str) -> bytes:
@@ -89,3 +89,14 @@ def test_an_endless_request_of_unknown_length_is_refused() -> None:
     with pytest.raises(FramingError) as caught:
         decoder.next_frame()
     assert caught.value.kind == "too_long"
+
+
+def test_a_heard_frame_is_a_request_damaged_or_another_slaves() -> None:
+    """What a serial-slave listener makes of a frame between two silences."""
+    request = bytes.fromhex("010300000001")
+    frame = request + bytes.fromhex("840a")
+    assert heard_request(frame) == (1, bytes.fromhex("0300000001"))
+    assert isinstance(heard_request(frame[:-1] + b"\x00"), str)  # bad CRC
+    assert isinstance(heard_request(b"\x01\x03"), str)  # too short
+    answer = bytes.fromhex("01 03 02 00 2a")
+    assert heard_request(append_crc(answer)) is None  # an answer on the bus: not a request
