@@ -182,6 +182,7 @@ class Gateway:
                 check_device_free(listener.serial)
                 slave = SerialSlave(listener, router, self.metrics,
                                     self._policy(self.config, listener), loop)  # fmt: skip
+                slave.tracer = self.tracer
                 self.serial_slaves.append(slave)
                 slave.start()
         self.live = LiveView(self)

@@ -100,7 +100,12 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--serial-slave", metavar="DEVICE",
                         help="also answer RTU masters on this serial device as the routed "
                         "slaves (reverse mode), listener 'serial-slave'; the line format "
-                        "of --baudrate/--parity/--stopbits applies to it too")  # fmt: skip
+                        "of --baudrate/--data-bits/--parity/--stopbits applies to it "
+                        "too")  # fmt: skip
+    parser.add_argument("--serial-slave-framing", choices=["rtu", "ascii"],
+                        help="what the masters on the --serial-slave line speak: rtu "
+                        "(default; that of --framing when given) or ascii (7E1 unless "
+                        "--data-bits/--parity)")  # fmt: skip
     parser.add_argument("--tls-cert", metavar="FILE",
                         help="the server's certificate chain, PEM (leaf first)")  # fmt: skip
     parser.add_argument("--tls-key", metavar="FILE", help="the server's private key, PEM")
@@ -199,9 +204,16 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
     _apply_tls_flags(raw, args)
     if args.rtu_over_tcp_listen:
         _set_listener(raw, "rtu-over-tcp", {"listen": args.rtu_over_tcp_listen})
+    if args.serial_slave_framing and not args.serial_slave:
+        raise ConfigError(
+            "--serial-slave-framing", ["it sets the framing of --serial-slave DEVICE: give both"]
+        )
     if args.serial_slave:
         serial: dict[str, Any] = {"device": args.serial_slave}
-        formats = {"baudrate": args.baudrate, "parity": args.parity, "stop_bits": args.stopbits}
+        formats = {
+            "baudrate": args.baudrate, "data_bits": args.data_bits, "parity": args.parity,
+            "stop_bits": args.stopbits, "framing": args.serial_slave_framing or args.framing,
+        }  # fmt: skip
         serial.update({key: value for key, value in formats.items() if value is not None})
         _set_listener(raw, "serial-slave", serial)
     if args.log_level:

@@ -33,6 +33,9 @@ VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
 VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
+#: What the masters on a ``serial-slave`` listener's line speak (its ``framing``); the first
+#: is the default. Named like ``--framing``: on a listener, ``kind`` would read as ``protocol``.
+VALID_SLAVE_FRAMINGS = ("rtu", "ascii")
 #: Line kinds reached over the network rather than through a device node.
 NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
@@ -1049,7 +1052,10 @@ def _build_policies(check: _Checker, raw: Mapping[str, Any]) -> dict[str, tuple[
 
 _LISTENER_KEYS = {"name", "protocol", "listen", "cert", "key", "ca", "allow", "read_only", "policy"}
 #: Keys of a ``serial-slave`` listener only: its serial line, and the units it answers for.
-_SERIAL_SLAVE_KEYS = {"device", "baudrate", "data_bits", "parity", "stop_bits", "units"}
+_SERIAL_SLAVE_KEYS = {
+    "device", "baudrate", "data_bits", "parity", "stop_bits", "units",
+    "framing", "echo", "inter_char_timeout",
+}  # fmt: skip
 
 
 def _serial_slave_line(
@@ -1073,14 +1079,23 @@ def _serial_slave_line(
             units = tuple(parse_units(entry["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
+    framing = check.choice(entry, "framing", prefix, "rtu", VALID_SLAVE_FRAMINGS)
+    ascii_line = framing == "ascii"  # 7E1 by default (Modbus over Serial Line 2.5.2.1)
+    default_parity = "E" if ascii_line else "N"
     line = LineConfig(
         name=f"listener {name}",
         device=device,
         baudrate=check.integer(entry, "baudrate", prefix, 9600, 50, 4_000_000),
-        data_bits=check.integer(entry, "data_bits", prefix, 8, 7, 8),
-        parity=check.choice(entry, "parity", prefix, "N", VALID_PARITIES, upper=True),
+        data_bits=check.integer(entry, "data_bits", prefix, 7 if ascii_line else 8, 7, 8),
+        parity=check.choice(entry, "parity", prefix, default_parity, VALID_PARITIES, upper=True),
         stop_bits=float(stop_bits),
+        kind=framing,
+        inter_char_timeout=check.number(entry, "inter_char_timeout", prefix, 1.0, 0.001, 60.0),
+        echo=check.boolean(entry, "echo", prefix, False),
     )
+    if "inter_char_timeout" in entry and not ascii_line:
+        check.fail(f"{prefix}inter_char_timeout", 'only an ASCII line has one (framing = '
+                   '"ascii"); an RTU frame ends on t3.5 of silence')  # fmt: skip
     return line, units
 
 

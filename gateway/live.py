@@ -259,6 +259,11 @@ class TraceHub:
             elif server.tracer is self:
                 server.tracer = self.inner
                 self._pending.clear()
+        for slave in self._gateway.serial_slaves:  # masters on serial lines too
+            if wanted:
+                slave.tracer = self
+            elif slave.tracer is self:
+                slave.tracer = self.inner
 
     def slave_latency(self, line: str, slave: int) -> tuple[float | None, float | None]:
         """p50 and p99 in seconds over the slave's recent answers (``None`` without any)."""
@@ -421,6 +426,7 @@ class StatusView:
             )
         server = gateway.server
         masters = tuple(master for listener in gateway.servers for master in listener.masters())
+        masters += tuple(m for slave in gateway.serial_slaves for m in slave.masters())
         return GatewayStatus(
             version=__version__,
             uptime=round(now - self._started, 3),

@@ -1,21 +1,31 @@
-"""The ``serial-slave`` listener (reverse mode): RTU masters on a serial line reach the router.
+"""The ``serial-slave`` listener (reverse mode): RTU or ASCII masters on a line reach the router.
 
 Theory of operation: the gateway opens a serial device of its own and behaves on
-it as the slaves it routes, so an RTU master there (a PLC, an old SCADA port)
+it as the slaves it routes, so a master there (a PLC, an old SCADA port)
 reaches Modbus TCP slaves, other lines, anything the router knows. It keeps the
 slave-side rules of Modbus over Serial Line:
 
-* a frame is what lies between two silences of t3.5 (the bus may carry other
-  slaves' answers and requests for them, so a predicted length alone cannot
-  frame it); it is served only when its CRC is right and its length is the one
+* RTU (``framing = "rtu"``): a frame is what lies between two silences of t3.5
+  (the bus may carry other slaves' answers and requests for them, so a
+  predicted length alone cannot frame it); ASCII (``framing = "ascii"``): a
+  frame runs from ':' to CR LF, a ':' restarts it, at most 513 characters, and
+  the inter-character timeout abandons it (``core.slave_side``);
+* a frame is served only when its CRC (LRC) is right and its length is the one
   its function code implies (an answer of another slave is not a request);
 * only units the router knows (and, when ``units`` is set, only those) are
   answered; anything else is ignored in silence, as an absent slave would;
 * a broadcast (unit 0) is executed on the lines that take broadcasts and never
   answered;
-* the answer goes out no sooner than t3.5 after the last byte on the line; a
-  master that sends its next request before the answer came has given up on
-  the previous one, whose answer is then dropped.
+* the answer goes out no sooner than a turnaround after the last character on
+  the line (t3.5 for RTU, one character time for ASCII); a master that sends
+  its next request before the answer came has given up on the previous one,
+  whose answer is then dropped;
+* with ``echo = true`` (an adapter that hears itself) the answer's own bytes
+  are dropped when they come back, never taken for a request or for noise.
+
+The master on the line appears in the status views (peer: the device) once it
+sent a request, and its requests and answers in the trace, numbered in order as
+RTU and ASCII carry no transaction id.
 
 Requests go through the same validation, policy (no source address here: only
 rules without ``source`` or ``role`` grant), read-only switch, routing, queues
@@ -30,13 +40,17 @@ import time
 
 from ..config import ListenerConfig
 from ..core import pdu as fc
+from ..core.ascii import encode_ascii
 from ..core.errors import ExceptionCode, ModbusError
 from ..core.policy import Policy, Principal
 from ..core.rtu import MAX_RTU_FRAME
 from ..core.rtu_stream import encode_rtu_reply, heard_request
-from ..core.timing import t35
+from ..core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
+from ..core.timing import character_time, t35
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
+from ..status import MasterStatus
+from ..trace import FrameTracer
 from .bus import Request
 from .serial_port import SerialLink, SerialPortError, open_serial
 from .tcp import Router
@@ -70,6 +84,15 @@ class SerialSlave:
         self._loop = loop
         serial = self._serial
         self._t35 = t35(serial.baudrate, serial.data_bits, serial.parity, serial.stop_bits)
+        self._ascii = AsciiRequestReader() if serial.kind == "ascii" else None
+        #: Quiet kept after the last character before answering: t3.5 (RTU) or one
+        #: character time (ASCII, whose frames end at their LF, not on silence).
+        self._turnaround = self._t35
+        if self._ascii is not None:
+            format_ = (serial.baudrate, serial.data_bits, serial.parity, serial.stop_bits)
+            self._turnaround = character_time(*format_)
+        self._encode = encode_ascii if self._ascii is not None else encode_rtu_reply
+        self._echo = OwnEcho() if serial.echo else None
         self._buffer = bytearray()
         self._last_byte = 0.0
         self._silence: asyncio.TimerHandle | None = None
@@ -80,6 +103,9 @@ class SerialSlave:
         self._open_error = ""
         self.requests = 0  #: requests served (addressed to a routed unit)
         self.ignored = 0  #: frames ignored in silence (not for us, bad CRC, not a request)
+        self.echoes = 0  #: bytes of our own answers dropped as their echo (``echo = true``)
+        self.tracer: FrameTracer | None = None  #: only while tracing (see ``trace``)
+        self._sequence = 0  # numbers the requests for the trace (no transaction id on a line)
         self._faults = RateLimitedLogger(log, loop)
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -88,6 +114,19 @@ class SerialSlave:
     def up(self) -> bool:
         """True while the serial port is open."""
         return self._link is not None and not self._link.closed
+
+    @property
+    def framing(self) -> str:
+        """``rtu`` or ``ascii``: what the masters on this line speak."""
+        return "ascii" if self._ascii is not None else "rtu"
+
+    def masters(self) -> list[MasterStatus]:
+        """The master on the line, for the status views, once it sent a request."""
+        if not self.requests:
+            return []
+        listener = f"{self.name} {self._serial.device} ({self.framing})"
+        in_flight = 1 if self._pending is not None else 0
+        return [MasterStatus(self._serial.device, listener, in_flight, self.requests)]
 
     def start(self) -> None:
         """Open the port, or keep trying in the background."""
@@ -101,6 +140,7 @@ class SerialSlave:
             self._reopener.cancel()
         if self._silence is not None:
             self._silence.cancel()
+            self._silence = None
         self._drop_pending()
         if self._link is not None:
             self._link.close()
@@ -118,14 +158,16 @@ class SerialSlave:
             return False
         self._open_error = ""
         self._link = SerialLink(port, self._loop, self._on_data, self._on_lost)
-        log.info("listener %s: answering as a slave on %s at %d baud", self.name,
-                 self._serial.device, self._serial.baudrate)  # fmt: skip
+        log.info("listener %s: answering as a slave on %s at %d baud (%s)", self.name,
+                 self._serial.device, self._serial.baudrate, self.framing.upper())  # fmt: skip
         return True
 
     def _on_lost(self, error: OSError) -> None:
         log.error("listener %s: %s lost: %s; reopening", self.name, self._serial.device, error)
         self._drop_pending()
         self._buffer.clear()
+        if self._ascii is not None:
+            self._ascii.reset()
         if not self._stopping:
             self._schedule_reopen()
 
@@ -142,10 +184,19 @@ class SerialSlave:
                 return
             delay = min(delay * 2, _REOPEN_MAX_DELAY)
 
-    # -- framing by silence --------------------------------------------------------------
+    # -- framing -------------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
         self._last_byte = time.monotonic()
+        if self._echo is not None and self._echo.expected:
+            own = len(data)
+            data = self._echo.strip(data)
+            self.echoes += own - len(data)
+            if not data:
+                return  # our own answer coming back: neither a request nor noise
+        if self._ascii is not None:
+            self._on_characters(data)
+            return
         if len(self._buffer) + len(data) > 2 * MAX_RTU_FRAME:
             self._buffer.clear()  # a babbling line: nothing here is one frame
             self._ignore("more than an RTU frame without a gap")
@@ -165,10 +216,36 @@ class SerialSlave:
             return
         frame = bytes(self._buffer)
         self._buffer.clear()
-        self._frame(frame)
+        self._serve(heard_request(frame))
 
-    def _frame(self, frame: bytes) -> None:
-        heard = heard_request(frame)
+    def _on_characters(self, data: bytes) -> None:
+        """ASCII: whole frames from ':' to LF; the inter-character timeout runs inside one."""
+        reader = self._ascii
+        assert reader is not None
+        for event in reader.feed(data):
+            if isinstance(event, FrameFault):
+                self._ignore(_FAULT_TEXT[event])
+            else:
+                self._serve(heard_ascii_request(event))
+        if self._silence is not None:
+            self._silence.cancel()
+            self._silence = None
+        if reader.in_frame:
+            self._silence = self._loop.call_later(
+                self._serial.inter_char_timeout, self._characters_stopped
+            )
+
+    def _characters_stopped(self) -> None:
+        self._silence = None
+        assert self._ascii is not None
+        fault = self._ascii.timed_out()
+        if fault is not None:
+            self._ignore(_FAULT_TEXT[fault])
+
+    def _serve(self, heard: Heard | str) -> None:
+        if isinstance(heard, FrameFault):
+            self._ignore(_FAULT_TEXT[heard])
+            return
         if isinstance(heard, str):
             self._ignore(heard)
             return
@@ -190,17 +267,24 @@ class SerialSlave:
             return
         self.requests += 1
         function = pdu[0]
+        number = self._sequence
+        self._sequence = (number + 1) & 0xFFFF
+        peer = self._serial.device
+        tracer = self.tracer
+        if tracer is not None:
+            tracer.request(peer, number, unit, pdu, self.name)
         try:
             fc.validate_request(pdu)
         except ModbusError as error:
             self._metrics.protocol_errors.labels("invalid_request").inc()
-            self._answer(unit, fc.exception_pdu(function, error.code))
+            self._answer(number, unit, fc.exception_pdu(function, error.code), "rejected")
             self._metrics.count_request("none", "other", function, "rejected")
             return
         if not self.policy.open:
             decision = self.policy.decide(Principal(None), unit, pdu)
             if decision.denied is not None:
-                self._answer(unit, fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION))
+                denial = fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION)
+                self._answer(number, unit, denial, "denied")
                 self._metrics.count_denial(self.name, self.policy.role_label(None), function)
                 self._metrics.count_request("none", "other", function, "denied")
                 return
@@ -210,7 +294,11 @@ class SerialSlave:
         def reply(response: bytes, outcome: str) -> None:
             if self._pending is request:
                 self._pending = None
-                self._answer(unit, response)
+                self._answer(number, unit, response, outcome)
+            else:
+                outcome = "dropped"  # the master gave up on it: a newer request came
+                if self.tracer is not None:
+                    self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
 
         request = Request(target.slave, pdu, self, reply)
@@ -229,14 +317,21 @@ class SerialSlave:
             return
         if not self.policy.open and self.policy.decide(Principal(None), 0, pdu).denied:
             return
+        if self.tracer is not None:
+            number = self._sequence
+            self._sequence = (number + 1) & 0xFFFF
+            self.tracer.request(self._serial.device, number, 0, pdu, self.name)
         for bus in self.router.broadcast_buses:
             if bus.up:
                 bus.submit(Request(0, pdu, self, _ignore_reply, broadcast=True))
 
-    def _answer(self, unit: int, pdu: bytes) -> None:
-        """Write the answer, no sooner than t3.5 after the last byte on the line."""
-        frame = encode_rtu_reply(unit, pdu)
-        wait = self._last_byte + self._t35 - time.monotonic()
+    def _answer(self, number: int, unit: int, pdu: bytes, outcome: str) -> None:
+        """Write the answer, no sooner than the turnaround after the last byte on the line."""
+        frame = self._encode(unit, pdu)
+        tracer = self.tracer
+        if tracer is not None:
+            tracer.reply(self._serial.device, number, unit, pdu, outcome)
+        wait = self._last_byte + self._turnaround - time.monotonic()
         if wait > 0:
             self._loop.call_later(wait + _TIMER_MARGIN_S, self._write, frame)
         else:
@@ -246,6 +341,8 @@ class SerialSlave:
         link = self._link
         if link is None or link.closed:
             return
+        if self._echo is not None:
+            self._echo.sent(frame)  # before the write: the echo may come back at once
         try:
             link.write(frame)
         except SerialPortError:
@@ -261,6 +358,16 @@ class SerialSlave:
     def _ignore(self, what: str) -> None:
         self.ignored += 1
         self._faults.note(f"listener {self.name}", "ignored frame", what, level=logging.INFO)
+
+
+#: What the log says about a damaged ASCII frame.
+_FAULT_TEXT = {
+    FrameFault.BAD_CHECK: "a frame with a bad LRC, or too short",
+    FrameFault.BAD_CHAR: "a frame with a non-hexadecimal character, or LF without CR",
+    FrameFault.RESTARTED: "a frame cut short by a new ':'",
+    FrameFault.OVERSIZE: "more than 513 characters without an end",
+    FrameFault.INCOMPLETE: "a frame whose characters stopped (inter_char_timeout)",
+}
 
 
 def _ignore_reply(_response: bytes, _outcome: str) -> None:

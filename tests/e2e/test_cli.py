@@ -7,8 +7,10 @@ from that line. Stops are SIGTERM, and the exit code is checked.
 
 from __future__ import annotations
 
+import os
 import queue
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -21,7 +23,8 @@ import pytest
 from conftest import DEADLINE_S, RawClient, Reply, SimFactory
 
 from gateway import __version__
-from gateway.sim import plc, zl69x
+from gateway.core.ascii import encode_ascii
+from gateway.sim import open_pty_pair, plc, zl69x
 from gateway.sim.device import pack_registers
 
 LISTENING = re.compile(r"listening on ([0-9.]+):(\d+)")
@@ -270,6 +273,30 @@ def test_serial_with_framing_ascii(make_sim: SimFactory, run_gateway: RunGateway
     assert sim.device(9).holding[5] == 0x11
     assert sim.stats().crc_errors_in == 0
     assert gateway.terminate() == 0
+
+
+def test_serial_slave_in_ascii(make_sim: SimFactory, run_gateway: RunGateway) -> None:
+    """An ASCII master on the --serial-slave line reaches the RTU line's slave (8N1 on ptys)."""
+    sim = make_sim({9: plc(9)})
+    pair = open_pty_pair()
+    try:
+        gateway = run_gateway(
+            "--serial", sim.path, "--serial-slave", pair.path, "--serial-slave-framing", "ascii",
+            "--data-bits", "8", "--parity", "N", "--baudrate", "115200",
+            "--listen", "127.0.0.1:0", "--metrics", "off",
+        )  # fmt: skip
+        gateway.wait_for(re.compile(r"answering as a slave on .* at 115200 baud \(ASCII\)"))
+        os.write(pair.sim_fd, b":0903" + b"03E80002" + b"07\r\n")
+        answer = b""
+        deadline = time.monotonic() + DEADLINE_S
+        while not answer.endswith(b"\r\n"):
+            assert time.monotonic() < deadline, answer
+            if select.select([pair.sim_fd], [], [], 0.1)[0]:
+                answer += os.read(pair.sim_fd, 256)
+        assert answer == encode_ascii(9, h("03 04 03E8 03E9"))
+        assert gateway.terminate() == 0
+    finally:
+        pair.close()
 
 
 def test_demo_has_an_ascii_device(run_gateway: RunGateway) -> None:

@@ -123,6 +123,46 @@ def test_a_serial_slave_listener_and_its_flag() -> None:
     assert (slave.serial.device, slave.serial.baudrate, slave.units) == ("/dev/ttyS1", 19200, ())
 
 
+def test_an_ascii_serial_slave_listener_is_7e1_by_default() -> None:
+    entry: dict[str, Any] = {"protocol": "serial-slave", "device": "/dev/ttyS1", "framing": "ascii"}
+    config = build_config({"lines": {"a": {"device": "/dev/ttyS0"}}, "listeners": [entry]})
+    serial = config.listeners[-1].serial
+    assert serial is not None
+    assert (serial.kind, serial.data_bits, serial.parity, serial.stop_bits) == ("ascii", 7, "E", 1)
+    assert (serial.inter_char_timeout, serial.echo) == (1.0, False)
+    entry.update(data_bits=8, parity="N", inter_char_timeout=0.5, echo=True)
+    config = build_config({"lines": {"a": {"device": "/dev/ttyS0"}}, "listeners": [entry]})
+    serial = config.listeners[-1].serial
+    assert serial is not None
+    assert (serial.data_bits, serial.parity, serial.inter_char_timeout, serial.echo) == (
+        8, "N", 0.5, True,
+    )  # fmt: skip
+    plain = {"protocol": "serial-slave", "device": "/dev/ttyS1"}
+    rtu = build_config({"lines": {"a": {"device": "/dev/ttyS0"}}, "listeners": [plain]})
+    serial = rtu.listeners[-1].serial
+    assert serial is not None
+    assert (serial.kind, serial.data_bits, serial.parity) == ("rtu", 8, "N")
+
+
+def test_the_serial_slave_framing_flags() -> None:
+    def slave_of(*argv: str) -> Any:
+        args = build_parser().parse_args(["--serial", "/dev/ttyS0", "--serial-slave", "/dev/ttyS1",
+                                          *argv])  # fmt: skip
+        return build_config(apply_overrides({}, args)).listeners[-1].serial
+
+    ascii_slave = slave_of("--serial-slave-framing", "ascii", "--data-bits", "8", "--parity", "N")
+    assert (ascii_slave.kind, ascii_slave.data_bits, ascii_slave.parity) == ("ascii", 8, "N")
+    assert slave_of("--framing", "ascii").kind == "ascii"  # --framing applies to it too
+    both = slave_of("--framing", "ascii", "--serial-slave-framing", "rtu")
+    assert (both.kind, both.data_bits, both.parity) == ("rtu", 8, "N")  # its own framing's format
+    assert slave_of().kind == "rtu"
+    args = build_parser().parse_args(["--serial", "/dev/ttyS0", "--serial-slave-framing", "ascii"])
+    with pytest.raises(ConfigError) as caught:
+        apply_overrides({}, args)
+    assert str(caught.value).startswith("--serial-slave-framing: ")
+    assert caught.value.problems == ["it sets the framing of --serial-slave DEVICE: give both"]
+
+
 @pytest.mark.parametrize(
     ("entry", "expected"),
     [
@@ -138,6 +178,15 @@ def test_a_serial_slave_listener_and_its_flag() -> None:
          'listeners[0].baudrate: only a protocol = "serial-slave" listener takes it'),
         ({"protocol": "serial-slave", "device": "/dev/ttyS1", "units": [0]},
          "listeners[0].units: unit 0 outside 1..247 (0 is broadcast, 248..255 are reserved)"),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS1", "framing": "tcp"},
+         "listeners[0].framing: 'tcp' is not one of: rtu, ascii"),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS1", "inter_char_timeout": 0.5},
+         'listeners[0].inter_char_timeout: only an ASCII line has one (framing = "ascii"); '
+         "an RTU frame ends on t3.5 of silence"),
+        ({"protocol": "serial-slave", "device": "/dev/ttyS1", "echo": "yes"},
+         "listeners[0].echo: 'yes' is not true or false"),
+        ({"protocol": "tcp", "listen": "0.0.0.0:1", "framing": "ascii"},
+         'listeners[0].framing: only a protocol = "serial-slave" listener takes it'),
     ],
 )  # fmt: skip
 def test_serial_slave_mistakes(entry: dict[str, Any], expected: str) -> None:
