@@ -353,7 +353,8 @@ class Gateway:
             if listener is not None and listener.serial == slave.listener.serial:
                 slave.policy = self._policy(config, listener)
             else:
-                log.warning("reload: serial-slave listener %s: device changes need a restart",
+                log.warning("reload: serial-slave listener %s: changes to its serial line "
+                            "(device, format, framing, echo) need a restart",
                             slave.name)  # fmt: skip
         self.metrics.describe_lines([line.name for line in config.lines])
         log.info("reload: configuration from %s applied", config.source)

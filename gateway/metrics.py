@@ -329,7 +329,7 @@ class GatewayMetrics:
             p + "connections_closed", "TCP connections closed, by reason.", ["reason"], registry=r
         )
         self.protocol_errors = Counter(
-            p + "protocol_errors", "Malformed input from TCP masters, by kind.", ["kind"],
+            p + "protocol_errors", "Malformed input from masters, by kind.", ["kind"],
             registry=r,
         )  # fmt: skip
         self.trace_dropped = Counter(

@@ -34,12 +34,16 @@ _MAX_BODY: Final = MAX_ASCII_FRAME - 1
 
 
 class FrameFault(StrEnum):
-    """Why a frame heard on the line is not served (counted and logged at a bounded rate)."""
+    """Why a frame heard on the line is not served: the ``kind`` of ``protocol_errors_total``.
 
-    BAD_CHECK = "bad_check"  # LRC (CRC) wrong, or a frame too short to be a request
+    The values are those of the other listeners where the meaning is the same: a wrong LRC
+    is ``bad_crc``, as on lines it counts as a CRC error; an endless frame is ``too_long``.
+    """
+
+    BAD_CHECK = "bad_crc"  # CRC (LRC) wrong, or a frame too short to be a request
     BAD_CHAR = "bad_char"  # a non-hexadecimal character, or LF without CR
     RESTARTED = "restarted"  # a ':' inside a frame: the frame so far is abandoned
-    OVERSIZE = "oversize"  # more than 513 characters without an end
+    OVERSIZE = "too_long"  # more than a frame without an end (513 characters, 2 RTU frames)
     INCOMPLETE = "incomplete"  # the characters stopped for the inter-character timeout
 
 

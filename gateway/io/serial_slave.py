@@ -199,7 +199,7 @@ class SerialSlave:
             return
         if len(self._buffer) + len(data) > 2 * MAX_RTU_FRAME:
             self._buffer.clear()  # a babbling line: nothing here is one frame
-            self._ignore("more than an RTU frame without a gap")
+            self._damaged(FrameFault.OVERSIZE, "more than an RTU frame without a gap")
             return
         self._buffer += data
         if self._silence is not None:
@@ -224,7 +224,7 @@ class SerialSlave:
         assert reader is not None
         for event in reader.feed(data):
             if isinstance(event, FrameFault):
-                self._ignore(_FAULT_TEXT[event])
+                self._damaged(event)
             else:
                 self._serve(heard_ascii_request(event))
         if self._silence is not None:
@@ -240,14 +240,14 @@ class SerialSlave:
         assert self._ascii is not None
         fault = self._ascii.timed_out()
         if fault is not None:
-            self._ignore(_FAULT_TEXT[fault])
+            self._damaged(fault)
 
     def _serve(self, heard: Heard | str) -> None:
         if isinstance(heard, FrameFault):
-            self._ignore(_FAULT_TEXT[heard])
+            self._damaged(heard)
             return
         if isinstance(heard, str):
-            self._ignore(heard)
+            self._damaged(FrameFault.BAD_CHECK, heard)
             return
         if heard is None:
             self.ignored += 1  # another slave's answer, or a request of another shape
@@ -355,17 +355,20 @@ class SerialSlave:
             for bus in self.router.buses:
                 bus.cancel(self)
 
-    def _ignore(self, what: str) -> None:
+    def _damaged(self, fault: FrameFault, what: str | None = None) -> None:
+        """A damaged frame: ignored in silence, counted, logged at a bounded rate."""
         self.ignored += 1
-        self._faults.note(f"listener {self.name}", "ignored frame", what, level=logging.INFO)
+        self._metrics.protocol_errors.labels(fault.value).inc()
+        detail = what if what is not None else _FAULT_TEXT[fault]
+        self._faults.note(f"listener {self.name}", "ignored frame", detail, level=logging.INFO)
 
 
 #: What the log says about a damaged ASCII frame.
 _FAULT_TEXT = {
-    FrameFault.BAD_CHECK: "a frame with a bad LRC, or too short",
+    FrameFault.BAD_CHECK: "a frame with a bad LRC (CRC), or too short",
     FrameFault.BAD_CHAR: "a frame with a non-hexadecimal character, or LF without CR",
     FrameFault.RESTARTED: "a frame cut short by a new ':'",
-    FrameFault.OVERSIZE: "more than 513 characters without an end",
+    FrameFault.OVERSIZE: "more than 513 characters without an end (ASCII)",
     FrameFault.INCOMPLETE: "a frame whose characters stopped (inter_char_timeout)",
 }
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory
+from metrics_harness import samples, series
 from test_live import status, stream
 from test_serial_slave import socat_ptys  # noqa: F401  (a fixture)
 from test_sim import FUNCTION_VECTORS
@@ -207,6 +208,10 @@ def test_silence_for_bad_lrc_unrouted_units_broadcasts_and_damaged_frames(revers
     assert decode_ascii(master.receive_frame()) == (1, h("03 02 0077"))
     assert sim.stats().broadcasts == 1
     assert gateway.call(lambda: (slave.requests, slave.ignored)) == (1, 6)
+    found = samples(gateway)
+    errors = {kind: found.get(series("modbus_gateway_protocol_errors_total", kind=kind), 0)
+              for kind in ("bad_crc", "bad_char", "restarted", "too_long")}  # fmt: skip
+    assert errors == {"bad_crc": 1, "bad_char": 2, "restarted": 1, "too_long": 0}
 
 
 def test_a_frame_whose_characters_stop_is_abandoned(reverse: Any) -> None:
@@ -238,6 +243,18 @@ def test_a_babbling_ascii_line_is_bounded_and_the_next_request_is_answered(
     master.silent_for(0.05)
     assert master.request(1, h("03 0000 0001")) == h("03 02 0000")
     assert gateway.call(lambda: slave.requests) == 1
+    found = samples(gateway)
+    assert found[series("modbus_gateway_protocol_errors_total", kind="too_long")] == 5
+
+
+def test_the_answer_waits_one_character_after_the_request(reverse: Any) -> None:
+    """ASCII frames end at their LF: the turnaround is one character time (33 ms at 300 baud)."""
+    _, _, master, _ = reverse(baudrate=300)
+    character = 10 / 300  # 8N1 on the pty
+    for _ in range(3):
+        sent = master.send(1, h("03 0000 0001"))
+        master.receive_frame()
+        assert time.monotonic() - sent >= character
 
 
 # --------------------------------------------------------------------------- pymodbus as master
