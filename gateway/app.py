@@ -14,6 +14,7 @@ import errno
 import logging
 import resource
 import signal
+import ssl
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -37,7 +38,7 @@ from .io.serial_port import check_device_free
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
-from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, server_context
+from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
 from .metrics import CloseReason, GatewayMetrics
 from .trace import Tracer
@@ -47,7 +48,8 @@ log = logging.getLogger("gateway")
 #: Line settings that need the port reopened when they change.
 _PORT_SETTINGS = ("device", "kind", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
                   "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
-                  "rs485_delay_before_tx", "rs485_delay_after_tx", "kind")  # fmt: skip
+                  "rs485_delay_before_tx", "rs485_delay_after_tx", "kind",
+                  "cert", "key", "ca", "server_name", "check_server_name")  # fmt: skip
 
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:
@@ -117,6 +119,7 @@ class Gateway:
         self.servers: list[ModbusTcpServer] = []  #: every listener, in configuration order
         self.serial_slaves: list[SerialSlave] = []  #: ``serial-slave`` listeners
         self._clocks: dict[str, PreciseClock] = {}  # one per bus: a clock has one sleeper
+        self._line_tls: dict[str, ssl.SSLContext] = {}  # tls lines' client contexts
         self._reload_lock = asyncio.Lock()
         self._http: HttpEndpoint | None = None
         self.live: LiveView | None = None  # trace stream, /status and the status page
@@ -155,6 +158,7 @@ class Gateway:
             ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
         )
         tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
+        self._line_tls = self._build_line_tls(self.config)
         http_connections = self.config.metrics.max_connections if self.config.metrics.enabled else 0
         ensure_file_descriptors(
             self.config.server.max_connections * len(listeners)
@@ -279,9 +283,11 @@ class Gateway:
         assert self.server is not None
         try:
             tls = self._build_tls(config)  # certificates, keys and CAs are read again
+            line_tls = self._build_line_tls(config)
         except TlsSetupError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
             return
+        self._line_tls = line_tls  # a line's next handshake uses its renewed files
         new_names = {line.name for line in config.lines}
         for name in list(self.buses):
             if name not in new_names:
@@ -291,6 +297,7 @@ class Gateway:
             bus = self.buses.get(line.name)
             if bus is not None and not _port_changed(bus.config, line):
                 bus.reconfigure(line)
+                bus.tls_context = line_tls.get(line.name)
                 continue
             queued: list[Request] = []
             if bus is not None:
@@ -364,7 +371,7 @@ class Gateway:
     def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> Bus:
         """Start a bus for ``line`` with a clock of its own (a clock serves one sleeper)."""
         clock = PreciseClock(loop)
-        bus = Bus(line, self.metrics, loop, clock)
+        bus = Bus(line, self.metrics, loop, clock, self._line_tls.get(line.name))
         self.buses[line.name] = bus
         self._clocks[line.name] = clock
         bus.start()
@@ -384,6 +391,11 @@ class Gateway:
         for name in built:
             self.metrics.prepare_tls_listener(name, (reason.value for reason in HandshakeFailure))
         return built
+
+    @staticmethod
+    def _build_line_tls(config: GatewayConfig) -> dict[str, ssl.SSLContext]:
+        """Every tls line's client context, from its files now (raises ``TlsSetupError``)."""
+        return {line.name: client_context(line) for line in config.lines if line.kind == "tls"}
 
     @staticmethod
     def _policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:

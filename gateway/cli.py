@@ -21,7 +21,7 @@ from .config import (
     policy_warnings,
     read_config_file,
 )
-from .io.tls import TlsSetupError, server_context
+from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
 from .sim.demo import DEMO_ASCII_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
@@ -133,6 +133,21 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
                         help="a Modbus TCP slave (or another gateway) instead of --serial; "
                         "without --config every unit 1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--modbus-tls", metavar="HOST[:PORT]",
+                        help="a Modbus/TCP Security slave (port 802 unless given) instead of "
+                        "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
+                        "without --config every unit 1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--modbus-tls-cert", metavar="FILE",
+                        help="the gateway's client certificate chain for tls lines, PEM "
+                        "(leaf first)")  # fmt: skip
+    parser.add_argument("--modbus-tls-key", metavar="FILE",
+                        help="the private key of --modbus-tls-cert, PEM")  # fmt: skip
+    parser.add_argument("--modbus-tls-ca", metavar="FILE",
+                        help="CA certificates the tls slave's certificate must chain "
+                        "to, PEM")  # fmt: skip
+    parser.add_argument("--modbus-tls-server-name", metavar="NAME",
+                        help="the name the tls slave's certificate must carry (default: the "
+                        "host of --modbus-tls)")  # fmt: skip
     parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
     parser.add_argument(
         "--data-bits", type=int, choices=[7, 8], help="data bits of every line (8; ascii: 7)"
@@ -237,6 +252,12 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
         if args.rtu_over_tcp:
             raise ConfigError("--modbus-tcp", ["give either --rtu-over-tcp or --modbus-tcp"])
         _apply_network_line(lines, "tcp", args.modbus_tcp, "--modbus-tcp", args)
+    if args.modbus_tls:
+        if args.rtu_over_tcp or args.modbus_tcp:
+            raise ConfigError("--modbus-tls", ["give one of --rtu-over-tcp, --modbus-tcp and "
+                                               "--modbus-tls"])  # fmt: skip
+        _apply_network_line(lines, "tls", args.modbus_tls, "--modbus-tls", args)
+    _apply_line_tls_flags(lines, args)
     per_line = {
         "kind": args.framing,
         "baudrate": args.baudrate,
@@ -270,6 +291,22 @@ def _apply_network_line(
         raise ConfigError(
             flag, ["the configuration has several lines; set each line's address in the file"]
         )
+
+
+def _apply_line_tls_flags(lines: dict[str, Any], args: argparse.Namespace) -> None:
+    """``--modbus-tls-*`` set the files and server name of every ``kind = "tls"`` line."""
+    flags = {"cert": args.modbus_tls_cert, "key": args.modbus_tls_key, "ca": args.modbus_tls_ca,
+             "server_name": args.modbus_tls_server_name}  # fmt: skip
+    given = {key: value for key, value in flags.items() if value}
+    if not given:
+        return
+    tls_lines = [t for t in lines.values() if isinstance(t, dict) and t.get("kind") == "tls"]
+    if not tls_lines:
+        flag = "--modbus-tls-" + next(iter(given)).replace("_", "-")
+        raise ConfigError(flag, ['no line is kind = "tls": give --modbus-tls HOST:PORT, or set '
+                                 "the files under the tls line in the file"])  # fmt: skip
+    for table in tls_lines:
+        table.update(given)
 
 
 def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, Any]) -> None:
@@ -324,6 +361,9 @@ def _check_config(argv: Sequence[str]) -> int:
         for listener in config.listeners:
             if listener.tls:
                 server_context(listener)  # the files exist, match, and are valid now
+        for line in config.lines:
+            if line.kind == "tls":
+                client_context(line)  # the same for a tls line's client certificate
     except ConfigError as error:
         print(error, file=sys.stderr)
         return 2

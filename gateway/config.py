@@ -28,7 +28,8 @@ VALID_PARITIES = ("N", "E", "O")
 #: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
 #: ``rtu-over-tcp``: RTU frames over a TCP connection to a serial device server (raw socket).
 #: ``tcp``: a Modbus TCP slave (MBAP under the gateway's own transaction ids).
-VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp")
+#: ``tls``: a Modbus/TCP Security slave (the same MBAP framing, over TLS 1.2 or newer).
+VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -37,7 +38,7 @@ VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
 #: is the default. Named like ``--framing``: on a listener, ``kind`` would read as ``protocol``.
 VALID_SLAVE_FRAMINGS = ("rtu", "ascii")
 #: Line kinds reached over the network rather than through a device node.
-NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp"})
+NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp", "tls"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
 NETWORK_SILENCE_S = 0.05
 #: Added to the automatic response timeout of a network line: the round trip and the device
@@ -197,6 +198,17 @@ class LineConfig:
     connect_timeout: float = 3.0
     #: ``silence`` when set: the quiet time that ends an answer of unpredictable length.
     silence_setting: float | None = None
+    #: ``kind = "tls"``: the gateway's client certificate chain, its key, and the CAs the
+    #: slave's certificate must chain to (PEM files).
+    cert: str | None = None
+    key: str | None = None
+    ca: str | None = None
+    #: ``kind = "tls"``: the name the slave's certificate must carry (the address's host
+    #: unless set); ``check_server_name = false`` skips only that check, never the chain's.
+    server_name: str = ""
+    check_server_name: bool = True
+    #: ``kind = "tls"``: seconds the TLS handshake with the slave may take.
+    tls_handshake_timeout: float = 10.0
 
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
@@ -296,6 +308,12 @@ def parse_host_port(text: str) -> tuple[str, int]:
         raise ValueError(f"port {port} outside 0..65535")
     host = host.strip("[]") or "0.0.0.0"
     return host, port
+
+
+def _has_port(address: str) -> bool:
+    """True when ``address`` ends in ``:PORT`` (``[v6]`` alone, or a bare host, has none)."""
+    _, sep, tail = address.rpartition(":")
+    return bool(sep) and tail.isdigit() and not address.endswith("]")
 
 
 def parse_units(value: Any) -> list[int]:
@@ -482,7 +500,15 @@ _LINE_KEYS = {
     "connect_delay",
     "connect_timeout",
     "silence",
+    "cert",
+    "key",
+    "ca",
+    "server_name",
+    "check_server_name",
+    "tls_handshake_timeout",
 }
+#: Keys only a ``kind = "tls"`` line takes.
+_TLS_LINE_KEYS = ("cert", "key", "ca", "server_name", "check_server_name", "tls_handshake_timeout")
 
 
 def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
@@ -539,8 +565,8 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
     if kind in NETWORK_LINE_KINDS:
         host, port, device = _network_address(check, table, prefix, kind)
     elif "address" in table:
-        check.fail(f"{prefix}address", 'only a network line takes it (kind = "rtu-over-tcp" '
-                   f'or "tcp"); a {kind} line names its serial port with device')  # fmt: skip
+        check.fail(f"{prefix}address", 'only a network line takes it (kind = "rtu-over-tcp", '
+                   f'"tcp" or "tls"); a {kind} line names its serial port with device')  # fmt: skip
     if kind not in NETWORK_LINE_KINDS and (not isinstance(device, str) or not device):
         check.fail(
             f"{prefix}device",
@@ -613,7 +639,47 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         connect_delay=check.number(table, "connect_delay", prefix, 0.0, 0.0, 60.0),
         connect_timeout=check.number(table, "connect_timeout", prefix, 3.0, 0.01, 600.0),
         silence_setting=_optional_number(check, table, "silence", prefix, 10.0),
+        **_tls_line(check, table, prefix, kind, host),
     )
+
+
+def _tls_line(
+    check: _Checker, table: Mapping[str, Any], prefix: str, kind: str, host: str
+) -> dict[str, Any]:
+    """The TLS keys of a ``kind = "tls"`` line (refused on any other kind)."""
+    if kind != "tls":
+        for key in _TLS_LINE_KEYS:
+            if key in table:
+                check.fail(f"{prefix}{key}", f'only a kind = "tls" line takes it; remove it '
+                           f"from this {kind} line")  # fmt: skip
+        return {}
+    what = {
+        "cert": "the gateway's client certificate chain (PEM, leaf first)",
+        "key": "the private key of that certificate (PEM, unencrypted)",
+        "ca": "the CA certificates the slave's certificate must chain to (PEM)",
+    }
+    files: dict[str, str | None] = {}
+    for key, description in what.items():
+        value = table.get(key)
+        if not isinstance(value, str) or not value:
+            fix = "write a file path as a string" if key in table else "missing"
+            check.fail(f"{prefix}{key}", f"{fix}; a tls line needs {description}"
+                       f" (or --modbus-tls-{key} FILE)")  # fmt: skip
+            value = None
+        files[key] = value
+    server_name = table.get("server_name", host)
+    if not isinstance(server_name, str) or not server_name:
+        check.fail(f"{prefix}server_name", "write the name the slave's certificate carries, "
+                   'like "plc-7.plant.example" (default: the address\'s host)')  # fmt: skip
+        server_name = host
+    return {
+        **files,
+        "server_name": server_name,
+        "check_server_name": check.boolean(table, "check_server_name", prefix, True),
+        "tls_handshake_timeout": check.number(
+            table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
+        ),
+    }
 
 
 def _network_address(
@@ -624,6 +690,8 @@ def _network_address(
         check.fail(f"{prefix}device", f'a {kind} line is reached at address = "HOST:PORT", '
                    "not a device; rename the key to address")  # fmt: skip
     value = table.get("address")
+    if kind == "tls" and isinstance(value, str) and value and not _has_port(value):
+        value = f"{value}:{DEFAULT_TLS_PORT}"  # Modbus/TCP Security's own port
     if not isinstance(value, str) or not value:
         check.fail(f"{prefix}address", f'missing; a {kind} line needs the device server\'s '
                    'address, like "10.0.0.5:4001"')  # fmt: skip
@@ -864,6 +932,13 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             warnings.append(
                 f"{prefix}.device: {line.device} does not exist (yet); the gateway retries "
                 "opening it, check the path (ls /dev/serial/by-id/)"
+            )
+        if line.kind == "tls" and not line.check_server_name:
+            warnings.append(
+                f"{prefix}.check_server_name: false: the slave's certificate must still chain "
+                f"to {prefix}.ca, but any certificate that CA issued is taken for this slave; "
+                "keep it only with a CA that issues this one device's certificate, else set "
+                "server_name to the name in the slave's certificate"
             )
         if line.name not in routed_lines:
             warnings.append(

@@ -354,6 +354,12 @@ class GatewayMetrics:
             p + "tls_handshake_failures", "Failed TLS handshakes on tls listeners, by reason.",
             ["listener", "reason"], registry=r,
         )  # fmt: skip
+        self.line_tls_failures = Counter(
+            p + "line_tls_failures",
+            "Failed TLS set-ups with the slave of a tls line (handshake, or the slave's refusal "
+            "of the gateway's certificate), by reason.",
+            ["line", "reason"], registry=r,
+        )  # fmt: skip
         self._certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._certificates))
         self._denial_children: dict[tuple[str, str, int], Counter] = {}
@@ -418,6 +424,11 @@ class GatewayMetrics:
         """Create a TLS listener's handshake failure series at 0."""
         for reason in reasons:
             self.tls_handshake_failures.labels(listener, reason)
+
+    def prepare_line_tls(self, line: str, reasons: Iterable[str]) -> None:
+        """Create a tls line's failure series at 0."""
+        for reason in reasons:
+            self.line_tls_failures.labels(line, reason)
 
     def set_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
         """The certificates whose ``notAfter`` is exported (replaced on every reload)."""

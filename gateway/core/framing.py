@@ -28,6 +28,7 @@ class LineKind(StrEnum):
     RTU = "rtu"
     ASCII = "ascii"
     TCP = "tcp"  # Modbus TCP slaves: MBAP under the gateway's own transaction ids
+    TLS = "tls"  # Modbus/TCP Security slaves: the same MBAP framing, over TLS
     RTU_OVER_TCP = "rtu-over-tcp"  # RTU frames over TCP to a serial device server
 
 
@@ -100,13 +101,15 @@ def mbap_framing(first_transaction_id: int = 0) -> Framing:
 def framing_for(kind: str) -> Framing:
     """The framing of a line kind (``ValueError`` for a kind without one).
 
-    ``tcp`` gets a framing of its own each time: its transaction ids belong to one line.
+    ``tcp`` and ``tls`` get a framing of their own each time: its transaction ids
+    belong to one line. A ``tls`` line's framing is the MBAP framing itself (its
+    ``kind`` is ``tcp``): TLS changes the transport, not a byte of the frames.
     """
     try:
         line_kind = LineKind(kind)
     except ValueError:
         raise ValueError(f"line kind {kind!r} has no framing") from None
-    if line_kind is LineKind.TCP:
+    if line_kind is LineKind.TCP or line_kind is LineKind.TLS:
         return mbap_framing()
     framing = _BY_KIND.get(line_kind)
     if framing is None:

@@ -9,15 +9,19 @@ deadline ``get_timer()`` names through ``PreciseClock``. It also reopens a lost
 port with back-off.
 
 What carries the bytes is a ``Link``: the serial port (``kind = "rtu"``), or a TCP
-connection to a serial device server (``kind = "rtu-over-tcp"``), connected without
-blocking the loop and reconnected with the same back-off as a port is reopened.
-While the link is down the core answers 0x0A, whatever the kind.
+connection to a serial device server (``kind = "rtu-over-tcp"``) or slave (``tcp``),
+or a TLS session with a slave (``tls``), connected without blocking the loop and
+reconnected with the same back-off as a port is reopened. While the link is down
+the core answers 0x0A, whatever the kind. A TLS failure is counted by reason and
+logged once per reason until the line works again.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import socket
+import ssl
 import time
 from collections.abc import Hashable, Iterable
 
@@ -31,8 +35,9 @@ from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock
-from .link import Link, LinkError, TcpLink, connect_tcp
+from .link import Link, LinkError, TcpLink, TlsLink, connect_tcp, connect_tls
 from .serial_port import SerialLink, SerialPortError, open_serial
+from .tls import LineTlsFailure, line_failure_message, line_failure_reason
 
 log = logging.getLogger("gateway.bus")
 
@@ -52,8 +57,11 @@ class Bus:
         metrics: GatewayMetrics,
         loop: asyncio.AbstractEventLoop,
         clock: PreciseClock,
+        tls_context: ssl.SSLContext | None = None,
     ) -> None:
         self.config = config
+        #: ``kind = "tls"``: the context of the next handshake (a reload may renew it).
+        self.tls_context = tls_context
         self.name = config.name
         self._metrics = metrics
         self._loop = loop
@@ -77,6 +85,8 @@ class Bus:
         self._m_noisy.set(0)
         metrics.prepare_line(self.name)
         metrics.set_line_kind(self.name, config.kind)
+        if config.kind == "tls":
+            metrics.prepare_line_tls(self.name, (reason.value for reason in LineTlsFailure))
         self._fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     # -- state ---------------------------------------------------------------------------
@@ -187,18 +197,23 @@ class Bus:
         self._pump()
 
     def _on_lost(self, error: OSError) -> None:
-        log.error(
-            "line %s: %s lost: %s; answering 0x0A until it returns",
-            self.name,
-            self.config.device,
-            error,
-        )
+        link = self._link
+        refused = isinstance(link, TlsLink) and not link.confirmed
+        if refused:  # TLS 1.3: the slave's verdict on the gateway's certificate comes late
+            self._tls_failed(error)
+        else:
+            log.error(
+                "line %s: %s lost: %s; answering 0x0A until it returns",
+                self.name,
+                self.config.device,
+                error,
+            )
+            self._metrics.line_lost.labels(self.name).inc()
         self._m_line_up.set(0)
-        self._metrics.line_lost.labels(self.name).inc()
         self._core.port_lost(time.monotonic())
         self._pump()
         if not self._stopping:
-            self._schedule_reopen()
+            self._schedule_reopen(_REOPEN_MAX_DELAY if refused else _REOPEN_FIRST_DELAY)
 
     def _resync(self) -> None:
         """Drop a connection whose byte stream can no longer be split into frames."""
@@ -370,7 +385,14 @@ class Bus:
                 log.error("%s; retrying", reason)
             return False
         lost: list[OSError] = []
-        link = TcpLink(sock, config.device, self._loop, self._discard, lost.append)
+        link: TcpLink | TlsLink
+        if config.kind == "tls":
+            handshaken = await self._handshake(sock, lost)
+            if handshaken is None:
+                return False
+            link = handshaken
+        else:
+            link = TcpLink(sock, config.device, self._loop, self._discard, lost.append)
         if config.connect_delay > 0:
             # Some device servers drop what arrives while they set up their serial side:
             # nothing is sent (the line stays down, 0x0A) and nothing read counts.
@@ -385,14 +407,46 @@ class Bus:
                 self._open_error = reason
                 log.error("%s; retrying", reason)
             return False
-        self._open_error = ""
         link.on_data, link.on_lost = self._on_data, self._on_lost
         self._link = link
         self._m_line_up.set(1)
-        log.info("line %s: connected to %s (%s)", self.name, config.device, config.kind)
+        if isinstance(link, TlsLink) and self._open_error:
+            # After a TLS failure the slave's first answer says it took the certificate:
+            # until then a reconnect is not news (the failure was logged once).
+            link.on_confirmed = self._tls_confirmed
+            log.debug("line %s: TLS handshake with %s done", self.name, config.device)
+        else:
+            self._open_error = ""
+            log.info("line %s: connected to %s (%s)", self.name, config.device, config.kind)
         self._core.port_opened(time.monotonic())
         self._pump()
         return True
+
+    async def _handshake(self, sock: socket.socket, lost: list[OSError]) -> TlsLink | None:
+        """The TLS handshake of a ``tls`` line on a connected socket; None on failure."""
+        config = self.config
+        assert self.tls_context is not None, "a tls line is opened with its context"
+        try:
+            tls = await connect_tls(
+                sock, self.tls_context, config.server_name, config.tls_handshake_timeout
+            )
+        except OSError as error:
+            self._tls_failed(error)
+            return None
+        return TlsLink(tls, config.device, self._loop, self._discard, lost.append)
+
+    def _tls_failed(self, error: OSError) -> None:
+        """Count a TLS failure by reason; log it when the reason is new."""
+        reason = line_failure_reason(error)
+        self._metrics.line_tls_failures.labels(self.name, reason.value).inc()
+        key = f"tls:{reason.value}"
+        if key != self._open_error:
+            self._open_error = key
+            log.error("%s; retrying", line_failure_message(self.config, reason, error))
+
+    def _tls_confirmed(self) -> None:
+        self._open_error = ""
+        log.info("line %s: TLS session with %s accepted, back up", self.name, self.config.device)
 
     @staticmethod
     def _discard(_data: bytes) -> None:
@@ -413,7 +467,7 @@ class Bus:
                 return
             opened = await self._try_connect() if self.config.networked else self._try_open()
             if opened:
-                if delay > 0:
+                if delay > 0 and not self._open_error:  # a TLS session: when confirmed
                     log.info("line %s: back up", self.name)
                 self._reopener = None
                 return

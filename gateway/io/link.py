@@ -1,4 +1,4 @@
-"""A line's byte link: the serial port, or a TCP connection to a serial device server.
+"""A line's byte link: the serial port, a TCP connection, or a TLS session with a slave.
 
 Theory of operation: ``Bus`` drives every line's core the same way whatever carries
 its bytes. A link delivers what it reads through ``on_data`` (one non-blocking read
@@ -13,6 +13,17 @@ an answer of unknown length ends on silence (``silence``, 50 ms by default on a
 network line). ``TCP_NODELAY`` keeps a request from waiting for an ACK behind
 Nagle's algorithm, and keepalive probes notice a device server that vanished
 without closing.
+
+``TlsLink`` carries a ``kind = "tls"`` line (Modbus/TCP Security): the same socket
+wrapped in an ``ssl.SSLSocket`` after a non-blocking handshake (``connect_tls``), so
+that the slave's alerts keep their reason (the loop's TLS transports report a
+refused certificate as a plain close).
+Under TLS 1.3 the slave judges the gateway's certificate after the client's side of
+the handshake is done, so a refusal can arrive as the first thing read: until the
+first bytes from the slave the link is not ``confirmed``, and ``Bus`` takes its loss
+before then (an alert, or a plain close: asyncio's and uvloop's TLS servers close
+without sending their alert) for a handshake failure, not for the loss of a working
+line.
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import ssl
 from collections.abc import Callable
 from typing import Protocol
 
@@ -149,3 +161,100 @@ async def connect_tcp(host: str, port: int, timeout: float) -> socket.socket:
                     sock.setsockopt(socket.IPPROTO_TCP, option, value)
         return sock
     raise last
+
+
+class TlsLink(TcpLink):
+    """A TLS session with a Modbus/TCP Security slave: ``TcpLink`` on a non-blocking SSLSocket.
+
+    Reads drain what OpenSSL has already decrypted (``pending``), since the socket
+    may not become readable again for it; a read that yields no application data
+    (a TLS 1.3 session ticket) is no event. An alert from the slave surfaces as the
+    ``ssl.SSLError`` it is, with its reason, through ``on_lost``.
+    """
+
+    def __init__(
+        self,
+        sock: ssl.SSLSocket,
+        where: str,
+        loop: asyncio.AbstractEventLoop,
+        on_data: Callable[[bytes], None],
+        on_lost: Callable[[OSError], None],
+    ) -> None:
+        self._tls = sock
+        #: True once the slave sent anything: it accepted the gateway's certificate.
+        self.confirmed = False
+        #: Called once, at the first bytes from the slave.
+        self.on_confirmed: Callable[[], None] | None = None
+        super().__init__(sock, where, loop, on_data, on_lost)
+
+    def _readable(self) -> None:
+        sock = self._tls
+        data = b""
+        failure: OSError | None = None
+        try:
+            chunk = sock.recv(_READ_CHUNK)
+            data = chunk
+            while chunk and sock.pending():
+                chunk = sock.recv(_READ_CHUNK)
+                data += chunk
+        except (ssl.SSLWantReadError, ssl.SSLWantWriteError, InterruptedError):
+            if not data:
+                return  # a record without application data (a session ticket), or a part
+        except OSError as error:
+            failure = error
+        if data:
+            if not self.confirmed:
+                self.confirmed = True
+                if self.on_confirmed is not None:
+                    self.on_confirmed()
+            self.on_data(data)
+        if failure is not None:
+            self._lost(failure)
+        elif not data:
+            self._lost(OSError("the slave closed the connection"))
+
+
+async def connect_tls(
+    sock: socket.socket, context: ssl.SSLContext, server_name: str, timeout: float
+) -> ssl.SSLSocket:
+    """Run the TLS handshake on a connected non-blocking socket, within ``timeout``.
+
+    Raises ``OSError`` (``ssl.SSLError``, ``TimeoutError``) when it fails, and then
+    closes the socket.
+    """
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    tls = context.wrap_socket(sock, server_hostname=server_name, do_handshake_on_connect=False)
+    try:
+        while True:
+            try:
+                tls.do_handshake()
+                return tls
+            except ssl.SSLWantReadError:
+                await _ready(loop, tls.fileno(), True, deadline)
+            except ssl.SSLWantWriteError:
+                await _ready(loop, tls.fileno(), False, deadline)
+    except BaseException:
+        tls.close()
+        raise
+
+
+async def _ready(loop: asyncio.AbstractEventLoop, fd: int, read: bool, deadline: float) -> None:
+    """Wait until ``fd`` is readable (or writable) or ``deadline`` passes (``TimeoutError``)."""
+    ready: asyncio.Future[None] = loop.create_future()
+
+    def wake() -> None:
+        if not ready.done():
+            ready.set_result(None)
+
+    (loop.add_reader if read else loop.add_writer)(fd, wake)
+    try:
+        remaining = deadline - loop.time()
+        if remaining <= 0:
+            raise TimeoutError("no complete TLS handshake in time")
+        try:
+            await asyncio.wait_for(ready, remaining)
+        except TimeoutError:
+            raise TimeoutError("no complete TLS handshake in time") from None
+    finally:
+        (loop.remove_reader if read else loop.remove_writer)(fd)
