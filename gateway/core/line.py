@@ -61,7 +61,7 @@ from typing import Final, NamedTuple, Protocol
 
 from . import pdu as fc
 from .errors import ExceptionCode, ResponseError
-from .framing import RTU, Framing, ResponseDecoder
+from .framing import RTU, Framing, LineKind, ResponseDecoder
 from .outcome import LineEvent, Outcome, SlaveState
 from .rtu import RtuFrame
 from .timing import character_time
@@ -305,8 +305,12 @@ class LineCore:
 
     def _apply_policy(self, policy: LinePolicy) -> None:
         self.policy = policy
-        self._char_time = character_time(
-            policy.baudrate, policy.data_bits, policy.parity, policy.stop_bits
+        # A Modbus TCP or TLS slave (MBAP framing) has no serial wire behind the socket: its
+        # frames take no transmission time (9600 baud would hold each request ~12 ms).
+        self._char_time = (
+            0.0
+            if self.framing.kind is LineKind.TCP
+            else character_time(policy.baudrate, policy.data_bits, policy.parity, policy.stop_bits)
         )
         self._gap = policy.gap
         self._silence = policy.silence

@@ -103,3 +103,18 @@ def test_the_core_skips_a_stale_answer_and_takes_its_own() -> None:
         delivery.request.reply(delivery.pdu, delivery.outcome)
     assert answers == [(ANSWER, Outcome.OK)]
     assert [n.detail for n in core.notes if n.event is LineEvent.DISCARDED] == ["unexpected_tid"]
+
+
+@pytest.mark.parametrize("kind", ["tcp", "tls"])
+def test_a_modbus_tcp_slave_gets_the_next_request_at_once(kind: str) -> None:
+    """No serial wire behind the socket: a request takes no transmission time to hold back."""
+    config = LineConfig(name="t", device="plc:502", kind=kind, timeout=0.5)  # 9600 baud
+    core = LineCore(config, -1.0, framing=framing_for(kind))
+    core.port_opened(-1.0)
+    for master in ("a", "b"):
+        core.submit(LineRequest(17, READ, master, lambda pdu, outcome: None), 0.0)
+    assert [t.frame for t in core.transmits] == [encode_mbap(1, 17, READ)]
+    core.transmits.clear()
+    core.receive(encode_mbap(1, 17, ANSWER), 0.0002)
+    assert [t.frame for t in core.transmits] == [encode_mbap(2, 17, READ)]  # at 0.2 ms
+    assert core.get_timer() == pytest.approx(0.0002 + 0.5)  # the second one's timeout only
