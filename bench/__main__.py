@@ -31,6 +31,7 @@ from . import (
     kind_scenarios,
     line_scenarios,
     scenarios,
+    slave_kind_scenarios,
     tls_scenarios,
     transport_scenarios,
 )
@@ -49,6 +50,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **transport_scenarios.SCENARIOS,
     **hostile.SCENARIOS,
     **kind_scenarios.SCENARIOS,
+    **slave_kind_scenarios.SCENARIOS,
 }
 
 

@@ -10,10 +10,13 @@ reason and logged once.
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import logging
 import socket
 import ssl
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -22,8 +25,10 @@ from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, LogCollector, RunningGateway, SimFactory
+from test_sim import FUNCTION_VECTORS
 
 from gateway.sim import plc
+from gateway.sim.device import pack_registers
 from gateway.sim.pki import Pki, make_pki
 
 
@@ -270,3 +275,237 @@ def test_a_slave_that_refuses_the_gateways_certificate_with_an_alert(
     logged = [text for text in bus_log.messages if "refused the gateway's certificate" in text]
     assert len(logged) == 1, bus_log.messages
     assert "UNKNOWN_CA" in logged[0] and "otherca.chain.pem" in logged[0]
+
+
+# --------------------------------------------------------------------------- independent slave
+
+
+class PymodbusTlsSlave:
+    """pymodbus's Modbus/TCP Security server (unit 7), client certificates required."""
+
+    def __init__(self, pki: Pki) -> None:
+        from pymodbus.server import ModbusTlsServer
+        from pymodbus.simulator import DataType, SimData, SimDevice
+
+        device = SimDevice(
+            id=7,
+            simdata=(
+                [SimData(0, values=[i % 3 == 0 for i in range(32)], datatype=DataType.BITS)],
+                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
+                [SimData(0, values=[10 * i for i in range(32)], datatype=DataType.REGISTERS)],
+                [SimData(0, count=16, values=0, datatype=DataType.REGISTERS)],
+            ),
+        )
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.load_cert_chain(str(pki.server_chain), str(pki.server_key))
+        context.load_verify_locations(cafile=str(pki.ca))
+        context.verify_mode = ssl.CERT_REQUIRED
+        self.loop = asyncio.new_event_loop()
+        self.server: Any = None
+        ready = threading.Event()
+
+        async def start() -> None:
+            self.server = ModbusTlsServer(device, address=("127.0.0.1", 0), sslctx=context)
+            await self.server.serve_forever(background=True)
+
+        def serve() -> None:
+            asyncio.set_event_loop(self.loop)
+            self.loop.run_until_complete(start())
+            ready.set()
+            self.loop.run_forever()
+
+        self._thread = threading.Thread(target=serve, name="pymodbus-tls-slave", daemon=True)
+        self._thread.start()
+        assert ready.wait(DEADLINE_S), "pymodbus did not listen"
+        server: Any = self.server
+        self.port: int = server.transport.sockets[0].getsockname()[1]
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(DEADLINE_S)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(DEADLINE_S)
+        self.loop.close()
+
+
+def test_pymodbus_tls_server_as_an_independent_slave(
+    make_gateway: GatewayFactory, pki: Pki
+) -> None:
+    slave = PymodbusTlsSlave(pki)
+    try:
+        gw = make_gateway({"lines": {"plc": tls_line(pki, slave.port)}})
+        wait_until(lambda: line_up(gw), "the tls line never came up")
+        with gw.connect() as master:
+            tid = master.send(7, h("03 0000 0004"), tid=0x4242)
+            reply = master.receive()
+            assert (reply.transaction_id, reply.pdu) == (
+                tid,
+                h("03 08") + pack_registers([0, 10, 20, 30]),
+            )
+            assert master.request(7, h("10 0002 0002 04 1111 2222")) == h("10 0002 0002")
+            assert master.request(7, h("03 0001 0003")) == h("03 06") + pack_registers(
+                [10, 0x1111, 0x2222]
+            )
+            assert master.request(7, h("01 0000 000A")) == h("01 02 49 02")
+            assert master.request(7, h("05 0001 FF00")) == h("05 0001 FF00")
+            assert master.request(7, h("01 0000 000A")) == h("01 02 4B 02")
+            assert master.request(7, h("03 0100 0001")) == h("83 02")  # pymodbus's exception
+    finally:
+        slave.close()
+
+
+# --------------------------------------------------------------------------- every function code
+
+
+@pytest.mark.parametrize(("request_hex", "response_hex"), FUNCTION_VECTORS)
+def test_every_function_code_through_tcp_and_tls_lines(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, request_hex: str,
+    response_hex: str,
+) -> None:  # fmt: skip
+    """Gateway A's unit 7 goes over a tcp line, unit 8 over a tls line, to twin PLCs behind B."""
+    twin_a, twin_b = make_sim({7: plc(7)}), make_sim({7: plc(7)})
+    slave = make_gateway({
+        "lines": {"x": twin_a.line_table([7]), "y": twin_b.line_table([])},
+        "routes": [{"unit": 8, "line": "y", "slave": 7}],
+        "listeners": [tls_listener(pki, policy="all")],
+        "policies": {"all": {"rules": [{"role": "operator", "units": [7, 8]}]}},
+    })  # fmt: skip
+    plain = slave.address[1]
+    gw = make_gateway({
+        "lines": {
+            "t": {"kind": "tcp", "address": f"127.0.0.1:{plain}", "units": [7], "timeout": 1.0},
+            "s": tls_line(pki, tls_port(slave), units=[8]),
+        },
+    })  # fmt: skip
+    wait_until(lambda: line_up(gw, "t") and line_up(gw, "s"), "the lines never came up")
+    with gw.connect() as master:
+        through_tcp = master.request(7, h(request_hex))
+        through_tls = master.request(8, h(request_hex))
+    assert through_tcp == h(response_hex)
+    assert through_tls == through_tcp
+
+
+# --------------------------------------------------------------------------- kill and restart
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+class SlaveProcess:
+    """Gateway B as a real process (Modbus TCP and Modbus/TCP Security), to SIGKILL and restart."""
+
+    def __init__(self, device: str, pki: Pki) -> None:
+        self.plain, self.tls = free_port(), free_port()
+        self.argv = [
+            sys.executable, "-m", "gateway", "--serial", device, "--baudrate", "115200",
+            "--timeout", "0.5", "--listen", f"127.0.0.1:{self.plain}",
+            "--tls-listen", f"127.0.0.1:{self.tls}", "--tls-cert", str(pki.server_chain),
+            "--tls-key", str(pki.server_key), "--tls-ca", str(pki.ca), "--metrics", "off",
+            "--log-level", "warning",
+        ]  # fmt: skip
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        self.process = subprocess.Popen(self.argv, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + DEADLINE_S
+        for port in (self.plain, self.tls):
+            while True:
+                try:
+                    socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+                    break
+                except OSError:
+                    assert self.process.poll() is None, "the slave gateway exited"
+                    assert time.monotonic() < deadline, "the slave gateway never listened"
+                    time.sleep(0.02)
+
+    def kill(self) -> None:
+        assert self.process is not None
+        self.process.kill()
+        self.process.wait(DEADLINE_S)
+
+    def close(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.kill()
+
+
+def test_tcp_and_tls_slaves_killed_and_restarted_under_load_give_no_wrong_answer(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
+) -> None:
+    """Six masters (three through each kind) check every answer; B is SIGKILLed three times."""
+    sim = make_sim({1: plc(1)})
+    slave = SlaveProcess(sim.path, pki)
+    slave.start()
+    gw = make_gateway({
+        "lines": {
+            "t": {"kind": "tcp", "address": f"127.0.0.1:{slave.plain}", "units": [1],
+                  "timeout": 1.0},
+            "s": tls_line(pki, slave.tls, units=[], timeout=1.0),
+        },
+        "routes": [{"unit": 2, "line": "s", "slave": 1}],
+    })  # fmt: skip
+    masters = 6
+    stop = threading.Event()
+    wrong: list[str] = []
+    answered = [0] * masters
+    unavailable = [0] * masters
+
+    def master(index: int) -> None:
+        unit = 1 if index % 2 == 0 else 2  # even masters through tcp, odd through tls
+        try:
+            with gw.connect() as client:
+                round_ = 0
+                while not stop.is_set():
+                    if round_ % 4 == 3:  # a write of this master's own register and value
+                        register, value = 1000 + index, (index << 12) | (round_ & 0xFFF)
+                        pdu = h("06") + register.to_bytes(2, "big") + value.to_bytes(2, "big")
+                        expected = pdu
+                    else:
+                        address = 2000 + 100 * index + round_ % 50
+                        quantity = 1 + (round_ + index) % 40
+                        pdu = h("03") + address.to_bytes(2, "big") + quantity.to_bytes(2, "big")
+                        expected = bytes((3, 2 * quantity)) + pack_registers(
+                            list(range(address, address + quantity))
+                        )
+                    reply = client.request(unit, pdu)
+                    if reply == expected:
+                        answered[index] += 1
+                    elif reply in (bytes((pdu[0] | 0x80, 0x0A)), bytes((pdu[0] | 0x80, 0x0B))):
+                        unavailable[index] += 1
+                    else:
+                        wrong.append(f"master {index} {pdu.hex()}: {reply.hex()}")
+                    round_ += 1
+        except (AssertionError, OSError) as error:
+            wrong.append(f"master {index}: {error!r}")
+
+    def progress() -> None:
+        before = list(answered)
+        wait_until(lambda: all(answered[i] >= before[i] + 10 for i in range(masters)),
+                   f"masters stalled: {answered}")  # fmt: skip
+
+    threads = [threading.Thread(target=master, args=(i,)) for i in range(masters)]
+    try:
+        wait_until(lambda: line_up(gw, "t") and line_up(gw, "s"), "the lines never came up")
+        for thread in threads:
+            thread.start()
+        for _ in range(3):
+            progress()
+            slave.kill()
+            wait_until(lambda: not line_up(gw, "t") and not line_up(gw, "s"), "no line went down")
+            slave.start()
+            wait_until(lambda: line_up(gw, "t") and line_up(gw, "s"), "the lines never came back")
+        progress()
+        lost = [sample(gw, "modbus_gateway_line_lost_total", line=line) for line in ("t", "s")]
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(DEADLINE_S)
+        slave.close()
+    assert wrong == []
+    assert sum(unavailable) > 0  # the kills were felt
+    assert lost == [3, 3]
+    assert sample(gw, "modbus_gateway_line_info", line="s", kind="tls") == 1
+    for reason in ("untrusted_certificate", "name_mismatch", "certificate_refused"):
+        assert sample(gw, "modbus_gateway_line_tls_failures_total", line="s", reason=reason) == 0

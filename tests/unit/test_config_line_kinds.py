@@ -67,10 +67,10 @@ def test_a_serial_line_keeps_t35_and_may_set_its_silence() -> None:
          'lines.n.device: a rtu-over-tcp line is reached at address = "HOST:PORT", not a device; '
          "rename the key to address"),
         ({"device": "/dev/ttyUSB0", "address": "h:1", "units": [1]},
-         'lines.n.address: only a network line takes it (kind = "rtu-over-tcp" or "tcp"); a '
-         "rtu line names its serial port with device"),
+         'lines.n.address: only a network line takes it (kind = "rtu-over-tcp", "tcp" or '
+         '"tls"); a rtu line names its serial port with device'),
         ({"kind": "rtu-over-udp", "device": "/dev/ttyUSB0", "units": [1]},
-         "lines.n.kind: 'rtu-over-udp' is not one of: rtu, ascii, rtu-over-tcp, tcp"),
+         "lines.n.kind: 'rtu-over-udp' is not one of: rtu, ascii, rtu-over-tcp, tcp, tls"),
     ],
 )  # fmt: skip
 def test_mistakes_name_the_key_and_the_fix(table: dict[str, Any], expected: str) -> None:
