@@ -318,7 +318,8 @@ def line_failure_message(line: LineConfig, reason: LineTlsFailure, error: BaseEx
     if reason is LineTlsFailure.CLOSED:
         return (f"{where}: the slave closed the connection during the handshake, or after it "
                 f"before answering anything ({detail}); it may refuse the gateway's certificate "
-                f"{prefix}cert = {line.cert!r} or address")  # fmt: skip
+                f"{prefix}cert = {line.cert!r} or address, or not speak TLS on this port (a "
+                "plain Modbus TCP port closes on the TLS hello)")  # fmt: skip
     return f"{where}: handshake failed: {detail}"
 
 

@@ -509,3 +509,59 @@ def test_tcp_and_tls_slaves_killed_and_restarted_under_load_give_no_wrong_answer
     assert sample(gw, "modbus_gateway_line_info", line="s", kind="tls") == 1
     for reason in ("untrusted_certificate", "name_mismatch", "certificate_refused"):
         assert sample(gw, "modbus_gateway_line_tls_failures_total", line="s", reason=reason) == 0
+
+
+def test_a_plain_modbus_tcp_port_and_a_silent_one(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, bus_log: LogCollector
+) -> None:
+    slave = slave_gateway(make_sim, make_gateway, pki)
+    silent = socket.create_server(("127.0.0.1", 0))  # connections wait in its backlog, unread
+    try:
+        gw = make_gateway({
+            "lines": {
+                "plain": tls_line(pki, slave.address[1], units=[7]),
+                "silent": tls_line(pki, silent.getsockname()[1], units=[8],
+                                   tls_handshake_timeout=0.2),
+            },
+        })  # fmt: skip
+        failures = "modbus_gateway_line_tls_failures_total"
+        wait_until(lambda: sample(gw, failures, line="plain", reason="closed") >= 2
+                   and sample(gw, failures, line="silent", reason="timeout") >= 2,
+                   "no closed and timeout failures")  # fmt: skip
+        with gw.connect() as master:
+            assert master.request(7, h("03 0000 0001")) == h("83 0A")
+            assert master.request(8, h("03 0000 0001")) == h("83 0A")
+    finally:
+        silent.close()
+    (plain,) = [text for text in bus_log.messages if "line 'plain'" in text]
+    assert "not speak TLS on this port" in plain
+    (timeout,) = [text for text in bus_log.messages if "line 'silent'" in text]
+    assert "no complete handshake within 0.2 s (lines.silent.tls_handshake_timeout)" in timeout
+
+
+def test_a_reload_with_another_client_certificate_reopens_the_line(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> None:
+    from gateway.config import build_config
+
+    slave = slave_gateway(make_sim, make_gateway, pki)
+    port = tls_port(slave)
+    raw: dict[str, Any] = {
+        "server": {"listen": "127.0.0.1:0"}, "metrics": {"listen": "127.0.0.1:0"},
+        "lines": {"plc": tls_line(pki, port, "operator")},
+    }  # fmt: skip
+    gw = make_gateway(raw)
+    wait_until(lambda: line_up(gw), "the tls line never came up")
+    with gw.connect() as master:
+        assert master.request(7, h("06 0020 0001")) == h("06 0020 0001")
+    # A missing file: the reload is refused, the running line and its session stay.
+    broken = dict(raw, lines={"plc": tls_line(pki, port, "operator", ca=str(tmp_path / "no"))})
+    gw.run(gw.gateway.reload(build_config(broken, "<test>")))
+    with gw.connect() as master:
+        assert master.request(7, h("06 0020 0002")) == h("06 0020 0002")
+    viewer = dict(raw, lines={"plc": tls_line(pki, port, "viewer")})
+    gw.run(gw.gateway.reload(build_config(viewer, "<test>")))
+    wait_until(lambda: line_up(gw), "the tls line never came back")
+    with gw.connect() as master:
+        assert master.request(7, h("06 0020 0003")) == h("86 01")  # B now sees the viewer
+        assert master.request(7, h("03 0020 0001")) == h("03 02 0002")
