@@ -11,6 +11,7 @@ reason and logged once.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import logging
 import socket
@@ -108,11 +109,14 @@ def line_up(gw: RunningGateway, line: str = "plc") -> bool:
 def bus_log() -> Iterator[LogCollector]:
     collector = LogCollector()
     logger = logging.getLogger("gateway.bus")
+    level = logger.level
+    logger.setLevel(logging.INFO)  # "connected" and "back up" too
     logger.addHandler(collector)
     try:
         yield collector
     finally:
         logger.removeHandler(collector)
+        logger.setLevel(level)
 
 
 def test_a_gateway_bridges_plain_masters_to_another_gateways_tls_listener(
@@ -193,7 +197,11 @@ def test_a_tls_failure_leaves_the_line_down_counted_and_logged_once(
     logged = [text for text in bus_log.messages if message in text]
     assert len(logged) == 1, bus_log.messages
     assert "line 'plc'" in logged[0] and "retrying" in logged[0]
-    assert not any("connected to" in text for text in bus_log.messages)
+    # The line never worked: no "back up"; "connected" at most for the first TCP + TLS 1.3
+    # handshake, before the slave's refusal (a closed connection) arrived.
+    assert not any("back up" in text for text in bus_log.messages)
+    connected = [text for text in bus_log.messages if "connected to" in text]
+    assert len(connected) == (1 if reason == "closed" else 0), bus_log.messages
     assert sample(gw, "modbus_gateway_line_up", line="plc") == 0
 
 
@@ -565,3 +573,76 @@ def test_a_reload_with_another_client_certificate_reopens_the_line(
     with gw.connect() as master:
         assert master.request(7, h("06 0020 0003")) == h("86 01")  # B now sees the viewer
         assert master.request(7, h("03 0020 0001")) == h("03 02 0002")
+
+
+def test_a_tls_slave_sending_garbage_is_reconnected(make_gateway: GatewayFactory, pki: Pki) -> None:
+    """20 KiB of bytes no Modbus TCP slave sends, in several TLS records: dropped, remade."""
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(str(pki.server_chain), str(pki.server_key))
+    context.load_verify_locations(cafile=str(pki.ca))
+    context.verify_mode = ssl.CERT_REQUIRED
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(DEADLINE_S)
+    connections: list[int] = []
+
+    def slave() -> None:
+        for number in (1, 2):
+            raw, _ = listener.accept()
+            raw.settimeout(DEADLINE_S)
+            with context.wrap_socket(raw, server_side=True) as conn:
+                connections.append(number)
+                request = conn.recv(260)
+                if number == 1:
+                    conn.sendall(b"\xff" * 20_480)
+                else:
+                    conn.sendall(request[:4] + b"\x00\x05\x07\x03\x02\x12\x34")
+                with contextlib.suppress(OSError):  # until the gateway closes it
+                    conn.recv(260)
+        listener.close()
+
+    thread = threading.Thread(target=slave, daemon=True)
+    thread.start()
+    gw = make_gateway({"lines": {"plc": tls_line(pki, listener.getsockname()[1], retries=0)}})
+    wait_until(lambda: line_up(gw), "the tls line never came up")
+    with gw.connect() as master:
+        assert master.request(7, h("03 0000 0001")) == h("83 0A")  # the stream was dropped
+        wait_until(lambda: len(connections) == 2 and line_up(gw), "never reconnected")
+        assert master.request(7, h("03 0000 0001")) == h("03 02 1234")
+    discarded = "modbus_gateway_discarded_frames_total"
+    assert sample(gw, discarded, line="plc", reason="bad_header") == 1
+    assert sample(gw, "modbus_gateway_line_lost_total", line="plc") == 1
+    gw.stop()
+    thread.join(DEADLINE_S)
+
+
+def test_a_refused_line_comes_back_when_the_slave_trusts_its_certificate(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, bus_log: LogCollector
+) -> None:
+    from cryptography.hazmat.primitives import serialization
+
+    from gateway.config import build_config
+
+    sim = make_sim({7: plc(7)})
+    listener = tls_listener(pki)
+    del listener["policy"]  # no rules: every role may do anything
+    raw: dict[str, Any] = {
+        "server": {"listen": "127.0.0.1:0"}, "metrics": {"listen": "127.0.0.1:0"},
+        "lines": {"a": sim.line_table([7])}, "listeners": [listener],
+    }  # fmt: skip
+    slave = make_gateway(raw)
+    gw = make_gateway({"lines": {"plc": tls_line(pki, tls_port(slave), "otherca")}})
+    failures = "modbus_gateway_line_tls_failures_total"
+    wait_until(lambda: sample(gw, failures, line="plc", reason="closed") >= 2, "not refused")
+    both = pki.directory / "both-roots.pem"
+    both.write_bytes(
+        pki.ca.read_bytes() + pki.other_root.certificate.public_bytes(serialization.Encoding.PEM)
+    )
+    raw["listeners"][0]["ca"] = str(both)
+    slave.run(slave.gateway.reload(build_config(raw, "<test>")))
+    with gw.connect() as master:
+        deadline = time.monotonic() + DEADLINE_S
+        while master.request(7, h("03 0000 0002")) != h("03 04 0000 0002"):
+            assert time.monotonic() < deadline, "the line never came back"
+    refusals = [text for text in bus_log.messages if "may refuse the gateway's certificate" in text]
+    back = [text for text in bus_log.messages if "accepted, back up" in text]
+    assert (len(refusals), len(back)) == (1, 1), bus_log.messages
