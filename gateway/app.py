@@ -49,7 +49,8 @@ log = logging.getLogger("gateway")
 _PORT_SETTINGS = ("device", "kind", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
                   "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
                   "rs485_delay_before_tx", "rs485_delay_after_tx", "kind",
-                  "cert", "key", "ca", "server_name", "check_server_name")  # fmt: skip
+                  "cert", "key", "ca", "server_name", "check_server_name",
+                  "max_in_flight")  # fmt: skip
 
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:

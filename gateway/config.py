@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from .core import pdu as fc
+from .core.framing import is_mbap
+from .core.pipeline import MAX_IN_FLIGHT
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
 from .core.timing import character_time, t35, transmission_time
 
@@ -209,6 +211,9 @@ class LineConfig:
     check_server_name: bool = True
     #: ``kind = "tls"``: seconds the TLS handshake with the slave may take.
     tls_handshake_timeout: float = 10.0
+    #: Requests outstanding at once on the connection of an MBAP line (``tcp``, ``tls``);
+    #: 1 elsewhere.
+    max_in_flight: int = 1
 
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
@@ -506,6 +511,7 @@ _LINE_KEYS = {
     "server_name",
     "check_server_name",
     "tls_handshake_timeout",
+    "max_in_flight",
 }
 #: Keys only a ``kind = "tls"`` line takes.
 _TLS_LINE_KEYS = ("cert", "key", "ca", "server_name", "check_server_name", "tls_handshake_timeout")
@@ -639,6 +645,7 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
         connect_delay=check.number(table, "connect_delay", prefix, 0.0, 0.0, 60.0),
         connect_timeout=check.number(table, "connect_timeout", prefix, 3.0, 0.01, 600.0),
         silence_setting=_optional_number(check, table, "silence", prefix, 10.0),
+        max_in_flight=_max_in_flight(check, table, prefix, kind),
         **_tls_line(check, table, prefix, kind, host),
     )
 
@@ -680,6 +687,18 @@ def _tls_line(
             table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
         ),
     }
+def _max_in_flight(check: _Checker, table: Mapping[str, Any], prefix: str, kind: str) -> int:
+    """Requests outstanding at once: only where answers carry their request's number (MBAP)."""
+    if "max_in_flight" not in table:
+        return 1
+    if not is_mbap(kind):
+        check.fail(
+            f"{prefix}max_in_flight",
+            f'only a Modbus TCP line (kind = "tcp" or "tls") takes it: a {kind} line\'s answers carry '
+            "no transaction id, so it has one request on the wire; remove the key",
+        )
+        return 1
+    return check.integer(table, "max_in_flight", prefix, 1, 1, MAX_IN_FLIGHT)
 
 
 def _network_address(

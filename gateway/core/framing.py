@@ -73,12 +73,21 @@ class EncodeFunction(Protocol):
 class Framing:
     """A framing: its kind, its encoder and its answer decoder's factory."""
 
-    __slots__ = ("decoder", "encode", "kind")
+    __slots__ = ("decoder", "encode", "kind", "transaction_ids")
 
-    def __init__(self, kind: LineKind, encode: EncodeFunction, decoder: DecoderFactory) -> None:
+    def __init__(
+        self,
+        kind: LineKind,
+        encode: EncodeFunction,
+        decoder: DecoderFactory,
+        transaction_ids: TransactionIds | None = None,
+    ) -> None:
         self.kind = kind
         self.encode = encode
         self.decoder = decoder
+        #: MBAP only: the counter that numbers this line's requests. Answers then name
+        #: their request, so several may be outstanding (``max_in_flight``).
+        self.transaction_ids = transaction_ids
 
     def __repr__(self) -> str:
         return f"Framing({self.kind.value})"
@@ -92,10 +101,18 @@ ASCII: Final = Framing(LineKind.ASCII, encode_ascii, AsciiResponseDecoder)
 _BY_KIND: Final = {LineKind.RTU: RTU, LineKind.ASCII: ASCII, LineKind.RTU_OVER_TCP: RTU}
 
 
-def mbap_framing(first_transaction_id: int = 0) -> Framing:
+def mbap_framing(first_transaction_id: int = 0, kind: LineKind = LineKind.TCP) -> Framing:
     """A new MBAP framing for one downstream TCP line (it numbers that line's requests)."""
     ids = TransactionIds(first_transaction_id)
-    return Framing(LineKind.TCP, ids.encode, ids.decoder)
+    return Framing(kind, ids.encode, ids.decoder, ids)
+
+
+def is_mbap(kind: str) -> bool:
+    """True for a line kind framed by MBAP (answers named by transaction id)."""
+    try:
+        return framing_for(kind).transaction_ids is not None
+    except ValueError:
+        return False
 
 
 def framing_for(kind: str) -> Framing:

@@ -29,8 +29,9 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, LineCore, LineRequest, Note, Transmit
+from ..core.line import Delivery, LineRequest, Note, Transmit
 from ..core.outcome import LineEvent, Outcome, SlaveState
+from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
@@ -66,8 +67,12 @@ class Bus:
         self._metrics = metrics
         self._loop = loop
         self._clock = clock
-        self._core = LineCore(
-            config, time.monotonic(), metrics.line_counters(self.name), framing_for(config.kind)
+        self._core = new_line_core(
+            config,
+            time.monotonic(),
+            metrics.line_counters(self.name),
+            framing_for(config.kind),
+            config.max_in_flight,
         )
         self._link: Link | None = None
         self._reopener: asyncio.Task[None] | None = None

@@ -31,8 +31,10 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from gateway.config import LineConfig
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
-from gateway.core.framing import ASCII, RTU, Framing
+from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
+from gateway.core.mbap import encode_mbap
+from gateway.core.pipeline import new_line_core
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
@@ -359,3 +361,157 @@ class EchoLineMachine(LineMachine):
 
 EchoLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestEchoLineCore = EchoLineMachine.TestCase
+
+
+class PipelinedLineMachine(LineMachine):
+    """A Modbus TCP line with ``max_in_flight`` > 1 and slaves that answer in any order.
+
+    Each answer comes after its slave's delay plus a jitter drawn per request, so
+    answers overtake each other, arrive after the attempt timed out (under a TID that
+    is stale by then), twice, or never; a garbled answer carries the right TID but the
+    wrong function. A lost connection takes the bytes still on their way with it.
+    Checked besides the common invariants:
+    * never more than ``max_in_flight`` attempts outstanding (counted here from the
+      frames sent and their deadlines, and by the core);
+    * one master's requests to one unit keep read-after-write order: a write goes only
+      when none of that master's earlier requests to that unit is unanswered, nothing
+      goes while an earlier write of it to that unit is unanswered, nothing passes its
+      own earlier broadcast, and a broadcast goes only when no attempt is outstanding.
+    """
+
+    limit = 3
+    line_settings = {"kind": "tcp", "max_in_flight": 3}  # noqa: RUF012
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.core = new_line_core(self.config, 0.0, None, mbap_framing(), self.limit)
+        self.core.port_opened(0.0)
+        self.jitters: list[float] = [0.0]
+        self.drawn = 0
+        self.live: dict[int, float] = {}  # id(request) -> deadline of its latest attempt
+        self.delivered: set[int] = set()
+        self.frame_heard = b""
+
+    def pump(self) -> None:
+        for delivery in self.core.deliveries:
+            self.delivered.add(id(delivery.request))
+        for transmit in self.core.transmits:
+            self.check_order(transmit.request)
+            if not transmit.request.broadcast:
+                deadline = self.now + len(transmit.frame) * self.char + TIMEOUT
+                self.live[id(transmit.request)] = deadline
+            outstanding = [
+                key
+                for key, deadline in self.live.items()
+                if key not in self.delivered and self.now < deadline - 1e-9
+            ]
+            if len(outstanding) > self.limit:
+                self.problems.append(f"{len(outstanding)} attempts outstanding at {self.now}")
+        in_flight = self.core.in_flight  # type: ignore[attr-defined]
+        if in_flight > self.limit:
+            self.problems.append(f"the core has {in_flight} attempts outstanding")
+        super().pump()
+
+    def check_order(self, sent: LineRequest) -> None:
+        unanswered = [r for r in self.requests if id(r) not in self.delivered and r is not sent]
+        if sent.broadcast:
+            live = [r for r in unanswered if self.live.get(id(r), 0.0) > self.now + 1e-9]
+            if live:
+                self.problems.append(f"broadcast sent with {len(live)} attempts outstanding")
+            return
+        index = self.requests.index(sent)
+        write = not fc.is_safe_to_retry(sent.pdu)
+        for other in unanswered:
+            if other.master != sent.master:
+                continue
+            earlier = self.requests.index(other) < index
+            if other.broadcast:
+                if earlier:
+                    self.problems.append(f"{sent.pdu.hex()} passed its master's broadcast")
+                continue
+            if other.slave != sent.slave:
+                continue
+            other_write = not fc.is_safe_to_retry(other.pdu)
+            was_sent = self.transmissions.get(id(other), 0) > 0
+            if (write and (earlier or was_sent)) or (other_write and (earlier or was_sent)):
+                self.problems.append(
+                    f"{sent.master}:{sent.slave}:{sent.pdu.hex()} sent while "
+                    f"{other.pdu.hex()} (earlier: {earlier}, sent: {was_sent}) was unanswered"
+                )
+
+    def check_quiet(self, frame: bytes) -> None:
+        self.frame_heard = frame  # the base pump calls slave_hears for this frame next
+        # No shared medium: only a broadcast's turnaround is kept.
+        if self.now + 1e-9 < self.turnaround_until:
+            self.problems.append(f"frame {frame.hex()} during the broadcast turnaround")
+
+    def slave_hears(self, request: LineRequest, end: float) -> None:
+        slave = self.slaves.get(request.slave)
+        if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
+            return
+        tid = (self.frame_heard[0] << 8) | self.frame_heard[1]
+        nonce = self.next_nonce
+        self.next_nonce += 1
+        self.nonces[nonce] = Sent(request, self.now)
+        function = request.pdu[0]
+        if function in (fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS):
+            quantity = (request.pdu[3] << 8) | request.pdu[4]
+            pdu = bytes((function, 2 * quantity)) + struct.pack(
+                f">{quantity}H", *[nonce] * quantity
+            )
+        else:
+            pdu = fc.write_response(request.pdu)
+        if slave.garble:  # its TID, another function: not its answer
+            pdu = bytes((pdu[0] ^ 0x10,)) + pdu[1:]
+        jitter = self.jitters[self.drawn % len(self.jitters)]
+        self.drawn += 1
+        self.seq += 1
+        answer = encode_mbap(tid, request.slave, pdu)
+        self.emissions.append(
+            Emission(
+                end + slave.delay + jitter, self.seq, answer, None if slave.garble else request
+            )
+        )
+        self.emissions.sort()
+
+    @rule(jitters=st.lists(st.sampled_from((0.0, 0.001, 0.01, 0.05, 0.2, 0.6)), min_size=1,
+                           max_size=5))  # fmt: skip
+    def jitter(self, jitters: list[float]) -> None:
+        self.jitters = jitters
+
+    @rule(length=st.integers(1, 6), seed=st.integers(0, 255))
+    def babble(self, length: int, seed: int) -> None:
+        """A frame under a TID the gateway never used (nor will in this run)."""
+        self.core.receive(encode_mbap(40000 + seed, 1 + seed % 4, b"\x03\x02\x00\x00"), self.now)
+        self.pump()
+
+    @precondition(lambda self: bool(self.emissions))
+    @rule(index=st.integers(0, 20))
+    def duplicate(self, index: int) -> None:
+        """A slave sends one of its answers twice: the second copy's TID is stale."""
+        emission = self.emissions[index % len(self.emissions)]
+        self.seq += 1
+        self.emissions.append(Emission(emission.at + 0.001, self.seq, emission.data))
+        self.emissions.sort()
+
+    @precondition(lambda self: self.core.up)
+    @rule(split=st.integers(1, 11))
+    def out_of_step(self, split: int) -> None:
+        """A header no slave sends: the driver drops the connection and makes a new one."""
+        bad = bytes.fromhex("0001 0009 0005 01 0302000000")
+        self.core.receive(bad[:split], self.now)
+        self.core.receive(bad[split:], self.now)
+        resync = any(n.detail == "bad_header" for n in self.core.notes)
+        self.pump()
+        if resync:
+            self.lose_port()
+
+    @precondition(lambda self: self.core.up)
+    @rule()
+    def lose_port(self) -> None:
+        self.emissions.clear()  # what was on its way goes with the connection
+        super().lose_port()
+
+
+PipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestPipelinedLineCore = PipelinedLineMachine.TestCase
