@@ -16,7 +16,9 @@ Checked on every step:
 
 The machine runs once per framing: RTU (``TestLineCore``) and ASCII
 (``TestAsciiLineCore``), where answers and noise are ASCII characters; and once on
-an RTU line whose adapter echoes every frame the gateway sends (``TestEchoLineCore``).
+an RTU line whose adapter echoes every frame the gateway sends (``TestEchoLineCore``);
+and on a Modbus TCP line with ``max_in_flight`` 3 whose slaves answer in any order
+(``TestPipelinedLineCore``, with invariants of its own: see its docstring).
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.mbap import encode_mbap
-from gateway.core.pipeline import new_line_core
 from gateway.core.outcome import Outcome
+from gateway.core.pipeline import new_line_core
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
 

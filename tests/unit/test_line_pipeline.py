@@ -273,7 +273,7 @@ def test_a_deep_pipeline_does_not_take_every_slot_from_a_polite_master() -> None
     for n in range(10):
         line.submit(1, read(n), 0.1, master="greedy")
     polite = line.submit(1, read(100), 0.1, master="polite")
-    first, second = line.sent()  # both slots to the master who asked first
+    first, _second = line.sent()  # both slots to the master who asked first
     line.answer(first, 0.11)
     (third,) = line.sent()
     assert line.wire[third] == (1, read(100))  # the polite master's, not greedy's third
