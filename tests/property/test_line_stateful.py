@@ -387,6 +387,7 @@ class PipelinedLineMachine(LineMachine):
     def __init__(self) -> None:
         super().__init__()
         self.core = new_line_core(self.config, 0.0, None, mbap_framing(), self.limit)
+        self.char = 0.0  # no serial wire behind the socket: a frame takes no time to send
         self.core.port_opened(0.0)
         self.jitters: list[float] = [0.0]
         self.drawn = 0
