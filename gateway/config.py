@@ -694,8 +694,8 @@ def _max_in_flight(check: _Checker, table: Mapping[str, Any], prefix: str, kind:
     if not is_mbap(kind):
         check.fail(
             f"{prefix}max_in_flight",
-            f'only a Modbus TCP line (kind = "tcp" or "tls") takes it: a {kind} line\'s answers carry '
-            "no transaction id, so it has one request on the wire; remove the key",
+            f'only a Modbus TCP line (kind = "tcp" or "tls") takes it: a {kind} line\'s '
+            "answers carry no transaction id, so it has one request on the wire; remove the key",
         )
         return 1
     return check.integer(table, "max_in_flight", prefix, 1, 1, MAX_IN_FLIGHT)
