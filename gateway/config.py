@@ -687,6 +687,8 @@ def _tls_line(
             table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
         ),
     }
+
+
 def _max_in_flight(check: _Checker, table: Mapping[str, Any], prefix: str, kind: str) -> int:
     """Requests outstanding at once: only where answers carry their request's number (MBAP)."""
     if "max_in_flight" not in table:
