@@ -30,6 +30,7 @@ from . import (
     hostile,
     kind_scenarios,
     line_scenarios,
+    reverse_scenarios,
     scenarios,
     slave_kind_scenarios,
     tls_scenarios,
@@ -51,6 +52,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **hostile.SCENARIOS,
     **kind_scenarios.SCENARIOS,
     **slave_kind_scenarios.SCENARIOS,
+    **reverse_scenarios.SCENARIOS,
 }
 
 

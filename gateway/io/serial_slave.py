@@ -99,6 +99,7 @@ class SerialSlave:
         self._link: SerialLink | None = None
         self._reopener: asyncio.Task[None] | None = None
         self._pending: Request | None = None
+        self._answering: asyncio.TimerHandle | None = None  # an answer waiting for turnaround
         self._stopping = False
         self._open_error = ""
         self.requests = 0  #: requests served (addressed to a routed unit)
@@ -333,11 +334,12 @@ class SerialSlave:
             tracer.reply(self._serial.device, number, unit, pdu, outcome)
         wait = self._last_byte + self._turnaround - time.monotonic()
         if wait > 0:
-            self._loop.call_later(wait + _TIMER_MARGIN_S, self._write, frame)
+            self._answering = self._loop.call_later(wait + _TIMER_MARGIN_S, self._write, frame)
         else:
             self._write(frame)
 
     def _write(self, frame: bytes) -> None:
+        self._answering = None
         link = self._link
         if link is None or link.closed:
             return
@@ -349,6 +351,9 @@ class SerialSlave:
             return  # the link called ``_on_lost``
 
     def _drop_pending(self) -> None:
+        if self._answering is not None:  # the master asked again within the turnaround
+            self._answering.cancel()
+            self._answering = None
         pending, self._pending = self._pending, None
         if pending is not None:
             pending.cancelled = True
