@@ -23,7 +23,7 @@ from .config import (
 )
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
-from .sim.demo import DEMO_ASCII_UNITS, DEMO_UNITS, DemoLine
+from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
 
 log = logging.getLogger("gateway")
@@ -184,7 +184,7 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument(
         "--demo",
         action="store_true",
-        help="serve built-in simulated RTU and ASCII lines (no hardware needed)",
+        help="serve built-in simulated RTU, ASCII and Modbus TCP slaves (no hardware needed)",
     )
     parser.add_argument(
         "--trace",
@@ -470,6 +470,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         demo.start()
         log.info("demo: simulated units %s on %s", DEMO_UNITS, demo.pty.path)
         log.info("demo: ASCII units %s on %s", DEMO_ASCII_UNITS, demo.ascii_pty.path)
+        log.info("demo: Modbus TCP units %s at %s", DEMO_TCP_UNITS, demo.tcp_slave.host_port)
 
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)

@@ -1,13 +1,15 @@
 """A simulated RTU bus: Modbus devices from vendor profiles served on a pty with real-line timing.
 
-Used by ``modbus-gateway --demo``, the integration tests and the benchmark;
-``python -m gateway.sim`` runs one in its own process.
+The same devices can also be a Modbus TCP slave (``gateway.sim.tcp``). Used by
+``modbus-gateway --demo``, the integration tests and the benchmark;
+``python -m gateway.sim`` runs either in its own process.
 """
 
 from .device import DataBank, SimulatedDevice
 from .line import LineStats, SimulatedLine, UnitFaults
-from .profiles import PROFILES, plc, power_controller, zl69x
+from .profiles import PROFILES, plc, power_controller, r6, zl69x
 from .pty import PtyPair, close_pty_pair, open_pty_pair
+from .tcp import SimulatedTcpSlave, TcpSlaveServer, TcpSlaveStats
 
 __all__ = [
     "PROFILES",
@@ -16,10 +18,14 @@ __all__ = [
     "PtyPair",
     "SimulatedDevice",
     "SimulatedLine",
+    "SimulatedTcpSlave",
+    "TcpSlaveServer",
+    "TcpSlaveStats",
     "UnitFaults",
     "close_pty_pair",
     "open_pty_pair",
     "plc",
     "power_controller",
+    "r6",
     "zl69x",
 ]

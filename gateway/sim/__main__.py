@@ -3,6 +3,9 @@
 Prints ``READY <path>`` once the pty is served (the path the gateway should
 open: the ``--link`` symlink when given), serves until SIGTERM or SIGINT, then
 prints the line's counters as one JSON line, so a benchmark can read both.
+With ``--modbus-tcp-listen HOST:PORT`` the devices are a Modbus TCP slave
+instead (``python -m gateway.sim --modbus-tcp-listen 127.0.0.1:1502 --profile r6``):
+``READY HOST:PORT`` names the address bound (port 0 picks one).
 """
 
 from __future__ import annotations
@@ -15,10 +18,13 @@ import signal
 import sys
 from collections.abc import Sequence
 
+from gateway.config import parse_host_port
+
 from .device import SimulatedDevice
 from .line import DEFAULT_TURNAROUND_S, SimulatedLine
 from .profiles import PROFILES
 from .pty import open_pty_pair
+from .tcp import SimulatedTcpSlave
 
 _STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
@@ -41,7 +47,14 @@ def _profile(text: str) -> tuple[str, int]:
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m gateway.sim",
-        description="Serve simulated Modbus RTU or ASCII devices on a pty.",
+        description="Serve simulated Modbus RTU or ASCII devices on a pty, or a Modbus TCP slave.",
+    )
+    parser.add_argument(
+        "--modbus-tcp-listen",
+        type=_listen_address,
+        metavar="HOST:PORT",
+        help="serve the devices as a Modbus TCP slave here instead of on a pty "
+        "(one device also answers unit id 255)",
     )
     parser.add_argument(
         "--profile",
@@ -97,6 +110,36 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _listen_address(text: str) -> tuple[str, int]:
+    try:
+        return parse_host_port(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST:PORT ({error})") from None
+
+
+_SERIAL_ONLY = ("baudrate", "link", "echo", "strict_baudrate", "realtime", "crc_error_rate")
+
+
+def _serve_tcp(args: argparse.Namespace, devices: dict[int, SimulatedDevice]) -> int:
+    """Serve ``devices`` as one Modbus TCP slave until SIGTERM/SIGINT."""
+    for name in _SERIAL_ONLY:
+        if getattr(args, name):
+            _parser().error(f"--{name.replace('_', '-')} is for pty lines, not --modbus-tcp-listen")
+    if args.framing != "rtu":
+        _parser().error("--framing is for pty lines, not --modbus-tcp-listen")
+    host, port = args.modbus_tcp_listen
+    slave = SimulatedTcpSlave(devices, host=host, port=port)
+    for unit in args.silent:
+        if unit not in devices:
+            _parser().error(f"--silent {unit}: no such unit")
+        slave.faults(unit).silent = True
+    with slave:
+        print(f"READY {slave.host_port}", flush=True)
+        signal.sigwait(_STOP_SIGNALS)
+    print(json.dumps(dataclasses.asdict(slave.stats())), flush=True)
+    return 0
+
+
 def _unit_rate(text: str) -> tuple[int, float]:
     unit, _, rate = text.partition(":")
     try:
@@ -126,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Block the stop signals before the serving thread starts, so it inherits
     # the mask and only sigwait below sees them.
     signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    if args.modbus_tcp_listen is not None:
+        return _serve_tcp(args, devices)
     with open_pty_pair() as pair:
         line = SimulatedLine(
             pair.sim_fd,

@@ -26,6 +26,15 @@ Maps (protocol addresses, 0-based):
     "menus" 0..99 as holding registers, read by FC 3 and FC 4 alike; reads
     capped at 5 registers (0x03 beyond); 3..5 = output voltage 0, current 18.3
     (183), power 0, as in the document's example frame.
+``r6`` -- R6 robot controller, a Modbus TCP slave, reference 003. FC 1, 3, 4, 5, 6, 16.
+    Answers unit id 0x01 and 0xFF (served by ``gateway.sim.tcp``). Holding registers,
+    read by FC 3 and FC 4 alike, as the document's examples print them: 0 = version
+    length in bytes (0x29), 1..21 = the version string (two characters a register,
+    the last low byte 0), 0x82 = number of counters (2), 0x83..0x882 = counter ids,
+    32-bit each, unused slots 0xFFFF. 32-bit values take two registers, 64-bit values
+    four, the most significant word at the lowest address (the document's data format).
+    The document's address table (its section 4) is not in the reference extract: the
+    rest of the map is the simulator's own, at 0x0900 and up (``R6_*`` constants below).
 """
 
 from __future__ import annotations
@@ -138,7 +147,100 @@ def power_controller(unit: int = 1) -> SimulatedDevice:
     )
 
 
+def words32(value: int) -> tuple[int, int]:
+    """A 32-bit value (two's complement if negative) as the R6 stores it: high word first."""
+    value &= 0xFFFF_FFFF
+    return value >> 16, value & 0xFFFF
+
+
+def words64(value: int) -> tuple[int, int, int, int]:
+    """A 64-bit value (two's complement if negative) as four registers, most significant first."""
+    value &= 0xFFFF_FFFF_FFFF_FFFF
+    return (value >> 48, (value >> 32) & 0xFFFF, (value >> 16) & 0xFFFF, value & 0xFFFF)
+
+
+# R6 robot controller (reference 003). The document's own addresses:
+R6_VERSION = b"AM8-QC-RXE-7.8.02-bate7_FAKE_TGF_ENCODER\x00"  # 0x29 bytes, as printed
+R6_VERSION_LENGTH = 0x0000
+R6_VERSION_START = 0x0001
+R6_COUNTER_COUNT = 0x0082
+R6_COUNTER_IDS = 0x0083  # 2 registers per counter id, up to 0x0882
+R6_COUNTER_IDS_END = 0x0883
+R6_COUNTERS = (0, 1)  # the document's example: two counters, ids 0 and 1
+#: The simulator's own addresses (the document's address table is not in the extract).
+R6_MODE = 0x0900  # current mode: 0 manual, 1 auto, 2 remote
+R6_AXIS_COUNT = 0x0901
+R6_ALARM = 0x0902  # current alarm number, 0 = none
+R6_GLOBAL_SPEED = 0x0903  # percent, written by FC 6 (the document's section 3.2.2)
+R6_COMMAND = 0x0904  # command register, written by FC 6 (section 3.2.1)
+R6_AXIS_POSITIONS = 0x0910  # 6 x int32, 0.001 degree
+R6_WORLD_POSITION = 0x0920  # X, Y, Z (0.001 mm), A, B, C (0.001 degree), int32 each
+R6_CYCLE_COUNT = 0x0930  # uint64
+R6_RUN_TIME_MS = 0x0934  # uint64
+R6_COUNTER_VALUES = 0x0A00  # int64 per counter id: 0x0A00 + 4 x id
+R6_MAP_END = 0x0A10
+R6_AXES = (-123456, 45000, 90000, -1500, 30000, 0)
+R6_WORLD = (512250, -100500, 800000, 180000, 0, -90000)
+R6_CYCLES = 0x1_2345_6789
+R6_RUN_TIME = 0x0000_0123_4567_89AB
+R6_COUNTER_START = (-2, 0x7FFF_FFFF_FFFF)
+R6_OUTPUTS = 128  # coils 0..127: IO board outputs (FC 1 reads, FC 5 writes)
+R6_UNIT_IDS = (0x01, 0xFF)  # the unit ids the document's examples address
+
+
+def _r6_holding() -> dict[int, int]:
+    padded = R6_VERSION + b"\x00" * (len(R6_VERSION) % 2)
+    holding = {R6_VERSION_LENGTH: len(R6_VERSION)}
+    for index in range(0, len(padded), 2):
+        holding[R6_VERSION_START + index // 2] = (padded[index] << 8) | padded[index + 1]
+    holding[R6_COUNTER_COUNT] = len(R6_COUNTERS)
+    for address in range(R6_COUNTER_IDS, R6_COUNTER_IDS_END):
+        holding[address] = 0xFFFF  # the document: slots past the last counter read 0xFF
+    for slot, counter in enumerate(R6_COUNTERS):
+        for offset, word in enumerate(words32(counter)):
+            holding[R6_COUNTER_IDS + 2 * slot + offset] = word
+    holding.update({R6_MODE: 1, R6_AXIS_COUNT: len(R6_AXES), R6_ALARM: 0, R6_GLOBAL_SPEED: 50})
+    for base, values in ((R6_AXIS_POSITIONS, R6_AXES), (R6_WORLD_POSITION, R6_WORLD)):
+        for index, value in enumerate(values):
+            holding[base + 2 * index], holding[base + 2 * index + 1] = words32(value)
+    for base, value in (
+        (R6_CYCLE_COUNT, R6_CYCLES),
+        (R6_RUN_TIME_MS, R6_RUN_TIME),
+        *(
+            (R6_COUNTER_VALUES + 4 * c, v)
+            for c, v in zip(R6_COUNTERS, R6_COUNTER_START, strict=True)
+        ),
+    ):
+        for offset, word in enumerate(words64(value)):
+            holding[base + offset] = word
+    return holding
+
+
+def r6(unit: int = 1) -> SimulatedDevice:
+    """R6 robot controller: a Modbus TCP slave with 32- and 64-bit values, high word first."""
+    writable = {R6_GLOBAL_SPEED, R6_COMMAND, *range(R6_COUNTER_VALUES, R6_MAP_END)}
+    registers = DataBank(
+        (range(0, R6_COUNTER_IDS_END), range(R6_MODE, R6_MAP_END)),
+        _r6_holding(),
+        read_only=[a for a in range(R6_MAP_END) if a not in writable],
+    )
+    return SimulatedDevice(
+        name=f"r6@{unit}",
+        coils=DataBank(R6_OUTPUTS, {0: 1, 3: 1}, bits=True),
+        holding=registers,
+        input_registers=registers,  # the document's table serves FC 3 and FC 4 alike
+        functions=(
+            fc.READ_COILS,
+            fc.READ_HOLDING_REGISTERS,
+            fc.READ_INPUT_REGISTERS,
+            fc.WRITE_SINGLE_COIL,
+            fc.WRITE_SINGLE_REGISTER,
+            fc.WRITE_MULTIPLE_REGISTERS,
+        ),
+    )
+
+
 #: Profile name -> factory taking the unit address.
 PROFILES: Mapping[str, Callable[[int], SimulatedDevice]] = MappingProxyType(
-    {"plc": plc, "zl69x": zl69x, "power_controller": power_controller}
+    {"plc": plc, "zl69x": zl69x, "power_controller": power_controller, "r6": r6}
 )

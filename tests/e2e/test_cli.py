@@ -306,3 +306,38 @@ def test_demo_has_an_ascii_device(run_gateway: RunGateway) -> None:
         assert client.request(4, h("03 0000 0002")) == h("03 04 0113 FF9D")
         assert client.request(1, h("03 0000 0001")) == h("03 02 0000")  # the RTU line too
     assert gateway.terminate() == 0
+
+
+METRICS_AT = re.compile(r"metrics on http://([\d.]+):(\d+)/metrics")
+
+
+def test_demo_has_a_modbus_tcp_slave_the_r6_controller(run_gateway: RunGateway) -> None:
+    """Unit 5 is the R6 robot controller behind a ``kind = "tcp"`` line (its unit id 0x01)."""
+    import json
+    import urllib.request
+
+    gateway = run_gateway("--demo", "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0")
+    address = gateway.address()
+    metrics_host, metrics_port = gateway.wait_for(METRICS_AT).groups()
+    connected = re.compile(r"line demo-tcp: connected to 127\.0\.0\.1:\d+ \(tcp\)")
+    if not any(connected.search(line) for line in gateway.log):  # it may precede the metrics line
+        gateway.wait_for(connected)
+    with RawClient(address) as client:
+        # The R6 document's first example: the version number is 0x29 bytes long.
+        assert client.request(5, h("03 0000 0001")) == h("03 02 0029")
+        # Axis 1 and 2 positions, 32-bit, high word first: -123456 and 45000 (0.001 degree).
+        assert client.request(5, h("03 0910 0004")) == h("03 08 FFFE 1DC0 0000 AFC8")
+        # Global speed written with FC 6, read back with FC 4 (the same table).
+        assert client.request(5, h("06 0903 0028")) == h("06 0903 0028")
+        assert client.request(5, h("04 0903 0001")) == h("04 02 0028")
+        assert client.request(1, h("03 0000 0001")) == h("03 02 0000")  # the RTU line too
+    base = f"http://{metrics_host}:{metrics_port}"
+    with urllib.request.urlopen(f"{base}/metrics", timeout=DEADLINE_S) as reply:
+        metrics = reply.read().decode()
+    assert 'modbus_gateway_line_info{kind="tcp",line="demo-tcp"} 1.0' in metrics
+    with urllib.request.urlopen(f"{base}/status", timeout=DEADLINE_S) as reply:
+        status = json.loads(reply.read())
+    lines = {line["name"]: line for line in status["lines"]}
+    assert lines["demo-tcp"]["kind"] == "tcp"
+    assert [(s["unit"], s["state"]) for s in lines["demo-tcp"]["slaves"]] == [(1, "up")]
+    assert gateway.terminate() == 0
