@@ -91,6 +91,7 @@ class SimOptions:
     late: Sequence[tuple[int, float, float, float]] = ()  #: (unit, share, min s, max s)
     die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
     framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
+    modbus_tcp_listen: str | None = None  #: HOST:PORT: a Modbus TCP slave instead of a pty
 
 
 class Simulator:
@@ -112,6 +113,21 @@ class Simulator:
     def command(self) -> list[str]:
         """The command line."""
         options = self.options
+        if options.modbus_tcp_listen is not None:  # no pty: the slaves' own listener
+            command = [
+                PYTHON,
+                "-m",
+                "bench.slaves",
+                "--modbus-tcp-listen",
+                options.modbus_tcp_listen,
+            ]
+            for unit in options.units:
+                command += ["--unit", str(unit)]
+            for unit in options.silent:
+                command += ["--silent", str(unit)]
+            for unit in options.die_on_signal:
+                command += ["--die-on-signal", str(unit)]
+            return command
         command = [PYTHON, "-m", "bench.slaves", "--link", str(self.link)]
         command += ["--seed", str(options.seed)]
         for unit in options.units:

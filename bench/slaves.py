@@ -18,6 +18,10 @@ what the benchmark needs and a demo does not:
 
 Prints ``READY <path>`` once served, serves until SIGTERM or SIGINT, then prints the
 line's counters and the late answers' as one JSON line.
+
+``--modbus-tcp-listen HOST:PORT`` serves the same slaves as one Modbus TCP slave
+(``gateway.sim.SimulatedTcpSlave``) instead of a pty: ``READY HOST:PORT``, then its
+counters; ``--silent`` and ``--die-on-signal`` apply, the serial-line options do not.
 """
 
 from __future__ import annotations
@@ -37,8 +41,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from gateway.config import parse_host_port
 from gateway.core.rtu import encode_rtu
-from gateway.sim import DataBank, SimulatedDevice, SimulatedLine, open_pty_pair
+from gateway.sim import DataBank, SimulatedDevice, SimulatedLine, SimulatedTcpSlave, open_pty_pair
 from gateway.sim.line import DEFAULT_TURNAROUND_S
 
 from .values import END_REGISTER, FIRST_REGISTER, register_value
@@ -229,7 +234,38 @@ def _parser() -> argparse.ArgumentParser:
         "--die-on-signal", action="append", type=_unit, default=[], metavar="UNIT",
         help="this unit falls silent on SIGUSR1",
     )  # fmt: skip
+    parser.add_argument(
+        "--modbus-tcp-listen", metavar="HOST:PORT", help="serve as a Modbus TCP slave, no pty"
+    )
     return parser
+
+
+def _serve_tcp(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, slaves: dict[int, BenchSlave]
+) -> int:
+    """The slaves as one Modbus TCP slave until SIGTERM/SIGINT (SIGUSR1: ``--die-on-signal``)."""
+    if args.baudrate or args.link or args.late or args.crc_error_rate or args.framing != "rtu":
+        parser.error("--modbus-tcp-listen takes only --unit, --silent and --die-on-signal")
+    try:
+        host, port = parse_host_port(args.modbus_tcp_listen)
+    except ValueError as error:
+        parser.error(f"--modbus-tcp-listen: {error}")
+    waited = _STOP_SIGNALS | {signal.SIGUSR1}
+    died_at: float | None = None
+    slave = SimulatedTcpSlave(dict(slaves), host=host, port=port, direct_unit=False)
+    for unit in args.silent:
+        slave.faults(unit).silent = True
+    with slave:
+        print(f"READY {slave.host_port}", flush=True)
+        while signal.sigwait(waited) == signal.SIGUSR1:
+            for unit in args.die_on_signal:
+                slave.faults(unit).silent = True
+            if died_at is None:
+                died_at = time.monotonic()
+    stats: dict[str, Any] = dataclasses.asdict(slave.stats())
+    stats["died_at_monotonic"] = died_at
+    print(json.dumps(stats), flush=True)
+    return 0
 
 
 def _replace_symlink(target: str, link: str) -> None:
@@ -251,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"unit {unit} is not served (add --unit {unit})")
     waited = _STOP_SIGNALS | {signal.SIGUSR1}
     signal.pthread_sigmask(signal.SIG_BLOCK, waited)  # threads inherit the mask
+    if args.modbus_tcp_listen is not None:
+        return _serve_tcp(parser, args, slaves)
     died_at: float | None = None
     with open_pty_pair() as pair:
         line = SimulatedLine(

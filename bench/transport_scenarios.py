@@ -5,6 +5,9 @@ simulated line: once with the line on its pty (``kind = "rtu"``), once reached
 through a serial device server (socat ``TCP-LISTEN`` bridged to the pty, as a
 Moxa NPort in raw socket mode) with ``--rtu-over-tcp``. The device server's own
 CPU is not the gateway's: the gateway's CPU per transaction is what compares.
+A third run puts the same slaves behind the simulator's Modbus TCP slave
+(``bench.slaves --modbus-tcp-listen``) and the gateway on a ``kind = "tcp"``
+line to it (``--modbus-tcp``): TCP-to-TCP proxying.
 """
 
 from __future__ import annotations
@@ -96,6 +99,28 @@ def rtu_over_tcp_server() -> ServerFactory:
     return make
 
 
+class ConnectedGateway(Server):
+    """The gateway, ready once its network line has connected (not merely listening)."""
+
+    def start(self, ready_text: str = "connected to") -> None:
+        """Start and wait for the line's connection."""
+        super().start(ready_text)
+
+
+def tcp_line_server(slave_port: int) -> ServerFactory:
+    """``python -m gateway --modbus-tcp`` to the simulator's Modbus TCP slave on ``slave_port``."""
+
+    def make(workdir: Path, _link: str, port: int) -> Server:
+        command = [PYTHON, "-m", "gateway", "--modbus-tcp", f"127.0.0.1:{slave_port}"]
+        command += ["--listen", f"127.0.0.1:{port}", "--metrics", "off", "--log-level", "info"]
+        config = workdir / "gateway.toml"
+        config.write_text("[server]\nmax_connections_per_source = 0\n")
+        command += ["--config", str(config)]
+        return ConnectedGateway(command, workdir, "server")
+
+    return make
+
+
 def transports(bench: Bench) -> ScenarioResult:
     """Transactions/s and gateway CPU per transaction: rtu vs rtu-over-tcp, 10 masters."""
     serial = bench.unpaced(MASTERS)
@@ -104,12 +129,21 @@ def transports(bench: Bench) -> ScenarioResult:
         SimOptions(units=HEALTHY_UNITS), rtu_over_tcp_server(),
         bench._poll_spec(MASTERS, HEALTHY_UNITS),
     )  # fmt: skip
+    slave_port = free_port()
+    tcp = bench._run(
+        f"gateway, tcp to the simulator's Modbus TCP slave, {MASTERS} masters x 1",
+        SimOptions(units=HEALTHY_UNITS, modbus_tcp_listen=f"127.0.0.1:{slave_port}"),
+        tcp_line_server(slave_port), bench._poll_spec(MASTERS, HEALTHY_UNITS),
+    )  # fmt: skip
     table = Table(
         f"Line kinds: {MASTERS} masters, FC03 x 10 across 4 slaves, unpaced simulator "
-        "(rtu-over-tcp: socat as the device server in front of the same pty)",
+        "(rtu-over-tcp: socat as the device server in front of the same pty; "
+        "tcp: the simulator's Modbus TCP slave)",
         ["kind", "tx/s", "p50 ms", "p99 ms", "gw CPU us/tx", "other load", "wrong", "errors"],
     )
-    rows: list[tuple[str, Run]] = [("rtu (pty)", serial), ("rtu-over-tcp", over_tcp)]
+    rows: list[tuple[str, Run]] = [
+        ("rtu (pty)", serial), ("rtu-over-tcp", over_tcp), ("tcp", tcp)
+    ]  # fmt: skip
     for label, run in rows:
         load = run.load
         table.rows.append([
@@ -120,13 +154,19 @@ def transports(bench: Bench) -> ScenarioResult:
     figures = {
         kind: {"tx_per_s": run.load.ok_per_s, "gateway_cpu_us_per_tx": run.cpu_us_per_tx,
                "latency_ms": run.load.latency_ms, "run": run.as_json()}
-        for kind, run in (("rtu", serial), ("rtu-over-tcp", over_tcp))
+        for kind, run in (("rtu", serial), ("rtu-over-tcp", over_tcp), ("tcp", tcp))
     }  # fmt: skip
-    wrong = over_tcp.load.wrong_answers
-    checks = [Check("rtu-over-tcp: wrong answers", wrong, "0", wrong == 0)]
+    wrong = over_tcp.load.wrong_answers + tcp.load.wrong_answers
+    checks = [
+        Check("rtu-over-tcp: wrong answers", over_tcp.load.wrong_answers, "0",
+              over_tcp.load.wrong_answers == 0),
+        Check("tcp: wrong answers", tcp.load.wrong_answers, "0", tcp.load.wrong_answers == 0),
+    ]  # fmt: skip
     notes = [
         "rtu-over-tcp: frame_gap 0 (the default of the kind); the load starts once the gateway "
         "has logged its connection to the device server; socat's CPU is not counted",
+        "tcp: one request in flight on the gateway's connection to the slave (the default); "
+        "the simulator's CPU is not counted",
     ]
     return ScenarioResult("transports", figures, [table], checks, wrong, notes)
 

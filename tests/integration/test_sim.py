@@ -233,7 +233,7 @@ def test_profiles_readable_at_their_limits(make_bus: BusFactory) -> None:
     assert bus.transact(2, h("06 0008 00FA")) == encode_rtu(2, h("06 0008 00FA"))
     assert bus.transact(3, h("04 0003 0005"))[2] == 10
     assert bus.transact(1, h("03 2690 007D"))[3:5] == (0x2690).to_bytes(2, "big")
-    assert set(PROFILES) == {"plc", "zl69x", "power_controller"}
+    assert set(PROFILES) == {"plc", "zl69x", "power_controller", "r6"}
 
 
 # --------------------------------------------------------------------------- line behaviour
