@@ -98,6 +98,7 @@ class _SlaveConnection(asyncio.Protocol):
         decoder = self._decoder
         server = self._server
         out: list[bytes] = []
+        waiting = self._pending  # delayed answers of earlier reads, still owed
         try:
             decoder.feed(data)
             frame = decoder.next_frame()
@@ -114,7 +115,7 @@ class _SlaveConnection(asyncio.Protocol):
                 self._transport.abort()
             return
         counters = server._counters
-        in_flight = count + self._pending
+        in_flight = count + waiting
         if in_flight > counters.max_in_flight:
             counters.max_in_flight = in_flight
         if out and self._transport is not None:
