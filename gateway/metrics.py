@@ -46,6 +46,9 @@ from .core.line import LineStats
 from .core.outcome import Outcome
 from .core.pdu import function_name
 
+#: ``function`` label by function code (``other`` when unknown): an index, not a call.
+_FUNCTION_LABELS = tuple(function_name(code) for code in range(256))
+
 #: Outcomes of a request from a TCP master, the ``outcome`` label's whole vocabulary.
 OUTCOMES = tuple(outcome.value for outcome in Outcome)
 
@@ -195,6 +198,42 @@ class LoopHistogram:
         self.sum += value
 
 
+class LoopCount:
+    """One counter series updated only from the event loop: an integer add, no lock."""
+
+    __slots__ = ("value",)
+
+    def __init__(self) -> None:
+        self.value = 0
+
+
+class LoopCounter(Collector):
+    """A counter family of ``LoopCount`` series, exported at scrape time.
+
+    prometheus-client's ``Counter.inc`` takes a lock; ``requests_total`` is counted once
+    per request, on the loop, where scrapes run too (so no update is torn).
+    """
+
+    def __init__(self, name: str, documentation: str, labelnames: tuple[str, ...]) -> None:
+        self.name = name
+        self.documentation = documentation
+        self._labelnames = labelnames
+        self._children: dict[tuple[str, ...], LoopCount] = {}
+
+    def labels(self, *values: str) -> LoopCount:
+        """The series of these label values (created at 0 on first use)."""
+        child = self._children.get(values)
+        if child is None:
+            child = self._children[values] = LoopCount()
+        return child
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(self.name, self.documentation, labels=self._labelnames)
+        for values, child in list(self._children.items()):
+            family.add_metric(list(values), child.value)
+        yield family
+
+
 class LineHistogram(Collector):
     """A histogram family with one ``LoopHistogram`` per line, exported at scrape time."""
 
@@ -231,10 +270,11 @@ class GatewayMetrics:
         self.registry = registry if registry is not None else CollectorRegistry()
         r = self.registry
         p = "modbus_gateway_"
-        self.requests = Counter(
+        self.requests = LoopCounter(
             p + "requests", "Requests from TCP masters by outcome.",
-            ["line", "unit", "function", "outcome"], registry=r,
+            ("line", "unit", "function", "outcome"),
         )  # fmt: skip
+        r.register(self.requests)
         self.request_duration = LineHistogram(
             p + "request_duration_seconds",
             "Time from a request's arrival to its reply, as the master sees it.",
@@ -368,7 +408,7 @@ class GatewayMetrics:
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
-        self._request_children: dict[tuple[str, str, str, str], Counter] = {}
+        self._request_children: dict[tuple[str, str, str, str], LoopCount] = {}
         self._heard: set[tuple[str, str]] = set()  #: (line, unit) of slaves that answered
         for reason in CLOSE_REASONS:
             self.connections_closed.labels(reason)
@@ -449,24 +489,24 @@ class GatewayMetrics:
         ``outcome`` must be one of ``OUTCOMES``; ``function`` is the request's code.
         ``unit`` is counted as ``other`` until that slave has answered (module docstring).
         """
-        key = (line, unit, function_name(function), outcome)
+        key = (line, unit, _FUNCTION_LABELS[function & 0xFF], outcome)
         child = self._request_children.get(key)
         if child is None:
             child = self._request_child(key)
-        child.inc()
+        child.value += 1
 
     def heard(self, line: str, unit: str) -> bool:
         """True once the slave ``unit`` on ``line`` has answered a request (its labels exist)."""
         return (line, unit) in self._heard
 
-    def _request_child(self, key: tuple[str, str, str, str]) -> Counter:
+    def _request_child(self, key: tuple[str, str, str, str]) -> LoopCount:
         line, unit, function, outcome = key
         if unit not in _FIXED_UNITS and (line, unit) not in self._heard:
             if outcome not in _HEARD_OUTCOMES:
                 # Not cached: the slave may be heard from later, and then has its own label.
                 return self.requests.labels(line, OTHER_UNIT, function, outcome)
             self._heard.add((line, unit))
-        child: Counter = self.requests.labels(line, unit, function, outcome)
+        child = self.requests.labels(line, unit, function, outcome)
         self._request_children[key] = child
         return child
 

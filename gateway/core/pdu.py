@@ -9,6 +9,8 @@ are passed through untouched: the slave is the authority on those.
 
 from __future__ import annotations
 
+from typing import Final
+
 from .errors import ExceptionCode, ModbusError
 
 READ_COILS = 0x01
@@ -178,6 +180,15 @@ def _check_range(pdu: bytes, name: str, low: int, high: int) -> None:
     _check_address(pdu, name)
 
 
+#: The highest quantity of each plain read (FC 1-4), for ``validate_request``'s fast path.
+_PLAIN_READ_LIMITS: Final = {
+    READ_COILS: 2000,
+    READ_DISCRETE_INPUTS: 2000,
+    READ_HOLDING_REGISTERS: 125,
+    READ_INPUT_REGISTERS: 125,
+}
+
+
 def validate_request(pdu: bytes) -> None:
     """Raise ``ModbusError`` when ``pdu`` cannot be a valid request; return quietly otherwise."""
     if not pdu:
@@ -185,6 +196,13 @@ def validate_request(pdu: bytes) -> None:
     if len(pdu) > MAX_PDU:
         raise _fail(ExceptionCode.ILLEGAL_DATA_VALUE, f"PDU of {len(pdu)} bytes exceeds {MAX_PDU}")
     function = pdu[0]
+    if function in _PLAIN_READ_LIMITS and len(pdu) == 5:  # the common case, checked inline
+        quantity = (pdu[3] << 8) | pdu[4]
+        if (
+            1 <= quantity <= _PLAIN_READ_LIMITS[function]
+            and ((pdu[1] << 8) | pdu[2]) + quantity <= 0x10000
+        ):
+            return
     if function == 0 or function & EXCEPTION_FLAG:
         raise _fail(ExceptionCode.ILLEGAL_FUNCTION, f"function code {function} is not a request")
     name = function_name(function)

@@ -45,6 +45,16 @@ log = logging.getLogger("gateway.bus")
 #: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``.
 Request = LineRequest
 
+
+def _replied(_pdu: bytes, _outcome: str) -> None:
+    """What a request's ``reply`` becomes once called: a second answer goes nowhere.
+
+    It also frees the request at once: a master's reply callback usually refers to its
+    own request, a reference cycle the garbage collector would otherwise have to find,
+    one per transaction.
+    """
+
+
 _REOPEN_FIRST_DELAY = 0.05
 _REOPEN_MAX_DELAY = 0.5
 
@@ -81,6 +91,9 @@ class Bus:
         self._open_error = ""
         self.idle = asyncio.Event()
         self.idle.set()
+        self._idle = True  # mirrors ``idle``: the pump compares a bool, not a method call
+        #: The line's request latency series, for the masters' side to observe.
+        self.request_duration = metrics.request_duration_for(self.name)
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
         self._m_wire = metrics.wire_duration.labels(self.name)
         self._m_line_up = metrics.line_up.labels(self.name)
@@ -186,7 +199,8 @@ class Bus:
         """Answer each request 0x0A (gateway path unavailable)."""
         for request in requests:
             request.answered = True
-            request.reply(
+            reply, request.reply = request.reply, _replied
+            reply(
                 fc.exception_pdu(request.pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
                 Outcome.NO_ROUTE,
             )
@@ -256,11 +270,12 @@ class Bus:
                 self._clock.disarm()
         else:
             self._clock.arm(deadline, self._on_timer)
-        if core.idle:
-            if not self.idle.is_set():
+        if core.idle is not self._idle:
+            self._idle = not self._idle
+            if self._idle:
                 self.idle.set()
-        elif self.idle.is_set():
-            self.idle.clear()
+            else:
+                self.idle.clear()
 
     def _transmit(self, transmits: list[Transmit]) -> None:
         for transmit in transmits:
@@ -279,8 +294,10 @@ class Bus:
         for delivery in deliveries:
             if delivery.wire_time >= 0.0:
                 observe(delivery.wire_time)
+            request = delivery.request
+            reply, request.reply = request.reply, _replied
             try:
-                delivery.request.reply(delivery.pdu, delivery.outcome)
+                reply(delivery.pdu, delivery.outcome)
             except Exception:  # a boundary: one master's broken reply path must not cost
                 # the rest of this batch their answers; logged in full, not swallowed
                 log.exception("line %s: handing an answer back failed", self.name)

@@ -72,6 +72,7 @@ class PreciseClock:
         self._deadline = 0.0  # 0: not armed
         self._callback: Callable[[], None] | None = None
         self._fallback: asyncio.TimerHandle | None = None
+        self._fallback_at = 0.0  # when ``_fallback`` wakes the clock (monotonic seconds)
         self._fd_armed = False
 
     @property
@@ -87,6 +88,9 @@ class PreciseClock:
     def close(self) -> None:
         """Disarm and release the timerfd."""
         self.disarm()
+        if self._fallback is not None:
+            self._fallback.cancel()
+            self._fallback = None
         if self._fd >= 0:
             self._loop.remove_reader(self._fd)
             os.close(self._fd)
@@ -97,7 +101,10 @@ class PreciseClock:
 
         A deadline more than ``COARSE_LIMIT`` away (a response timeout) first waits on the
         loop's own timer, which costs no system call, and is re-armed precisely when near:
-        most are replaced long before they come (the answer arrives).
+        most are replaced long before they come (the answer arrives). A loop timer that
+        wakes no later than a new far deadline needs is kept (it re-arms for the deadline
+        then), so a line that arms one response timeout per transaction creates about one
+        loop timer per timeout period, not one per transaction.
         """
         self._callback = callback
         if deadline == self._deadline:
@@ -106,10 +113,13 @@ class PreciseClock:
         now = time.monotonic()
         if self._fd < 0 or deadline - now > COARSE_LIMIT:
             self._disarm_timerfd()
+            wake_at = deadline - _FALLBACK_MARGIN
             if self._fallback is not None:
+                if self._fallback_at <= wake_at:
+                    return  # it wakes in time, and ``_fire`` waits on from there
                 self._fallback.cancel()
-            delay = max(0.0, deadline - _FALLBACK_MARGIN - now)
-            self._fallback = self._loop.call_later(delay, self._fire)
+            self._fallback_at = wake_at
+            self._fallback = self._loop.call_later(max(0.0, wake_at - now), self._on_fallback)
             return
         if self._fallback is not None:
             self._fallback.cancel()
@@ -117,12 +127,13 @@ class PreciseClock:
         self._arm_timerfd(deadline)
 
     def disarm(self) -> None:
-        """Cancel the armed deadline."""
+        """Cancel the armed deadline.
+
+        A pending loop timer is left to wake once with nothing to do, or to serve the
+        next far deadline (see ``arm``); a cancelled callback never runs.
+        """
         self._deadline = 0.0
         self._callback = None
-        if self._fallback is not None:
-            self._fallback.cancel()
-            self._fallback = None
         self._disarm_timerfd()
 
     def _arm_timerfd(self, deadline: float) -> None:
@@ -147,15 +158,22 @@ class PreciseClock:
         self._fd_armed = False
         self._fire()
 
-    def _fire(self) -> None:
+    def _on_fallback(self) -> None:
         self._fallback = None
+        self._fire()
+
+    def _fire(self) -> None:
         deadline = self._deadline
         callback = self._callback
         if not deadline or callback is None:
             return
         remaining = deadline - time.monotonic()
         if remaining > COARSE_LIMIT or (self._fd < 0 and remaining > 2 * _FALLBACK_MARGIN):
-            self._fallback = self._loop.call_later(remaining - _FALLBACK_MARGIN, self._fire)
+            if self._fallback is None:
+                self._fallback_at = deadline - _FALLBACK_MARGIN
+                self._fallback = self._loop.call_later(
+                    remaining - _FALLBACK_MARGIN, self._on_fallback
+                )
             return  # woken early (or re-armed since): wait again
         if self._fd >= 0 and remaining > 2 * SPIN_MARGIN and not self._fd_armed:
             self._arm_timerfd(deadline)  # near now: the precise timer takes over

@@ -326,7 +326,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         bus = target.bus
         line = bus.name
         unit_label = UNIT_LABELS[target.slave]  # the slave address, as in the line's metrics
-        duration = server.metrics.request_duration_for(line)
+        duration = bus.request_duration
 
         def reply(response: bytes, outcome: str) -> None:
             self._pending.discard(request)

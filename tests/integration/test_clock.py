@@ -66,3 +66,55 @@ def test_rearming_replaces_and_disarming_cancels() -> None:
         clock.close()
 
     asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("order", ["later", "earlier"])
+def test_a_far_deadline_moved_fires_once_at_the_new_time(order: str) -> None:
+    """A far deadline moved later keeps its loop timer (woken early, it waits on); moved
+    earlier, it gets a new one. Either way the callback runs once, never before its time."""
+
+    async def scenario() -> None:
+        clock = PreciseClock(asyncio.get_running_loop())
+        fired_at: list[float] = []
+        done = asyncio.Event()
+
+        def callback() -> None:
+            fired_at.append(time.monotonic())
+            done.set()
+
+        now = time.monotonic()
+        first, second = now + 3 * COARSE_LIMIT, now + 6 * COARSE_LIMIT
+        if order == "earlier":
+            first, second = second, first
+        clock.arm(first, callback)
+        clock.arm(second, callback)
+        await asyncio.wait_for(done.wait(), 5.0)
+        # Long enough for a stale wake-up at the other deadline to show itself.
+        await asyncio.sleep(max(first, second) - time.monotonic() + 4 * COARSE_LIMIT)
+        clock.close()
+        assert len(fired_at) == 1
+        assert second <= fired_at[0] < second + LATE_BOUND_S
+
+    asyncio.run(scenario())
+
+
+def test_a_disarmed_far_deadline_never_fires_and_its_timer_serves_the_next() -> None:
+    async def scenario() -> None:
+        clock = PreciseClock(asyncio.get_running_loop())
+        calls: list[str] = []
+        done = asyncio.Event()
+        clock.arm(time.monotonic() + 2 * COARSE_LIMIT, lambda: calls.append("disarmed"))
+        clock.disarm()
+        later = time.monotonic() + 5 * COARSE_LIMIT
+
+        def second() -> None:
+            calls.append("second")
+            done.set()
+
+        clock.arm(later, second)
+        await asyncio.wait_for(done.wait(), 5.0)
+        assert time.monotonic() >= later
+        clock.close()
+        assert calls == ["second"]
+
+    asyncio.run(scenario())

@@ -7,6 +7,8 @@ and the address range after (0x02); requests with both faults must get 0x03.
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from gateway.core.errors import ExceptionCode, ModbusError, ProtocolError
 from gateway.core.pdu import (
@@ -346,3 +348,30 @@ def test_the_normal_response_to_a_write() -> None:
     assert write_response(h("06 0007 1234")) == h("06 0007 1234")
     assert write_response(h("10 0001 0002 04 000A 0102")) == h("10 0001 0002")
     assert write_response(h("0F 0013 000A 02 CD01")) == h("0F 0013 000A")
+
+
+@given(
+    function=st.sampled_from([0x01, 0x02, 0x03, 0x04]),
+    address=st.integers(0, 0xFFFF),
+    quantity=st.integers(0, 0xFFFF),
+    extra=st.sampled_from([b"", b"\x00"]),
+)
+def test_every_plain_read_is_judged_as_the_specification_says(
+    function: int, address: int, quantity: int, extra: bytes
+) -> None:
+    """FC 1-4: length 5, then quantity (0x03: 1..2000 bits or 1..125 registers), then
+    address + quantity within 65536 (0x02); whichever path the check takes."""
+    pdu = bytes((function,)) + address.to_bytes(2, "big") + quantity.to_bytes(2, "big") + extra
+    limit = 2000 if function <= 0x02 else 125
+    if extra or not 1 <= quantity <= limit:
+        expected: ExceptionCode | None = ExceptionCode.ILLEGAL_DATA_VALUE
+    elif address + quantity > 0x10000:
+        expected = ExceptionCode.ILLEGAL_DATA_ADDRESS
+    else:
+        expected = None
+    if expected is None:
+        validate_request(pdu)
+    else:
+        with pytest.raises(ModbusError) as raised:
+            validate_request(pdu)
+        assert raised.value.code == expected
