@@ -393,10 +393,13 @@ class Gateway:
             self.metrics.prepare_tls_listener(name, (reason.value for reason in HandshakeFailure))
         return built
 
-    @staticmethod
-    def _build_line_tls(config: GatewayConfig) -> dict[str, ssl.SSLContext]:
+    def _build_line_tls(self, config: GatewayConfig) -> dict[str, ssl.SSLContext]:
         """Every tls line's client context, from its files now (raises ``TlsSetupError``)."""
-        return {line.name: client_context(line) for line in config.lines if line.kind == "tls"}
+        built = {line.name: client_context(line) for line in config.lines if line.kind == "tls"}
+        self.metrics.set_line_certificates(
+            info for tls in built.values() for info in tls.certificates
+        )
+        return {name: tls.context for name, tls in built.items()}
 
     @staticmethod
     def _policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:

@@ -151,18 +151,31 @@ class CertificateExpiry(Protocol):
 
 
 class _CertificateExpiryCollector(Collector):
-    """``tls_certificate_expiry_seconds``: computed at scrape time from each ``notAfter``."""
+    """``tls_certificate_expiry_seconds``: computed at scrape time from each ``notAfter``.
 
-    def __init__(self, certificates: list[CertificateExpiry]) -> None:
+    Also ``line_tls_certificate_expiry_seconds`` (``owner`` = "line"): a tls line's
+    certificates, whose ``listener`` field then holds the line's name.
+    """
+
+    def __init__(self, certificates: list[CertificateExpiry], owner: str = "listener") -> None:
         self._certificates = certificates
+        self._owner = owner
 
     def collect(self) -> Iterator[Metric]:
-        family = GaugeMetricFamily(
-            "modbus_gateway_tls_certificate_expiry_seconds",
-            "Seconds until the certificate's notAfter (negative once expired), per tls "
-            "listener: kind is server, chain (an intermediate sent to clients) or ca.",
-            labels=["listener", "kind", "subject"],
-        )
+        if self._owner == "line":
+            family = GaugeMetricFamily(
+                "modbus_gateway_line_tls_certificate_expiry_seconds",
+                "Seconds until the certificate's notAfter (negative once expired), per tls "
+                "line: kind is client (the gateway's), chain (an intermediate it sends) or ca.",
+                labels=["line", "kind", "subject"],
+            )
+        else:
+            family = GaugeMetricFamily(
+                "modbus_gateway_tls_certificate_expiry_seconds",
+                "Seconds until the certificate's notAfter (negative once expired), per tls "
+                "listener: kind is server, chain (an intermediate sent to clients) or ca.",
+                labels=["listener", "kind", "subject"],
+            )
         now = time.time()
         for certificate in self._certificates:
             family.add_metric(
@@ -402,6 +415,8 @@ class GatewayMetrics:
         )  # fmt: skip
         self._certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._certificates))
+        self._line_certificates: list[CertificateExpiry] = []
+        r.register(_CertificateExpiryCollector(self._line_certificates, owner="line"))
         self._denial_children: dict[tuple[str, str, int], Counter] = {}
         self.info = Info(p + "build", "Version and configured lines.", registry=r)
         self.info.info({"version": __version__, "lines": ""})
@@ -473,6 +488,10 @@ class GatewayMetrics:
     def set_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
         """The certificates whose ``notAfter`` is exported (replaced on every reload)."""
         self._certificates[:] = list(certificates)
+
+    def set_line_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
+        """The tls lines' certificates whose ``notAfter`` is exported (replaced on reload)."""
+        self._line_certificates[:] = list(certificates)
 
     def count_denial(self, listener: str, role: str, function: int) -> None:
         """Count one request refused by policy (``role`` already bounded by the policy)."""

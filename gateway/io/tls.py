@@ -323,7 +323,15 @@ def line_failure_message(line: LineConfig, reason: LineTlsFailure, error: BaseEx
     return f"{where}: handshake failed: {detail}"
 
 
-def client_context(line: LineConfig, now: datetime | None = None) -> ssl.SSLContext:
+@dataclass
+class ClientTls:
+    """A tls line's built TLS context and the certificates it rests on (``listener``: the line)."""
+
+    context: ssl.SSLContext
+    certificates: list[CertificateInfo]
+
+
+def client_context(line: LineConfig, now: datetime | None = None) -> ClientTls:
     """The TLS context of a ``kind = "tls"`` line; ``TlsSetupError`` names the key and the fix.
 
     TLS 1.2 or newer, the gateway's client certificate presented, the slave's
@@ -333,9 +341,11 @@ def client_context(line: LineConfig, now: datetime | None = None) -> ssl.SSLCont
     assert line.cert and line.key and line.ca
     prefix = f"lines.{line.name}."
     moment = now or datetime.now(UTC)
+    infos: list[CertificateInfo] = []
     for index, certificate in enumerate(_read_pem_certificates(line.cert, f"{prefix}cert")):
         kind = "client" if index == 0 else "chain"
         subject = _subject(certificate)
+        infos.append(CertificateInfo(line.name, kind, subject, certificate.not_valid_after_utc))
         if moment < certificate.not_valid_before_utc:
             raise TlsSetupError(
                 f"{prefix}cert = {line.cert!r}: the {kind} certificate {subject!r} is not valid "
@@ -348,7 +358,10 @@ def client_context(line: LineConfig, now: datetime | None = None) -> ssl.SSLCont
                 f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC; renew it, then reload "
                 "(SIGHUP)"
             )
-    _read_pem_certificates(line.ca, f"{prefix}ca")
+    for authority in _read_pem_certificates(line.ca, f"{prefix}ca"):
+        infos.append(
+            CertificateInfo(line.name, "ca", _subject(authority), authority.not_valid_after_utc)
+        )
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)  # verifies the chain and the name
     context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
     context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
@@ -369,4 +382,4 @@ def client_context(line: LineConfig, now: datetime | None = None) -> ssl.SSLCont
         context.load_verify_locations(cafile=line.ca)
     except (ssl.SSLError, OSError) as error:
         raise TlsSetupError(f"{prefix}ca = {line.ca!r}: cannot be used: {error}") from None
-    return context
+    return ClientTls(context, infos)

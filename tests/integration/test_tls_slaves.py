@@ -142,6 +142,10 @@ def test_a_gateway_bridges_plain_masters_to_another_gateways_tls_listener(
     assert sample(slave, denied, listener="tls", role="operator", function=write) == 0
     info = sample(operator, "modbus_gateway_line_info", line="plc", kind="tls")
     assert info == 1
+    expiry = "modbus_gateway_line_tls_certificate_expiry_seconds"
+    left = sample(operator, expiry, line="plc", kind="client", subject="master-operator")
+    assert 364 * 86400 < left <= 365 * 86400
+    assert sample(operator, expiry, line="plc", kind="ca", subject="Test Root CA") > 0
     for reason in ("untrusted_certificate", "certificate_refused", "name_mismatch"):
         assert (
             sample(operator, "modbus_gateway_line_tls_failures_total", line="plc", reason=reason)

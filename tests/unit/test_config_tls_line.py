@@ -138,11 +138,16 @@ def test_flag_mistakes(argv: list[str], expected: str) -> None:
 
 
 def test_the_client_context(pki: Pki) -> None:
-    context = client_context(tls_line(pki))
+    built = client_context(tls_line(pki))
+    context = built.context
     assert context.minimum_version is ssl.TLSVersion.TLSv1_2
     assert context.verify_mode is ssl.CERT_REQUIRED and context.check_hostname
-    unchecked = client_context(tls_line(pki, check_server_name=False))
+    unchecked = client_context(tls_line(pki, check_server_name=False)).context
     assert unchecked.verify_mode is ssl.CERT_REQUIRED and not unchecked.check_hostname
+    found = [(info.listener, info.kind, info.subject) for info in built.certificates]
+    assert found == [("plc", "client", "master-operator"), ("plc", "chain", "Test Intermediate CA"),
+                     ("plc", "ca", "Test Root CA")]  # fmt: skip
+    assert 364 * 86400 < built.certificates[0].seconds_left() <= 365 * 86400
 
 
 def test_client_context_mistakes_name_the_key_the_file_and_the_fix(
