@@ -190,7 +190,8 @@ class LineConfig:
     kind: str = "rtu"
     inter_char_timeout: float = 1.0  # ASCII: a frame whose characters stop this long is dropped
     echo: bool = False  # the adapter echoes what the gateway sends: drop it
-    #: The device server's address (``rtu-over-tcp``; from ``address = "HOST:PORT"``).
+    #: The device server's or slave's address (network kinds; from ``address = "HOST:PORT"``;
+    #: a ``tls`` line's address without a port means 802, Modbus/TCP Security's port).
     host: str = ""
     port: int = 0
     #: Seconds to wait after a connection is made before the first request (some device

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -239,11 +240,16 @@ class StdlibTlsSlave:
     gateway's certificate reaches the gateway as ``unknown ca``.
     """
 
-    def __init__(self, pki: Pki) -> None:
+    def __init__(self, pki: Pki, version: ssl.TLSVersion | None = None) -> None:
         self.context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
         self.context.load_cert_chain(str(pki.server_chain), str(pki.server_key))
         self.context.load_verify_locations(cafile=str(pki.ca))
         self.context.verify_mode = ssl.CERT_REQUIRED
+        if version is not None:  # this version only (TLS 1.1: deprecated, on purpose)
+            self.context.set_ciphers("DEFAULT:@SECLEVEL=0")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self.context.minimum_version = self.context.maximum_version = version
         self._listener = socket.create_server(("127.0.0.1", 0))
         self._listener.settimeout(0.2)
         self.port: int = self._listener.getsockname()[1]
@@ -271,10 +277,14 @@ class StdlibTlsSlave:
         self._listener.close()
 
 
+@pytest.mark.parametrize(
+    "version", [None, ssl.TLSVersion.TLSv1_2], ids=["after the handshake", "tls 1.2"]
+)
 def test_a_slave_that_refuses_the_gateways_certificate_with_an_alert(
-    make_gateway: GatewayFactory, pki: Pki, bus_log: LogCollector
+    make_gateway: GatewayFactory, pki: Pki, bus_log: LogCollector, version: ssl.TLSVersion | None
 ) -> None:
-    slave = StdlibTlsSlave(pki)
+    """TLS 1.3: the alert is the first thing read; TLS 1.2: it ends the handshake."""
+    slave = StdlibTlsSlave(pki, version)
     try:
         gw = make_gateway({"lines": {"plc": tls_line(pki, slave.port, "otherca")}})
         failures = "modbus_gateway_line_tls_failures_total"
@@ -650,3 +660,20 @@ def test_a_refused_line_comes_back_when_the_slave_trusts_its_certificate(
     refusals = [text for text in bus_log.messages if "may refuse the gateway's certificate" in text]
     back = [text for text in bus_log.messages if "accepted, back up" in text]
     assert (len(refusals), len(back)) == (1, 1), bus_log.messages
+
+
+def test_a_slave_that_speaks_only_tls_1_1(
+    make_gateway: GatewayFactory, pki: Pki, bus_log: LogCollector
+) -> None:
+    slave = StdlibTlsSlave(pki, ssl.TLSVersion.TLSv1_1)
+    try:
+        gw = make_gateway({"lines": {"plc": tls_line(pki, slave.port)}})
+        failures = "modbus_gateway_line_tls_failures_total"
+        wait_until(lambda: sample(gw, failures, line="plc", reason="protocol_version") >= 2,
+                   "no protocol_version failures")  # fmt: skip
+        with gw.connect() as master:
+            assert master.request(7, h("03 0000 0001")) == h("83 0A")
+    finally:
+        slave.close()
+    (logged,) = [text for text in bus_log.messages if "no TLS version in common" in text]
+    assert "TLS 1.2 or newer" in logged
