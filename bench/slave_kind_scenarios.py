@@ -5,8 +5,9 @@ same simulated line: the line on its pty (``kind = "rtu"``, the baseline), then
 reached through a second gateway process that serves the pty as a Modbus TCP
 slave (``--modbus-tcp``) and as a Modbus/TCP Security slave on its ``tls``
 listener (``--modbus-tls``, with client certificates from a throwaway PKI made
-for the run). The second gateway is the slave, like socat in ``transports``:
-its CPU is not counted, only the measured gateway's CPU per transaction compares.
+for the run), with one request in flight on that connection, then four. The
+second gateway is the slave, like socat in ``transports``: its CPU is not
+counted, only the measured gateway's CPU per transaction compares.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ class SlaveBehindGateway(Server):
         return status
 
 
-def slave_server(kind: str, pki: Pki) -> ServerFactory:
+def slave_server(kind: str, pki: Pki, in_flight: int = 1) -> ServerFactory:
     """``python -m gateway --modbus-tcp`` / ``--modbus-tls`` to a gateway serving the pty."""
 
     def make(workdir: Path, link: str, port: int) -> Server:
@@ -78,7 +79,10 @@ def slave_server(kind: str, pki: Pki) -> ServerFactory:
             command += ["--modbus-tls-key", client_key, "--modbus-tls-ca", str(ca)]
         # The load generator's masters all connect from 127.0.0.1: no per-address limit.
         config = workdir / "gateway.toml"
-        config.write_text("[server]\nmax_connections_per_source = 0\n")
+        config.write_text(
+            "[server]\nmax_connections_per_source = 0\n"
+            f'[lines.default]\nunits = ["1-247"]\nmax_in_flight = {in_flight}\n'
+        )
         command += ["--config", str(config)]
         slave_config = workdir / "slave.toml"
         slave_config.write_text("[server]\nmax_connections_per_source = 0\n")
@@ -94,13 +98,15 @@ def slave_kinds(bench: Bench) -> ScenarioResult:
     runs: list[tuple[str, Run]] = [("rtu", serial)]
     with tempfile.TemporaryDirectory(prefix="bench-pki-") as directory:
         pki = make_pki(Path(directory))
-        for kind in ("tcp", "tls"):
-            run = bench._run(
-                f"gateway, {kind} line to a slave gateway, unpaced, {MASTERS} masters x 1",
-                SimOptions(units=HEALTHY_UNITS), slave_server(kind, pki),
-                bench._poll_spec(MASTERS, HEALTHY_UNITS),
-            )  # fmt: skip
-            runs.append((kind, run))
+        for in_flight in (1, 4):
+            for kind in ("tcp", "tls"):
+                run = bench._run(
+                    f"gateway, {kind} line (max_in_flight {in_flight}) to a slave gateway, "
+                    f"unpaced, {MASTERS} masters x 1",
+                    SimOptions(units=HEALTHY_UNITS), slave_server(kind, pki, in_flight),
+                    bench._poll_spec(MASTERS, HEALTHY_UNITS),
+                )  # fmt: skip
+                runs.append((kind if in_flight == 1 else f"{kind}, in flight {in_flight}", run))
     table = Table(
         f"Slave kinds: {MASTERS} masters, FC03 x 10 across 4 slaves, unpaced simulator "
         "(tcp, tls: a second gateway serves the same pty as the Modbus TCP / TLS slave)",
@@ -121,8 +127,9 @@ def slave_kinds(bench: Bench) -> ScenarioResult:
     wrong = sum(run.load.wrong_answers for kind, run in runs if kind != "rtu")
     checks = [Check("tcp and tls lines: wrong answers", wrong, "0", wrong == 0)]
     notes = [
-        "tcp, tls: one request in flight on the slave connection; the slave gateway's CPU is "
-        "not counted; the load starts once the gateway has logged its connection",
+        "tcp, tls: one request in flight on the slave connection unless the row says more "
+        "(max_in_flight); the slave gateway's CPU is not counted; the load starts once the "
+        "gateway has logged its connection",
     ]
     return ScenarioResult("slave-kinds", figures, [table], checks, wrong, notes)
 

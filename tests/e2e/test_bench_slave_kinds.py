@@ -24,7 +24,7 @@ def test_tiny_slave_kinds_scenario_reports_its_figures(tmp_path: Path) -> None:
     results = json.loads(output.read_text())
     assert results["failures"] == {}
     figures = results["scenarios"]["slave-kinds"]
-    for kind in ("rtu", "tcp", "tls"):
+    for kind in ("rtu", "tcp", "tls", "tcp, in flight 4", "tls, in flight 4"):
         assert figures[kind]["run"]["load"]["ok"] > 0
         assert figures[kind]["run"]["load"]["wrong_answers"] == 0
         assert figures[kind]["gateway_cpu_us_per_tx"] > 0

@@ -453,18 +453,22 @@ class SlaveProcess:
             self.kill()
 
 
+@pytest.mark.parametrize("in_flight", [1, 4])
 def test_tcp_and_tls_slaves_killed_and_restarted_under_load_give_no_wrong_answer(
-    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, in_flight: int
 ) -> None:
-    """Six masters (three through each kind) check every answer; B is SIGKILLed three times."""
+    """Six masters (three through each kind) check every answer; B is SIGKILLed three times.
+
+    With ``max_in_flight = 4`` several requests are lost with each connection.
+    """
     sim = make_sim({1: plc(1)})
     slave = SlaveProcess(sim.path, pki)
     slave.start()
     gw = make_gateway({
         "lines": {
             "t": {"kind": "tcp", "address": f"127.0.0.1:{slave.plain}", "units": [1],
-                  "timeout": 1.0},
-            "s": tls_line(pki, slave.tls, units=[], timeout=1.0),
+                  "timeout": 1.0, "max_in_flight": in_flight},
+            "s": tls_line(pki, slave.tls, units=[], timeout=1.0, max_in_flight=in_flight),
         },
         "routes": [{"unit": 2, "line": "s", "slave": 1}],
     })  # fmt: skip
