@@ -376,8 +376,9 @@ def _check_config(argv: Sequence[str]) -> int:
     if warnings and args.strict:
         return 2
     listening = ", ".join(
-        f"{lst.serial.device if lst.serial else f'{lst.host}:{lst.port}'} "
-        f"({lst.name}, {lst.protocol})"
+        f"{lst.serial.device} ({lst.name}, {lst.protocol}, {lst.serial.kind})"
+        if lst.serial
+        else f"{lst.host}:{lst.port} ({lst.name}, {lst.protocol})"
         for lst in config.listeners
     )
     print(

@@ -228,6 +228,20 @@ units = [1, 300]
     assert "OK" in done.stdout and "10 routed unit(s)" in done.stdout
 
 
+def test_check_config_names_a_serial_slave_listeners_device_and_framing(tmp_path: Path) -> None:
+    config = tmp_path / "reverse.toml"
+    config.write_text(
+        '[lines.a]\ndevice = "/dev/ttyUSB0"\nunits = [1]\n\n[[listeners]]\nname = "field"\n'
+        'protocol = "serial-slave"\ndevice = "/dev/ttyUSB1"\nframing = "ascii"\n'
+    )
+    done = subprocess.run(
+        gateway_command("check-config", str(config)),
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done
+    assert "/dev/ttyUSB1 (field, serial-slave, ascii)" in done.stdout, done.stdout
+
+
 def test_version() -> None:
     done = subprocess.run(
         gateway_command("--version"), capture_output=True, text=True, timeout=30, check=False
