@@ -28,6 +28,7 @@ from typing import Any
 
 from . import (
     hostile,
+    inflight_scenarios,
     kind_scenarios,
     line_scenarios,
     reverse_scenarios,
@@ -53,6 +54,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **kind_scenarios.SCENARIOS,
     **slave_kind_scenarios.SCENARIOS,
     **reverse_scenarios.SCENARIOS,
+    **inflight_scenarios.SCENARIOS,
 }
 
 

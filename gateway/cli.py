@@ -21,6 +21,7 @@ from .config import (
     policy_warnings,
     read_config_file,
 )
+from .core.framing import is_mbap
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
 from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS, DemoLine
@@ -133,6 +134,9 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
     parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
                         help="a Modbus TCP slave (or another gateway) instead of --serial; "
                         "without --config every unit 1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--max-in-flight", type=int, metavar="N",
+                        help="requests outstanding at once on the connection of a tcp or tls "
+                        "line (1..64; default 1: many devices take one at a time)")  # fmt: skip
     parser.add_argument("--modbus-tls", metavar="HOST[:PORT]",
                         help="a Modbus/TCP Security slave (port 802 unless given) instead of "
                         "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
@@ -258,6 +262,8 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
                                                "--modbus-tls"])  # fmt: skip
         _apply_network_line(lines, "tls", args.modbus_tls, "--modbus-tls", args)
     _apply_line_tls_flags(lines, args)
+    if args.max_in_flight is not None:
+        _apply_max_in_flight(lines, args.max_in_flight)
     per_line = {
         "kind": args.framing,
         "baudrate": args.baudrate,
@@ -272,6 +278,16 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
         if isinstance(table, dict):
             table.update({key: value for key, value in per_line.items() if value is not None})
     return raw
+
+
+def _apply_max_in_flight(lines: dict[str, Any], limit: int) -> None:
+    """``--max-in-flight N`` for every line framed by MBAP (``tcp``, ``tls``)."""
+    tables = [t for t in lines.values() if isinstance(t, dict) and is_mbap(t.get("kind", "rtu"))]
+    if not tables:
+        problem = "only a Modbus TCP or TLS line takes it: give --modbus-tcp or --modbus-tls"
+        raise ConfigError("--max-in-flight", [problem + ", or remove it"])
+    for table in tables:
+        table["max_in_flight"] = limit
 
 
 def _apply_network_line(

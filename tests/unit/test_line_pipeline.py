@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 
+from gateway.cli import apply_overrides, build_parser
 from gateway.config import ConfigError, LineConfig, build_config
 from gateway.core.framing import is_mbap, mbap_framing
 from gateway.core.line import LineCore, LineRequest
@@ -356,3 +357,24 @@ def test_max_in_flight_in_the_configuration() -> None:
         (problem,) = problems({**table, "max_in_flight": 2})
         assert problem.startswith("lines.n.max_in_flight: only a Modbus TCP line")
         assert "remove the key" in problem
+
+
+def test_a_tls_line_takes_max_in_flight_too() -> None:
+    table = {"kind": "tls", "address": "plc:802", "units": [1], "cert": "c.pem", "key": "k.pem",
+             "ca": "ca.pem", "max_in_flight": 3}  # fmt: skip
+    assert build_config({"lines": {"n": table}}).line("n").max_in_flight == 3
+
+
+def test_the_max_in_flight_flag() -> None:
+    args = build_parser().parse_args(["--modbus-tcp", "10.0.0.9:502", "--max-in-flight", "4"])
+    assert build_config(apply_overrides({}, args)).line("default").max_in_flight == 4
+    raw = {"lines": {"a": {"device": "/dev/ttyS0", "units": [1]},
+                     "b": {"kind": "tcp", "address": "h:502", "units": [2]}}}  # fmt: skip
+    config = build_config(apply_overrides(raw, build_parser().parse_args(["--max-in-flight", "2"])))
+    assert (config.line("a").max_in_flight, config.line("b").max_in_flight) == (1, 2)
+    with pytest.raises(ConfigError, match="only a Modbus TCP or TLS line takes it"):
+        apply_overrides({}, build_parser().parse_args(["--serial", "x", "--max-in-flight", "2"]))
+    args = build_parser().parse_args(["--modbus-tcp", "h:502", "--max-in-flight", "99"])
+    with pytest.raises(ConfigError) as caught:
+        build_config(apply_overrides({}, args))
+    assert caught.value.problems == ["lines.default.max_in_flight: 99 outside 1..64"]
