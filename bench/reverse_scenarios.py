@@ -5,10 +5,11 @@ on as a slave (``--serial-slave``), in RTU and then in ASCII, with the simulated
 RTU line behind the gateway unpaced. The master sends FC03 x 10 across the 4
 slaves back to back, each as soon as the previous answer is whole, and checks
 every answer against ``bench.values``. RTU frames are framed by t3.5 of silence
-(1.75 ms above 19200 baud): the listener cannot know a request ended sooner, so
-a master there waits at least that per transaction; an ASCII frame ends at its
-LF. The gateway's CPU per transaction is read from ``/proc`` over the window.
-ptys refuse 7 data bits, so the ASCII run is 8N1 (the same 10 bits a character).
+(1.75 ms above 19200 baud, met by the precise clock): the listener cannot know a
+request ended sooner, so a master there waits at least that per transaction; an
+ASCII frame ends at its LF. The gateway's CPU per transaction is read from
+``/proc`` over the window. ptys refuse 7 data bits, so the ASCII run is 8N1 (the
+same 10 bits a character).
 
 Like the load generator, this master keeps its own reading of the protocol
 (CRC, LRC): nothing of the gateway is imported.

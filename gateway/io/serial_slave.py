@@ -7,7 +7,8 @@ slave-side rules of Modbus over Serial Line:
 
 * RTU (``framing = "rtu"``): a frame is what lies between two silences of t3.5
   (the bus may carry other slaves' answers and requests for them, so a
-  predicted length alone cannot frame it); ASCII (``framing = "ascii"``): a
+  predicted length alone cannot frame it), timed by the lines' precise clock;
+  ASCII (``framing = "ascii"``): a
   frame runs from ':' to CR LF, a ':' restarts it, at most 513 characters, and
   the inter-character timeout abandons it (``core.slave_side``);
 * a frame is served only when its CRC (LRC) is right and its length is the one
@@ -52,6 +53,7 @@ from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
 from ..trace import FrameTracer
 from .bus import Request
+from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
 from .tcp import Router
 
@@ -95,7 +97,10 @@ class SerialSlave:
         self._echo = OwnEcho() if serial.echo else None
         self._buffer = bytearray()
         self._last_byte = 0.0
-        self._silence: asyncio.TimerHandle | None = None
+        self._silence: asyncio.TimerHandle | None = None  # ASCII: the inter-character timeout
+        #: RTU: the t3.5 that ends a frame, met to a few microseconds (the loop's timers are
+        #: millisecond-grained: t3.5 is 1.75 ms above 19200 baud).
+        self._clock = PreciseClock(loop) if self._ascii is None else None
         self._link: SerialLink | None = None
         self._reopener: asyncio.Task[None] | None = None
         self._pending: Request | None = None
@@ -142,6 +147,8 @@ class SerialSlave:
         if self._silence is not None:
             self._silence.cancel()
             self._silence = None
+        if self._clock is not None:
+            self._clock.close()
         self._drop_pending()
         if self._link is not None:
             self._link.close()
@@ -198,22 +205,19 @@ class SerialSlave:
         if self._ascii is not None:
             self._on_characters(data)
             return
+        clock = self._clock
+        assert clock is not None
         if len(self._buffer) + len(data) > 2 * MAX_RTU_FRAME:
             self._buffer.clear()  # a babbling line: nothing here is one frame
             self._damaged(FrameFault.OVERSIZE, "more than an RTU frame without a gap")
+            clock.disarm()
             return
         self._buffer += data
-        if self._silence is not None:
-            self._silence.cancel()
-        self._silence = self._loop.call_later(self._t35 + _TIMER_MARGIN_S, self._frame_ended)
+        clock.arm(self._last_byte + self._t35, self._frame_ended)
 
     def _frame_ended(self) -> None:
-        self._silence = None
-        quiet = time.monotonic() - self._last_byte
-        if quiet < self._t35:  # woken early: wait for the rest of the silence
-            self._silence = self._loop.call_later(
-                self._t35 - quiet + _TIMER_MARGIN_S, self._frame_ended
-            )
+        """t3.5 of silence since the last byte (the clock never fires early): a frame ended."""
+        if not self._buffer:
             return
         frame = bytes(self._buffer)
         self._buffer.clear()
