@@ -92,6 +92,9 @@ class SimOptions:
     die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
     framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
     modbus_tcp_listen: str | None = None  #: HOST:PORT: a Modbus TCP slave instead of a pty
+    #: With ``modbus_tcp_listen``: (certificate chain, key, CA) files: a Modbus/TCP Security
+    #: slave instead, client certificates required.
+    tls_files: tuple[str, str, str] | None = None
 
 
 class Simulator:
@@ -127,6 +130,9 @@ class Simulator:
                 command += ["--silent", str(unit)]
             for unit in options.die_on_signal:
                 command += ["--die-on-signal", str(unit)]
+            if options.tls_files is not None:
+                cert, key, ca = options.tls_files
+                command += ["--tls-cert", cert, "--tls-key", key, "--tls-ca", ca]
             return command
         command = [PYTHON, "-m", "bench.slaves", "--link", str(self.link)]
         command += ["--seed", str(options.seed)]

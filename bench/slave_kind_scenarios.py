@@ -1,13 +1,13 @@
 """What ``tcp`` and ``tls`` lines cost: the gateway in front of a Modbus TCP / TLS slave.
 
-``slave-kinds`` runs 10 unpaced masters against the gateway three ways over the
-same simulated line: the line on its pty (``kind = "rtu"``, the baseline), then
-reached through a second gateway process that serves the pty as a Modbus TCP
-slave (``--modbus-tcp``) and as a Modbus/TCP Security slave on its ``tls``
-listener (``--modbus-tls``, with client certificates from a throwaway PKI made
-for the run), with one request in flight on that connection, then four. The
-second gateway is the slave, like socat in ``transports``: its CPU is not
-counted, only the measured gateway's CPU per transaction compares.
+``slave-kinds`` runs 10 unpaced masters against the gateway: first with its line
+on the simulator's pty (``kind = "rtu"``, the baseline); then on a ``tcp`` and a
+``tls`` line to the simulator's own Modbus TCP listener (``bench.slaves
+--modbus-tcp-listen``, with ``--tls-cert/--tls-key/--tls-ca`` for Modbus/TCP
+Security; client certificates from a throwaway PKI made for the run), with one
+request in flight on that connection, then four; then through a second gateway
+process serving the pty as the Modbus TCP slave and on its ``tls`` listener. The
+slaves' CPU is not counted: the measured gateway's CPU per transaction compares.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from .scenarios import (
     _errors_text,
     _fmt,
 )
+from .transport_scenarios import ConnectedGateway
 
 MASTERS = 10
 
@@ -92,24 +93,62 @@ def slave_server(kind: str, pki: Pki, in_flight: int = 1) -> ServerFactory:
     return make
 
 
+def sim_slave_server(kind: str, pki: Pki, slave_port: int, in_flight: int) -> ServerFactory:
+    """``python -m gateway --modbus-tcp`` / ``--modbus-tls`` to the simulator's own listener."""
+
+    def make(workdir: Path, _link: str, port: int) -> Server:
+        command = [PYTHON, "-m", "gateway", "--listen", f"127.0.0.1:{port}", "--metrics", "off"]
+        command += ["--log-level", "info", "--timeout", "0.5"]
+        if kind == "tcp":
+            command += ["--modbus-tcp", f"127.0.0.1:{slave_port}"]
+        else:
+            cert, key = pki.client("operator")
+            command += ["--modbus-tls", f"127.0.0.1:{slave_port}", "--modbus-tls-cert", cert]
+            command += ["--modbus-tls-key", key, "--modbus-tls-ca", str(pki.ca)]
+        config = workdir / "gateway.toml"
+        config.write_text(
+            "[server]\nmax_connections_per_source = 0\n"
+            f'[lines.default]\nunits = ["1-247"]\nmax_in_flight = {in_flight}\n'
+        )
+        command += ["--config", str(config)]
+        return ConnectedGateway(command, workdir, "server")
+
+    return make
+
+
 def slave_kinds(bench: Bench) -> ScenarioResult:
     """Transactions/s and gateway CPU per transaction: rtu vs tcp vs tls lines, 10 masters."""
     serial = bench.unpaced(MASTERS)
     runs: list[tuple[str, Run]] = [("rtu", serial)]
     with tempfile.TemporaryDirectory(prefix="bench-pki-") as directory:
         pki = make_pki(Path(directory))
+        files = (str(pki.server_chain), str(pki.server_key), str(pki.ca))
         for in_flight in (1, 4):
             for kind in ("tcp", "tls"):
+                slave_port = free_port()
+                options = SimOptions(
+                    units=HEALTHY_UNITS, modbus_tcp_listen=f"127.0.0.1:{slave_port}",
+                    tls_files=files if kind == "tls" else None,
+                )  # fmt: skip
                 run = bench._run(
-                    f"gateway, {kind} line (max_in_flight {in_flight}) to a slave gateway, "
-                    f"unpaced, {MASTERS} masters x 1",
-                    SimOptions(units=HEALTHY_UNITS), slave_server(kind, pki, in_flight),
+                    f"gateway, {kind} line (max_in_flight {in_flight}) to the simulator's "
+                    f"{kind} slave, {MASTERS} masters x 1",
+                    options, sim_slave_server(kind, pki, slave_port, in_flight),
                     bench._poll_spec(MASTERS, HEALTHY_UNITS),
                 )  # fmt: skip
-                runs.append((kind if in_flight == 1 else f"{kind}, in flight {in_flight}", run))
+                suffix = "" if in_flight == 1 else f", in flight {in_flight}"
+                runs.append((f"{kind} (simulator){suffix}", run))
+        for kind in ("tcp", "tls"):
+            run = bench._run(
+                f"gateway, {kind} line to a slave gateway on the pty, {MASTERS} masters x 1",
+                SimOptions(units=HEALTHY_UNITS), slave_server(kind, pki),
+                bench._poll_spec(MASTERS, HEALTHY_UNITS),
+            )  # fmt: skip
+            runs.append((f"{kind} (slave gateway)", run))
     table = Table(
         f"Slave kinds: {MASTERS} masters, FC03 x 10 across 4 slaves, unpaced simulator "
-        "(tcp, tls: a second gateway serves the same pty as the Modbus TCP / TLS slave)",
+        "(tcp, tls: the simulator's own Modbus TCP / TLS listener, or a second gateway "
+        "serving the pty)",
         ["kind", "tx/s", "p50 ms", "p99 ms", "gw CPU us/tx", "other load", "wrong", "errors"],
     )
     for label, run in runs:
@@ -128,8 +167,8 @@ def slave_kinds(bench: Bench) -> ScenarioResult:
     checks = [Check("tcp and tls lines: wrong answers", wrong, "0", wrong == 0)]
     notes = [
         "tcp, tls: one request in flight on the slave connection unless the row says more "
-        "(max_in_flight); the slave gateway's CPU is not counted; the load starts once the "
-        "gateway has logged its connection",
+        "(max_in_flight); the simulator's and the slave gateway's CPU is not counted; the load "
+        "starts once the gateway has logged its connection",
     ]
     return ScenarioResult("slave-kinds", figures, [table], checks, wrong, notes)
 

@@ -34,6 +34,7 @@ import json
 import os
 import random
 import signal
+import ssl
 import sys
 import threading
 import time
@@ -237,7 +238,25 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--modbus-tcp-listen", metavar="HOST:PORT", help="serve as a Modbus TCP slave, no pty"
     )
+    parser.add_argument("--tls-cert", metavar="FILE",
+                        help="with --modbus-tcp-listen: serve Modbus/TCP Security with this "
+                        "certificate chain (and --tls-key, --tls-ca; client certificates "
+                        "required)")  # fmt: skip
+    parser.add_argument("--tls-key", metavar="FILE")
+    parser.add_argument("--tls-ca", metavar="FILE")
     return parser
+
+
+def _tls_context(args: argparse.Namespace) -> ssl.SSLContext | None:
+    """The server context of ``--tls-cert/--tls-key/--tls-ca`` (None without them)."""
+    if args.tls_cert is None:
+        return None
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    context.load_cert_chain(args.tls_cert, args.tls_key)
+    context.load_verify_locations(cafile=args.tls_ca)
+    context.verify_mode = ssl.CERT_REQUIRED
+    return context
 
 
 def _serve_tcp(
@@ -252,7 +271,9 @@ def _serve_tcp(
         parser.error(f"--modbus-tcp-listen: {error}")
     waited = _STOP_SIGNALS | {signal.SIGUSR1}
     died_at: float | None = None
-    slave = SimulatedTcpSlave(dict(slaves), host=host, port=port, direct_unit=False)
+    slave = SimulatedTcpSlave(
+        dict(slaves), host=host, port=port, direct_unit=False, ssl=_tls_context(args)
+    )
     for unit in args.silent:
         slave.faults(unit).silent = True
     with slave:
@@ -285,6 +306,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                  *(rule.unit for rule in args.late)]:  # fmt: skip
         if unit not in slaves:
             parser.error(f"unit {unit} is not served (add --unit {unit})")
+    tls = (args.tls_cert, args.tls_key, args.tls_ca)
+    if any(tls) and (not all(tls) or args.modbus_tcp_listen is None):
+        parser.error("--tls-cert, --tls-key and --tls-ca go together, with --modbus-tcp-listen")
     waited = _STOP_SIGNALS | {signal.SIGUSR1}
     signal.pthread_sigmask(signal.SIG_BLOCK, waited)  # threads inherit the mask
     if args.modbus_tcp_listen is not None:

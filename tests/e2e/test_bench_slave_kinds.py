@@ -24,7 +24,11 @@ def test_tiny_slave_kinds_scenario_reports_its_figures(tmp_path: Path) -> None:
     results = json.loads(output.read_text())
     assert results["failures"] == {}
     figures = results["scenarios"]["slave-kinds"]
-    for kind in ("rtu", "tcp", "tls", "tcp, in flight 4", "tls, in flight 4"):
+    kinds = ["rtu"] + [f"{kind} (simulator)" for kind in ("tcp", "tls")]
+    kinds += [f"{kind} (simulator), in flight 4" for kind in ("tcp", "tls")]
+    kinds += [f"{kind} (slave gateway)" for kind in ("tcp", "tls")]
+    assert sorted(figures) == sorted(kinds)
+    for kind in kinds:
         assert figures[kind]["run"]["load"]["ok"] > 0
         assert figures[kind]["run"]["load"]["wrong_answers"] == 0
         assert figures[kind]["gateway_cpu_us_per_tx"] > 0
