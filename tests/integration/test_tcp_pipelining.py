@@ -7,7 +7,7 @@ socket (requests arriving together are lost): a device that accepts only one, wh
 default (1) serves with the same traffic. A slave of our own that holds requests and
 answers them in reverse order shows how many were outstanding at once and that answers
 are matched by transaction id; with the default it never sees a second request before
-it answered the first.
+it answered the first. When it hangs up with four outstanding, each gets 0x0A once.
 """
 
 from __future__ import annotations
@@ -168,52 +168,77 @@ def h3(registers: bytes) -> bytes:
 class ReorderingSlave:
     """A Modbus TCP slave that collects up to ``hold`` requests, then answers them last
     first (FC 3: every register holds its own address). It counts how many requests it
-    had received and not yet answered at most."""
+    had received and not yet answered at most. With ``drop_first``, its first connection
+    is closed, unanswered, once ``hold`` requests are outstanding on it."""
 
-    def __init__(self, hold: int) -> None:
+    def __init__(self, hold: int, drop_first: bool = False) -> None:
         self.hold = hold
+        self.drop_first = drop_first
         self.most_outstanding = 0
+        self.connections = 0
+        self.dropped = 0
         self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.settimeout(0.05)  # to see ``close`` between connections
         self.port = self.listener.getsockname()[1]
+        self._closing = threading.Event()
         self._thread = threading.Thread(target=self._serve, daemon=True)
         self._thread.start()
 
     def _serve(self) -> None:
-        conn, _ = self.listener.accept()
+        while not self._closing.is_set():
+            try:
+                conn, _ = self.listener.accept()
+            except TimeoutError:
+                continue
+            self.connections += 1
+            with conn:
+                self._session(conn, drop=self.drop_first and self.connections == 1)
+
+    def _session(self, conn: socket.socket, drop: bool) -> None:
         buffer = b""
         held: list[tuple[int, int, bytes]] = []
-        with conn:
-            conn.settimeout(0.2)
-            while True:
-                try:
-                    data = conn.recv(4096)
-                except TimeoutError:
-                    data = None  # quiet: answer what is held
-                if data == b"":
-                    return
-                if data:
-                    buffer += data
-                    while len(buffer) >= 7 and len(buffer) >= 6 + buffer[5]:
-                        end = 6 + buffer[5]
-                        tid = struct.unpack(">H", buffer[:2])[0]
-                        held.append((tid, buffer[6], buffer[7:end]))
-                        buffer = buffer[end:]
-                    self.most_outstanding = max(self.most_outstanding, len(held))
-                if held and (data is None or len(held) >= self.hold):
-                    for tid, unit, pdu in reversed(held):
-                        address, quantity = struct.unpack(">HH", pdu[1:5])
-                        answer = h3(pack_registers(list(range(address, address + quantity))))
-                        conn.sendall(struct.pack(">HHHB", tid, 0, len(answer) + 1, unit) + answer)
-                    held.clear()
+        conn.settimeout(0.2)
+        while True:
+            try:
+                data = conn.recv(4096)
+            except TimeoutError:
+                data = None  # quiet: answer what is held
+            if data == b"" or (data is None and self._closing.is_set()):
+                return
+            if data:
+                buffer += data
+                while len(buffer) >= 7 and len(buffer) >= 6 + buffer[5]:
+                    end = 6 + buffer[5]
+                    tid = struct.unpack(">H", buffer[:2])[0]
+                    held.append((tid, buffer[6], buffer[7:end]))
+                    buffer = buffer[end:]
+                self.most_outstanding = max(self.most_outstanding, len(held))
+            if drop and len(held) >= self.hold:
+                self.dropped = len(held)
+                return  # the connection closes with every request unanswered
+            if held and (data is None or len(held) >= self.hold):
+                for tid, unit, pdu in reversed(held):
+                    address, quantity = struct.unpack(">HH", pdu[1:5])
+                    answer = h3(pack_registers(list(range(address, address + quantity))))
+                    conn.sendall(struct.pack(">HHHB", tid, 0, len(answer) + 1, unit) + answer)
+                held.clear()
 
     def close(self) -> None:
-        self.listener.close()
+        self._closing.set()
         self._thread.join(DEADLINE_S)
+        self.listener.close()
 
 
 @pytest.fixture
 def reordering_slave(request: pytest.FixtureRequest) -> Iterator[ReorderingSlave]:
     slave = ReorderingSlave(request.param)
+    yield slave
+    slave.close()
+
+
+@pytest.fixture
+def dropping_slave() -> Iterator[ReorderingSlave]:
+    slave = ReorderingSlave(4, drop_first=True)
     yield slave
     slave.close()
 
@@ -263,3 +288,24 @@ def test_by_default_a_slave_never_has_two_requests_outstanding(
         for client in masters:
             client.close()
     assert reordering_slave.most_outstanding == 1
+
+
+def test_a_lost_connection_answers_every_outstanding_request_once(
+    dropping_slave: ReorderingSlave, make_gateway: GatewayFactory
+) -> None:
+    table = {"kind": "tcp", "address": f"127.0.0.1:{dropping_slave.port}", "units": [9],
+             "max_in_flight": 4, "timeout": 5}  # fmt: skip
+    gw = make_gateway({"lines": {"plc": table}})
+    wait_up(gw)
+    masters = [gw.connect() for _ in range(4)]
+    try:
+        sent = [(client, client.send(9, read(100 * n, 2))) for n, client in enumerate(masters)]
+        for client, tid in sent:  # the four outstanding when the slave hung up: 0x0A each
+            reply = client.receive()
+            assert (reply.transaction_id, reply.pdu) == (tid, bytes((0x83, 0x0A)))
+        wait_up(gw)  # reconnected
+        poll_everyone(masters, 3)  # a second answer to any of the four would show up here
+    finally:
+        for client in masters:
+            client.close()
+    assert (dropping_slave.connections, dropping_slave.dropped) == (2, 4)
