@@ -265,7 +265,7 @@ def test_a_read_overtaken_by_a_write_is_not_cached() -> None:
     assert line.answer_of(cached)[1] == Outcome.CACHED  # a read with no write after it is
 
 
-def test_a_deep_pipeline_does_not_take_every_slot_from_a_polite_master() -> None:
+def test_a_polite_master_is_next_when_a_slot_of_a_deep_pipeline_frees() -> None:
     line = Line(max_in_flight=2)
     for n in range(4):  # one transaction each to learn how long they take
         line.submit(1, read(n), 0.0, master="greedy")
@@ -378,3 +378,50 @@ def test_the_max_in_flight_flag() -> None:
     with pytest.raises(ConfigError) as caught:
         build_config(apply_overrides({}, args))
     assert caught.value.problems == ["lines.default.max_in_flight: 99 outside 1..64"]
+
+
+def test_a_read_that_joined_another_masters_holds_its_masters_write_back() -> None:
+    line = Line(max_in_flight=2)
+    line.submit(3, read(9), 0.0, master="b")  # b has used the line: c comes first from now on
+    line.answer(line.sent()[0], 0.1)
+    line.submit(1, read(0), 0.2, master="a")
+    line.submit(1, read(1), 0.2, master="a")
+    assert line.sent() == [2, 3]  # both slots taken
+    line.submit(2, read(5), 0.2, master="b")
+    joined = line.submit(2, read(5), 0.2, master="c")  # shares b's transaction
+    change = line.submit(2, write(5, 1), 0.2, master="c")
+    line.answer(2, 0.3)
+    assert [line.wire[tid] for tid in line.sent()] == [(2, read(5))]  # not c's write
+    line.answer(4, 0.4, value=6)
+    assert line.answer_of(joined) == (answer_to(read(5), 6), Outcome.OK)
+    assert [line.wire[tid] for tid in line.sent()] == [(2, write(5, 1))]
+    line.answer(5, 0.5)
+    assert line.answer_of(change)[1] == Outcome.OK
+
+
+def test_slots_freed_together_are_shared_in_fair_order_not_taken_by_one_master() -> None:
+    line = Line(max_in_flight=4)
+    line.submit(1, read(0), 0.0, master="greedy")  # greedy has used 10 ms of the line
+    line.answer(line.sent()[0], 0.010)
+    line.submit(1, read(1), 0.020, master="polite")  # polite 12 ms: slightly more
+    line.answer(line.sent()[0], 0.032)
+    for n in range(4):
+        line.submit(2, read(n), 0.040, master="x")
+    x_tids = line.sent()
+    assert len(x_tids) == 4  # every slot taken
+    for n in range(6):
+        line.submit(1, read(10 + n), 0.041, master="greedy")
+    polite = line.submit(1, read(100), 0.041, master="polite")
+    answers = b"".join(
+        encode_mbap(tid, 2, answer_to(line.wire[tid][1], 0)) for tid in x_tids
+    )  # all four answers in one read: four slots free at once
+    line.core.receive(answers, 0.042)
+    line.flush()
+    sent = [line.wire[tid] for tid in line.sent()]
+    assert len(sent) == 4
+    # Each send charges its master the recent average: greedy's small head start is used
+    # up after a send or two, and polite gets a slot among these four.
+    assert (1, read(100)) in sent
+    for tid in list(line.wire)[-4:]:
+        line.answer(tid, 0.05)
+    assert line.answer_of(polite)[1] == Outcome.OK
