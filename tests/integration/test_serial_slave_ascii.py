@@ -13,6 +13,7 @@ echo suppression hands the gateway its own transmission.
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import time
@@ -20,12 +21,13 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory
+from conftest import DEADLINE_S, GatewayFactory, LogCollector, RunningGateway, SimBus, SimFactory
 from metrics_harness import samples, series
 from test_live import status, stream
 from test_serial_slave import socat_ptys  # noqa: F401  (a fixture)
 from test_sim import FUNCTION_VECTORS
 
+from gateway.config import build_config
 from gateway.core.ascii import MAX_ASCII_FRAME, decode_ascii, encode_ascii
 from gateway.core.crc import append_crc, check_crc
 from gateway.io.serial_slave import SerialSlave
@@ -352,3 +354,40 @@ def test_the_master_on_the_line_is_listed_and_traced(reverse: Any) -> None:
     assert entry == {
         "peer": device, "listener": f"field {device} (ascii)", "in_flight": 0, "requests": 3,
     }  # fmt: skip
+
+
+# --------------------------------------------------------------------------- reload
+
+
+def test_a_reload_applies_the_policy_and_keeps_the_serial_line_until_a_restart(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    sim = make_sim({1: plc(1)})
+    pair = open_pty_pair()
+    collector = LogCollector()
+    logger = logging.getLogger("gateway")
+    logger.addHandler(collector)
+    try:
+        entry = {"name": "field", "protocol": "serial-slave", "device": pair.path,
+                 "baudrate": BAUD, **ASCII_ON_PTY}  # fmt: skip
+        tables: dict[str, Any] = {
+            "server": {"listen": "127.0.0.1:0"}, "metrics": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1])}, "listeners": [entry],
+        }  # fmt: skip
+        gateway = make_gateway(tables)
+        slave = gateway.gateway.serial_slaves[0]
+        wait_for(gateway, lambda: slave.up)
+        master = LineMaster(pair.sim_fd)
+        assert master.request(1, h("06 0000 0001")) == h("06 0000 0001")
+        tables["listeners"] = [{**entry, "read_only": True}]
+        gateway.run(gateway.gateway.reload(build_config(tables, "<reload>")))
+        assert master.request(1, h("06 0000 0002")) == h("86 01")  # the new policy applies
+        assert not [m for m in collector.messages if "serial-slave listener" in m]
+        tables["listeners"] = [{**entry, "framing": "rtu"}]
+        gateway.run(gateway.gateway.reload(build_config(tables, "<reload>")))
+        (warning,) = [m for m in collector.messages if "serial-slave listener" in m]
+        assert "field" in warning and "framing" in warning and "restart" in warning
+        assert master.request(1, h("03 0000 0001")) == h("03 02 0001")  # still ASCII
+    finally:
+        logger.removeHandler(collector)
+        pair.close()
