@@ -5,7 +5,8 @@ open: the ``--link`` symlink when given), serves until SIGTERM or SIGINT, then
 prints the line's counters as one JSON line, so a benchmark can read both.
 With ``--modbus-tcp-listen HOST:PORT`` the devices are a Modbus TCP slave
 instead (``python -m gateway.sim --modbus-tcp-listen 127.0.0.1:1502 --profile r6``):
-``READY HOST:PORT`` names the address bound (port 0 picks one).
+``READY HOST:PORT`` names the address bound (port 0 picks one); ``--tls-cert`` and
+``--tls-key`` (and ``--tls-ca`` for client certificates) make it Modbus/TCP Security.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import dataclasses
 import json
 import os
 import signal
+import ssl
 import sys
 from collections.abc import Sequence
 
@@ -55,6 +57,19 @@ def _parser() -> argparse.ArgumentParser:
         metavar="HOST:PORT",
         help="serve the devices as a Modbus TCP slave here instead of on a pty "
         "(one device also answers unit id 255)",
+    )
+    parser.add_argument(
+        "--tls-cert",
+        metavar="FILE",
+        help="with --modbus-tcp-listen: serve Modbus/TCP Security (TLS) with this certificate "
+        "chain, PEM",
+    )
+    parser.add_argument("--tls-key", metavar="FILE", help="the private key of --tls-cert, PEM")
+    parser.add_argument(
+        "--tls-ca",
+        metavar="FILE",
+        help="require client certificates issued by this CA (Modbus/TCP Security's mutual "
+        "authentication)",
     )
     parser.add_argument(
         "--profile",
@@ -128,7 +143,7 @@ def _serve_tcp(args: argparse.Namespace, devices: dict[int, SimulatedDevice]) ->
     if args.framing != "rtu":
         _parser().error("--framing is for pty lines, not --modbus-tcp-listen")
     host, port = args.modbus_tcp_listen
-    slave = SimulatedTcpSlave(devices, host=host, port=port)
+    slave = SimulatedTcpSlave(devices, host=host, port=port, ssl=_tls_context(args))
     for unit in args.silent:
         if unit not in devices:
             _parser().error(f"--silent {unit}: no such unit")
@@ -138,6 +153,24 @@ def _serve_tcp(args: argparse.Namespace, devices: dict[int, SimulatedDevice]) ->
         signal.sigwait(_STOP_SIGNALS)
     print(json.dumps(dataclasses.asdict(slave.stats())), flush=True)
     return 0
+
+
+def _tls_context(args: argparse.Namespace) -> ssl.SSLContext | None:
+    """The server context of ``--tls-cert/--tls-key/--tls-ca``, None for plain Modbus TCP."""
+    if not (args.tls_cert or args.tls_key or args.tls_ca):
+        return None
+    if not (args.tls_cert and args.tls_key):
+        _parser().error("--tls-cert and --tls-key go together")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2  # Modbus/TCP Security: TLS 1.2 or later
+    try:
+        context.load_cert_chain(args.tls_cert, args.tls_key)
+        if args.tls_ca:
+            context.load_verify_locations(cafile=args.tls_ca)
+            context.verify_mode = ssl.CERT_REQUIRED
+    except (OSError, ssl.SSLError) as error:
+        _parser().error(f"TLS files: {error}")
+    return context
 
 
 def _unit_rate(text: str) -> tuple[int, float]:
@@ -171,6 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
     if args.modbus_tcp_listen is not None:
         return _serve_tcp(args, devices)
+    if args.tls_cert or args.tls_key or args.tls_ca:
+        _parser().error("--tls-cert, --tls-key and --tls-ca need --modbus-tcp-listen")
     with open_pty_pair() as pair:
         line = SimulatedLine(
             pair.sim_fd,

@@ -285,3 +285,57 @@ def test_python_m_gateway_sim_refuses_serial_flags_with_modbus_tcp() -> None:
     )  # fmt: skip
     assert done.returncode == 2
     assert "--baudrate is for pty lines, not --modbus-tcp-listen" in done.stderr
+
+
+def test_the_gateway_reaches_the_simulator_over_modbus_tcp_security(tmp_path: Path) -> None:
+    """``python -m gateway.sim --tls-*`` as the TLS slave of a real ``--modbus-tls`` line."""
+    pki = make_pki(tmp_path)
+    cert, key = pki.client("operator")
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "gateway.sim", "--modbus-tcp-listen", "127.0.0.1:0",
+         "--profile", "r6", "--tls-cert", str(pki.server_chain), "--tls-key",
+         str(pki.server_key), "--tls-ca", str(pki.ca)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    gateway: subprocess.Popen[str] | None = None
+    try:
+        assert sim.stdout is not None
+        ready = sim.stdout.readline().split()
+        assert ready[0] == "READY", ready
+        # A client without a certificate is refused by the simulator (mutual authentication).
+        anonymous = ssl.create_default_context(cafile=str(pki.ca))
+        with socket.create_connection(_split(ready[1]), timeout=DEADLINE_S) as raw:
+            try:  # TLS 1.3: the refusal may come after the client's handshake ends
+                with anonymous.wrap_socket(raw, server_hostname="127.0.0.1") as sock:
+                    sock.sendall(h(R6_EXAMPLES[0][0]))
+                    answer = sock.recv(100)
+            except (ssl.SSLError, ConnectionError):
+                answer = b""
+            assert answer == b""
+        gateway = subprocess.Popen(
+            [sys.executable, "-m", "gateway", "--modbus-tls", ready[1], "--modbus-tls-cert",
+             cert, "--modbus-tls-key", key, "--modbus-tls-ca", str(pki.ca),
+             "--listen", "127.0.0.1:0", "--metrics", "off"],
+            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert gateway.stderr is not None
+        listen: tuple[str, int] | None = None
+        for line in gateway.stderr:
+            if "listening on" in line:
+                listen = _split(line.split("listening on ")[1].split()[0])
+            if "connected to" in line:
+                break
+        assert listen is not None
+        with RawClient(listen) as client:
+            assert client.request(1, h("03 0000 0001")) == h("03 02 00 29")
+            assert client.request(1, h("03 0082 0001")) == h("03 02 00 02")
+    finally:
+        for process in (gateway, sim):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait()
+
+
+def _split(address: str) -> tuple[str, int]:
+    host, _, port = address.rpartition(":")
+    return host, int(port)
