@@ -124,7 +124,7 @@ class PipelinedLineCore(LineCore):
         self._lost: dict[int, int] = {}  # TID of a timed-out attempt -> its slave
         # (master, slave) -> [requests outstanding, of which with side effects]
         self._open: dict[tuple[Hashable, int], list[int]] = {}
-        self._opened: dict[int, tuple[tuple[Hashable, int], bool]] = {}  # id(request) -> key
+        self._opened: dict[LineRequest, tuple[tuple[Hashable, int], bool]] = {}  # by identity
         self._draining = False  # a broadcast waits for the outstanding attempts
         self._estimate = 0.0
         self._completing: _Flight | None = None
@@ -324,7 +324,7 @@ class PipelinedLineCore(LineCore):
         if counts is None:
             return True
         outstanding, writes = counts
-        own = self._opened.get(id(request))  # a lane retry counts itself: not an earlier one
+        own = self._opened.get(request)  # a lane retry counts itself: not an earlier one
         if own is not None:
             outstanding -= 1
             writes -= own[1]
@@ -379,7 +379,7 @@ class PipelinedLineCore(LineCore):
         if not request.sent:
             request.sent = True
             self._close_to_joiners(request)
-        if id(request) not in self._opened:
+        if request not in self._opened:
             self._mark_open(request)
         slave = request.slave
         pdu = request.pdu
@@ -476,11 +476,11 @@ class PipelinedLineCore(LineCore):
         counts[0] += 1
         if write:
             counts[1] += 1
-        self._opened[id(request)] = (key, write)
+        self._opened[request] = (key, write)
 
     def _close_open(self, request: LineRequest) -> None:
         """``request`` is finally answered (or leaves the line): it holds nothing back now."""
-        opened = self._opened.pop(id(request), None)
+        opened = self._opened.pop(request, None)
         if opened is None:
             return
         key, write = opened
