@@ -7,7 +7,9 @@ socket (requests arriving together are lost): a device that accepts only one, wh
 default (1) serves with the same traffic. A slave of our own that holds requests and
 answers them in reverse order shows how many were outstanding at once and that answers
 are matched by transaction id; with the default it never sees a second request before
-it answered the first. When it hangs up with four outstanding, each gets 0x0A once.
+it answered the first. When it hangs up with four outstanding, each gets 0x0A once. The
+simulator's own Modbus TCP slave, with one unit answering late, has answers overtake each
+other on the connection.
 """
 
 from __future__ import annotations
@@ -25,7 +27,9 @@ from conftest import DEADLINE_S, GatewayFactory, RawClient
 from metrics_harness import samples, series
 from test_tcp_slaves import PymodbusTcpSlave, tcp_slave, wait_up
 
+from gateway.sim import SimulatedTcpSlave
 from gateway.sim.device import pack_registers
+from gateway.sim.profiles import plc
 
 __all__ = ["tcp_slave"]  # the fixture, imported for the tests below
 
@@ -309,3 +313,42 @@ def test_a_lost_connection_answers_every_outstanding_request_once(
         for client in masters:
             client.close()
     assert (dropping_slave.connections, dropping_slave.dropped) == (2, 4)
+
+
+def test_the_simulators_tcp_slave_with_a_slow_unit_behind_four_in_flight(
+    make_gateway: GatewayFactory,
+) -> None:
+    """Unit 1 answers 20 ms late, unit 2 at once: answers overtake each other on the
+    connection; each master's write is read back right behind it, every answer checked."""
+    with SimulatedTcpSlave({1: plc(1), 2: plc(2)}) as slave:
+        slave.faults(1).reply_delay = 0.02
+        table = {"kind": "tcp", "address": slave.host_port, "units": [1, 2],
+                 "max_in_flight": 4, "timeout": 2, "max_queue_per_master": 64}  # fmt: skip
+        gw = make_gateway({"lines": {"plc": table}})
+        wait_up(gw)
+        masters = [gw.connect() for _ in range(6)]
+        try:
+            for round_ in range(4):
+                expected: list[dict[int, tuple[int, bytes]]] = []
+                for number, client in enumerate(masters):
+                    unit, other = 1 + number % 2, 2 - number % 2
+                    value = 100 * number + round_
+                    change = struct.pack(">BHH", 6, 100 + number, value)
+                    address = 1000 + 10 * number + round_
+                    mine = {
+                        client.send(unit, change): (unit, change),
+                        client.send(unit, read(100 + number)): (unit, h3(pack_registers([value]))),
+                        client.send(other, read(address, 4)): (
+                            other, h3(pack_registers(list(range(address, address + 4)))),
+                        ),
+                    }  # fmt: skip
+                    expected.append(mine)
+                for client, mine in zip(masters, expected, strict=True):
+                    replies = [client.receive() for _ in mine]
+                    assert {r.transaction_id: (r.unit, r.pdu) for r in replies} == mine
+        finally:
+            for client in masters:
+                client.close()
+        stats = slave.stats()
+        assert 2 <= stats.max_in_flight <= 4, stats
+        assert stats.requests == stats.responses == 6 * 4 * 3
