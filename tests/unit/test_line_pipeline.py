@@ -425,3 +425,13 @@ def test_slots_freed_together_are_shared_in_fair_order_not_taken_by_one_master()
     for tid in list(line.wire)[-4:]:
         line.answer(tid, 0.05)
     assert line.answer_of(polite)[1] == Outcome.OK
+
+
+def test_changing_max_in_flight_on_reload_reconnects_the_line() -> None:
+    from dataclasses import replace
+
+    from gateway.app import _port_changed
+
+    line = LineConfig(name="t", device="h:502", kind="tcp")
+    assert _port_changed(line, replace(line, max_in_flight=4))
+    assert not _port_changed(line, replace(line, timeout=2.0))
