@@ -651,6 +651,22 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
     )
 
 
+def _usable_server_name(name: str) -> bool:
+    """True for a name TLS can check: an IP address, or a host name IDNA can encode."""
+    try:
+        ipaddress.ip_address(name)
+        return True
+    except ValueError:
+        pass
+    if any(character.isspace() or not character.isprintable() for character in name):
+        return False
+    try:
+        name.encode("idna")
+    except UnicodeError:
+        return False
+    return True
+
+
 def _tls_line(
     check: _Checker, table: Mapping[str, Any], prefix: str, kind: str, host: str
 ) -> dict[str, Any]:
@@ -679,6 +695,11 @@ def _tls_line(
     if not isinstance(server_name, str) or not server_name:
         check.fail(f"{prefix}server_name", "write the name the slave's certificate carries, "
                    'like "plc-7.plant.example" (default: the address\'s host)')  # fmt: skip
+        server_name = host
+    elif not _usable_server_name(server_name):
+        check.fail(f"{prefix}server_name", f"{server_name!r} is not a host name or address; "
+                   "write the name the slave's certificate carries, like "
+                   '"plc-7.plant.example"')  # fmt: skip
         server_name = host
     return {
         **files,

@@ -224,7 +224,11 @@ async def connect_tls(
     """
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
-    tls = context.wrap_socket(sock, server_hostname=server_name, do_handshake_on_connect=False)
+    try:
+        tls = context.wrap_socket(sock, server_hostname=server_name, do_handshake_on_connect=False)
+    except (ValueError, UnicodeError) as error:  # config checks the name; a last guard
+        sock.close()
+        raise ssl.SSLError(f"cannot check the name {server_name!r}: {error}") from error
     try:
         while True:
             try:
