@@ -566,7 +566,7 @@ def test_reload_changes_routes_and_timeouts_without_dropping_connections(lab: La
         answer, before = transact(probe, 2, 2)
         assert answer == TARGET_FAILED and before >= 0.4
 
-        options["timeout"] = 0.1
+        options["timeout"] = 0.2  # not less: unit 1 must still answer in time on a busy machine
         routes = [{"unit": 5, "line": "a", "slave": 1}]
         # The log level needs a restart: kept (else the "applied" line below would be missing).
         lines = {"a": line_table(pair.path, [1, 2], **options)}
@@ -578,7 +578,7 @@ def test_reload_changes_routes_and_timeouts_without_dropping_connections(lab: La
 
         assert transact(probe, 5, 3)[0] == PLC_10  # the new route, on the same connection
         answer, after = transact(probe, 2, 4)
-        assert answer == TARGET_FAILED and 0.1 <= after < 0.3
+        assert answer == TARGET_FAILED and 0.2 <= after < 0.4
         answered = len(master.answers)
         master.wait_answers(answered + 5)
     master.finish()
