@@ -178,6 +178,12 @@ class LineRequest:
         return not self.cancelled or any(not f.cancelled for f in self.followers)
 
 
+def may_change(request: LineRequest, slave: int) -> bool:
+    """True when ``request`` may change what ``slave`` holds: anything but a plain read,
+    sent to it or broadcast."""
+    return (request.slave == slave or request.broadcast) and request.pdu[0] not in fc.READ_FUNCTIONS
+
+
 @dataclass(slots=True)
 class LineStats:
     """Traffic counts as plain integers (exported at scrape time; the hot path only adds)."""
@@ -1176,6 +1182,8 @@ class LineCore:
         rules = self.policy.cache
         if not rules:
             return
+        if self._change_waits_for(request.slave):
+            return  # the answer is older than a write still to run: kept, it would be stale
         pdu = request.pdu
         address = (pdu[1] << 8) | pdu[2]
         quantity = (pdu[3] << 8) | pdu[4]
@@ -1183,6 +1191,16 @@ class LineCore:
             if rule.covers(request.slave, pdu[0], address, quantity):
                 self._cache[(request.slave, pdu)] = (now + rule.max_age, response)
                 return
+
+    def _change_waits_for(self, slave: int) -> bool:
+        """True while a request that may change ``slave`` (a write, a broadcast, any code
+        but a plain read) waits for the line: queued, in the lane, or due for a retry."""
+        retry = self._retry
+        waiting = [retry] if retry is not None else []
+        waiting.extend(self._lane.values())
+        for master in self._masters.values():
+            waiting.extend(master.queue)
+        return any(may_change(request, slave) for request in waiting)
 
     def _discard(self, reason: str, count: int, slave: int = 0) -> None:
         self.notes.append(Note(LineEvent.DISCARDED, slave, reason, count))

@@ -61,6 +61,7 @@ from .line import (
     _Attempt,
     _Master,
     _Slave,
+    may_change,
 )
 from .mbap import MbapDecoder, TransactionIds
 from .outcome import LineEvent, Outcome, SlaveState
@@ -448,6 +449,13 @@ class PipelinedLineCore(LineCore):
                 self._push_master(master)  # its old entry goes stale
         if master is not None:
             self._reschedule(master)
+
+    def _change_waits_for(self, slave: int) -> bool:
+        """Also a write outstanding or due for a retry: it may run after this read's answer."""
+        outstanding = [flight.request for flight in self._in_flight.values()]
+        if any(may_change(request, slave) for request in [*outstanding, *self._retries]):
+            return True
+        return super()._change_waits_for(slave)
 
     def _store_cache(self, request: LineRequest, response: bytes, now: float) -> None:
         flight = self._completing

@@ -538,6 +538,60 @@ def test_the_cache_answers_within_max_age_and_a_write_empties_it() -> None:
     assert line.requests.index(uncached) not in line.answers
 
 
+def test_a_read_answered_while_a_write_waits_is_not_cached() -> None:
+    """The read's answer predates the write, which runs after it: cached, it would answer
+    the writer's next read (and everyone's until max age) with the value before its write."""
+    from gateway.config import CacheRule
+
+    write = bytes.fromhex("06000a0001")
+    line = Line(cache=(CacheRule(1, 3, 0, 100, 10.0),))
+    line.submit(1, read(10), 0.0, master="a")  # on the wire
+    line.sent()
+    line.submit(1, write, 0.001, master="b")  # waits for the line
+    line.receive(registers_answer(1, read(10), 10), 0.01)
+    between = line.submit(1, read(10), 0.011, master="b")  # after its own write: not cached
+    assert line.requests.index(between) not in line.answers
+    line.timer()
+    assert line.sent() == [encode_rtu(1, write)]
+    line.receive(encode_rtu(1, write), 0.05)
+    later = line.submit(1, read(10), 0.06, master="c")
+    assert line.requests.index(later) not in line.answers
+
+
+def test_a_read_queued_behind_a_write_is_cached_only_after_it() -> None:
+    """A write submitted before a read but sent after it (another master's, served later
+    by fair order) makes the read's answer stale as soon as it runs."""
+    from gateway.config import CacheRule
+
+    write = bytes.fromhex("06000a0001")
+    line = Line(cache=(CacheRule(1, 3, 0, 100, 10.0),))
+    line.submit(1, read(50), 0.0, master="x")  # on the wire
+    line.sent()
+    line.submit(1, write, 0.001, master="b")
+    line.submit(1, read(10), 0.002, master="a")
+    line.receive(registers_answer(1, read(50), 50), 0.01)
+    line.timer()
+    [first] = line.sent()
+    line.receive(
+        encode_rtu(1, write)
+        if first == encode_rtu(1, write)
+        else registers_answer(1, read(10), 10),
+        0.03,
+    )
+    line.timer()
+    [second] = line.sent()
+    assert {first, second} == {encode_rtu(1, write), encode_rtu(1, read(10))}
+    line.receive(
+        encode_rtu(1, write)
+        if second == encode_rtu(1, write)
+        else registers_answer(1, read(10), 10),
+        0.06,
+    )
+    after = line.submit(1, read(10), 0.07, master="c")
+    served_from_cache = line.requests.index(after) in line.answers
+    assert served_from_cache == (first == encode_rtu(1, write))  # cached only after the write
+
+
 def test_reconfigure_switching_isolation_off_serves_the_slave_again() -> None:
     line = Line(timeout=0.1, retries=0, dead_after=1, late_answer_window=0)
     line.submit(3, read(1), 0.0)

@@ -265,6 +265,23 @@ def test_a_read_overtaken_by_a_write_is_not_cached() -> None:
     assert line.answer_of(cached)[1] == Outcome.CACHED  # a read with no write after it is
 
 
+def test_a_read_answered_while_an_earlier_write_is_outstanding_is_not_cached() -> None:
+    """The write went first but is still unanswered: the device may run it after the read,
+    so the read's value may be the one before it."""
+    rule = build_config(
+        {"lines": {"t": {"kind": "tcp", "address": "h:502", "units": [1],
+                         "cache": [{"unit": 1, "count": 10, "max_age": 10}]}}}
+    ).line("t").cache  # fmt: skip
+    line = Line(cache=rule)
+    line.submit(1, write(0, 3), 0.0, master="b")
+    line.submit(1, read(0), 0.0, master="a")
+    assert line.sent() == [1, 2]
+    line.answer(2, 0.01, value=0)  # the read, before the write's answer
+    line.answer(1, 0.02)
+    line.submit(1, read(0), 0.03, master="b")
+    assert line.sent() == [3]  # not served from the cache
+
+
 def test_a_polite_master_is_next_when_a_slot_of_a_deep_pipeline_frees() -> None:
     line = Line(max_in_flight=2)
     for n in range(4):  # one transaction each to learn how long they take
