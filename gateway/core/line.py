@@ -411,7 +411,7 @@ class LineCore:
         master = self._masters.get(request.master)
         if master is None:
             master = self._masters[request.master] = _Master(request.master)
-        if master.queued >= self.policy.max_queue_per_master:
+        if master.queued + self._on_wire_for(request.master) >= self.policy.max_queue_per_master:
             self._answer(request, ExceptionCode.SERVER_DEVICE_BUSY, Outcome.BUSY)
             return
         if self._queued >= self.policy.max_queue and not self._push_out(master):
@@ -432,6 +432,12 @@ class LineCore:
                 return
         self._enqueue(master, request)
         self._service(now)
+
+    def _on_wire_for(self, master: Hashable) -> int:
+        """``master``'s requests on the wire: a failed one comes back to wait for its retry,
+        so the per-master bound counts it (waiting plus on the wire never pass the bound)."""
+        attempt = self._attempt
+        return 1 if attempt is not None and attempt.request.master == master else 0
 
     def _submit_isolated(self, request: LineRequest, record: _Slave, now: float) -> None:
         """A request for a suspect or down slave: the one lane place, or 0x0B at once."""

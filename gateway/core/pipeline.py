@@ -450,6 +450,9 @@ class PipelinedLineCore(LineCore):
         if master is not None:
             self._reschedule(master)
 
+    def _on_wire_for(self, master: Hashable) -> int:
+        return sum(1 for flight in self._in_flight.values() if flight.request.master == master)
+
     def _change_waits_for(self, slave: int) -> bool:
         """Also a write outstanding or due for a retry: it may run after this read's answer."""
         outstanding = [flight.request for flight in self._in_flight.values()]

@@ -538,6 +538,20 @@ def test_the_cache_answers_within_max_age_and_a_write_empties_it() -> None:
     assert line.requests.index(uncached) not in line.answers
 
 
+def test_a_masters_bound_counts_its_request_on_the_wire() -> None:
+    """The request on the wire comes back to wait for its retry when it fails: counted from
+    the start, it never takes its master past the bound."""
+    line = Line(max_queue_per_master=2, timeout=0.1, retries=1, late_answer_window=0)
+    on_wire = line.submit(1, read(1), 0.0)
+    line.sent()
+    line.submit(1, read(2), 0.0)
+    refused = line.submit(1, read(3), 0.0)
+    assert line.answer_of(refused) == (bytes((0x83, 0x06)), Outcome.BUSY)
+    line.timer()  # the timeout: it comes back for its retry
+    assert on_wire.attempts == 2
+    assert line.core.queued_for("m") <= 2
+
+
 def test_a_read_answered_while_a_write_waits_is_not_cached() -> None:
     """The read's answer predates the write, which runs after it: cached, it would answer
     the writer's next read (and everyone's until max age) with the value before its write."""
