@@ -439,11 +439,15 @@ class LineCore:
         attempt = self._attempt
         return 1 if attempt is not None and attempt.request.master == master else 0
 
+    def _on_wire_to(self, slave: int) -> bool:
+        """True while a request to ``slave`` is on the wire."""
+        attempt = self._attempt
+        return attempt is not None and attempt.request.slave == slave
+
     def _submit_isolated(self, request: LineRequest, record: _Slave, now: float) -> None:
         """A request for a suspect or down slave: the one lane place, or 0x0B at once."""
         slave = request.slave
-        attempt = self._attempt
-        busy = slave in self._lane or (attempt is not None and attempt.request.slave == slave)
+        busy = slave in self._lane or self._on_wire_to(slave)
         if busy or (record.state is SlaveState.DOWN and now < record.next_probe_at):
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return

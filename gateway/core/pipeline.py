@@ -64,7 +64,7 @@ from .line import (
     may_change,
 )
 from .mbap import MbapDecoder, TransactionIds
-from .outcome import LineEvent, Outcome, SlaveState
+from .outcome import LineEvent, Outcome
 from .rtu import RtuFrame, check_identity
 
 #: The most requests ``max_in_flight`` may allow on one connection.
@@ -159,19 +159,8 @@ class PipelinedLineCore(LineCore):
 
     # -- the masters' side ---------------------------------------------------------------
 
-    def _submit_isolated(self, request: LineRequest, record: _Slave, now: float) -> None:
-        """A request for a suspect or down slave: the one lane place, or 0x0B at once."""
-        slave = request.slave
-        busy = slave in self._lane or any(
-            flight.request.slave == slave for flight in self._in_flight.values()
-        )
-        if busy or (record.state is SlaveState.DOWN and now < record.next_probe_at):
-            self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
-            return
-        if request.pdu[0] not in fc.READ_FUNCTIONS:
-            self._bump_write_epoch(slave)
-        self._lane_put(request, now)
-        self._service(now)
+    def _on_wire_to(self, slave: int) -> bool:
+        return any(flight.request.slave == slave for flight in self._in_flight.values())
 
     def _admit_read(self, request: LineRequest, now: float) -> bool:
         """As on the serial line; a read that joins another's counts as its master's
