@@ -301,6 +301,8 @@ class LineCore:
         self._credit = 0.0
         self._credit_at = now
         self._open_reads: dict[tuple[int, bytes], LineRequest] = {}
+        #: Queued reads that others joined, until sent or answered (``_held_by_joined``).
+        self._joined_leaders: dict[LineRequest, None] = {}
         self._write_epoch: dict[int, int] = {}
         self._broadcast_epoch = 0
         self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
@@ -463,6 +465,7 @@ class LineCore:
             # Anything but a plain read may change the slave: later reads must not be
             # served by a response from before it.
             self._bump_write_epoch(slave)
+            request.epoch = self._write_epoch[slave] + self._broadcast_epoch
             return True
         key = (slave, request.pdu)
         if self._cache:
@@ -475,6 +478,7 @@ class LineCore:
             leader = self._open_reads.get(key)
             if leader is not None and leader.epoch == epoch:
                 leader.followers.append(request)
+                self._joined_leaders[leader] = None
                 self.notes.append(Note(LineEvent.COALESCED, slave))
                 return False
             request.epoch = epoch
@@ -554,6 +558,7 @@ class LineCore:
         self._lane.clear()
         self._heap.clear()
         self._open_reads.clear()
+        self._joined_leaders.clear()
         self._masters = {k: m for k, m in self._masters.items() if not m.gone}
         self._queued = 0
         self.stats.queue_depth = 0
@@ -741,13 +746,26 @@ class LineCore:
                 blocked[slave] = False
                 continue
             record = slaves.get(slave)
-            if record is None or not self._guarded(record, request, now):
+            held = record is not None and self._guarded(record, request, now)
+            if not held and self._joined_leaders and request.pdu[0] not in fc.READ_FUNCTIONS:
+                held = self._held_by_joined(master.key, request)
+            if not held:
                 return request
             if blocked is None:
                 blocked = {}
                 safe = fc.is_safe_to_retry(request.pdu)
             blocked[slave] = blocked.get(slave, True) and safe
         return None
+
+    def _held_by_joined(self, master: Hashable, write: LineRequest) -> bool:
+        """True while a read ``master`` sent before ``write`` waits inside another master's
+        queued read (it joined it): the write must not overtake it."""
+        for leader in self._joined_leaders:
+            if leader.slave == write.slave and leader.epoch < write.epoch:
+                for follower in leader.followers:
+                    if follower.master == master and not follower.cancelled:
+                        return True
+        return False
 
     @staticmethod
     def _guarded(record: _Slave, request: LineRequest, now: float) -> bool:
@@ -1187,6 +1205,7 @@ class LineCore:
         key = (request.slave, request.pdu)
         if self._open_reads.get(key) is request:
             del self._open_reads[key]
+        self._joined_leaders.pop(request, None)
 
     def _store_cache(self, request: LineRequest, response: bytes, now: float) -> None:
         rules = self.policy.cache
@@ -1222,6 +1241,8 @@ class LineCore:
     def _deliver(self, request: LineRequest, pdu: bytes, outcome: Outcome, wire: float) -> None:
         """Deliver exactly once, to ``request`` and every read that joined it."""
         deliveries = self.deliveries
+        if request.followers:
+            self._joined_leaders.pop(request, None)
         if not request.answered:
             request.answered = True
             deliveries.append(Delivery(request, pdu, outcome, wire))

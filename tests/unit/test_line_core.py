@@ -522,6 +522,28 @@ def test_identical_queued_reads_share_one_transaction_but_not_across_a_write() -
     assert after_write not in first.followers
 
 
+def test_a_masters_write_does_not_overtake_its_read_waiting_in_another_masters() -> None:
+    """Master a's read joined b's identical queued read; a's later write to that slave waits
+    until the shared read has gone, though fair order would have sent a's write first."""
+    write = bytes.fromhex("0600640001")
+    line = Line()
+    line.submit(1, read(50), 0.0, master="b")  # b has used the line: a is due first
+    line.sent()
+    line.receive(registers_answer(1, read(50), 50), 0.01)
+    line.submit(2, read(60), 0.02, master="x")  # on the wire
+    assert line.sent() == [encode_rtu(2, read(60))]
+    line.submit(1, read(100), 0.021, master="b")
+    joined = line.submit(1, read(100), 0.022, master="a")
+    line.submit(1, write, 0.023, master="a")
+    line.receive(registers_answer(2, read(60), 60), 0.03)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100))]  # the shared read, then a's write
+    line.receive(registers_answer(1, read(100), 7), 0.05)
+    assert line.answer_of(joined)[1] == Outcome.OK
+    line.timer()
+    assert line.sent() == [encode_rtu(1, write)]
+
+
 def test_the_cache_answers_within_max_age_and_a_write_empties_it() -> None:
     from gateway.config import CacheRule
 
