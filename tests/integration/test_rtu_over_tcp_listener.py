@@ -149,36 +149,28 @@ def test_a_broadcast_is_executed_and_never_answered(start: Start) -> None:
         client.close()
 
 
-def test_a_bad_crc_closes_the_connection_and_is_counted(start: Start) -> None:
+@pytest.mark.parametrize(
+    ("sent_hex", "kind"),
+    [
+        ("01 03 0000 0001 0000", "bad_crc"),
+        # No length to predict, no end in sight.
+        ("01 41" + " 00" * 300, "too_long"),
+    ],
+    ids=["a bad CRC", "an endless request of unknown length"],
+)
+def test_a_frame_that_cannot_be_served_closes_the_connection_and_is_counted(
+    start: Start, sent_hex: str, kind: str
+) -> None:
     _, gateway = start()
     client = RtuClient(listener_address(gateway))
     try:
-        client.sock.sendall(h("01 03 0000 0001 0000"))
+        client.sock.sendall(h(sent_hex))
         assert client.closed_by_peer()
     finally:
         client.close()
     registry = gateway.gateway.metrics.registry
     count = gateway.call(
-        lambda: registry.get_sample_value(
-            "modbus_gateway_protocol_errors_total", {"kind": "bad_crc"}
-        )
-    )
-    assert count == 1
-
-
-def test_an_endless_request_of_unknown_length_closes_the_connection(start: Start) -> None:
-    _, gateway = start()
-    client = RtuClient(listener_address(gateway))
-    try:
-        client.sock.sendall(h("01 41") + bytes(300))  # no length to predict, no end in sight
-        assert client.closed_by_peer()
-    finally:
-        client.close()
-    registry = gateway.gateway.metrics.registry
-    count = gateway.call(
-        lambda: registry.get_sample_value(
-            "modbus_gateway_protocol_errors_total", {"kind": "too_long"}
-        )
+        lambda: registry.get_sample_value("modbus_gateway_protocol_errors_total", {"kind": kind})
     )
     assert count == 1
 
