@@ -8,7 +8,6 @@ not agree with us.
 
 from __future__ import annotations
 
-import asyncio
 import os
 import re
 import select
@@ -27,6 +26,7 @@ from conftest import (
     RunningGateway,
     require_tool,
 )
+from pymodbus_harness import PymodbusServerThread, sim_device
 
 from gateway.sim import PtyPair, open_pty_pair, plc, zl69x
 from gateway.sim.device import pack_registers
@@ -114,7 +114,7 @@ class PtyBridge:
         self.right.close()
 
 
-class PymodbusSlave:
+class PymodbusSlave(PymodbusServerThread):
     """pymodbus's RTU server on a device path, on its own event loop in a thread."""
 
     def __init__(
@@ -127,46 +127,14 @@ class PymodbusSlave:
     ) -> None:
         from pymodbus import FramerType
         from pymodbus.server import ModbusSerialServer
-        from pymodbus.simulator import DataType, SimData, SimDevice
 
-        device = SimDevice(
-            id=unit,
-            simdata=(
-                [SimData(0, values=coils, datatype=DataType.BITS)],
-                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-                [SimData(0, values=holding, datatype=DataType.REGISTERS)],
-                [SimData(0, count=16, values=0, datatype=DataType.REGISTERS)],
-            ),
+        device = sim_device(unit, coils, holding)
+        # 8N1 for ASCII too: ptys refuse some parity settings (FIELD-NOTES).
+        framer = FramerType.ASCII if framing == "ascii" else FramerType.RTU
+        super().__init__(
+            lambda: ModbusSerialServer(device, port=path, baudrate=115200, framer=framer),
+            "pymodbus-slave",
         )
-        self.loop = asyncio.new_event_loop()
-        self.server: Any = None
-        ready = threading.Event()
-
-        async def start() -> None:
-            # pymodbus binds its transport to the running loop when it is constructed.
-            if framing == "ascii":  # 8N1: ptys refuse some parity settings (FIELD-NOTES)
-                self.server = ModbusSerialServer(
-                    device, port=path, baudrate=115200, framer=FramerType.ASCII
-                )
-            else:
-                self.server = ModbusSerialServer(device, port=path, baudrate=115200)
-            await self.server.serve_forever(background=True)
-
-        def serve() -> None:
-            asyncio.set_event_loop(self.loop)
-            self.loop.run_until_complete(start())
-            ready.set()
-            self.loop.run_forever()
-
-        self._thread = threading.Thread(target=serve, name="pymodbus-slave", daemon=True)
-        self._thread.start()
-        assert ready.wait(DEADLINE_S), "pymodbus did not open the serial port"
-
-    def close(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(DEADLINE_S)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(DEADLINE_S)
-        self.loop.close()
 
 
 @pytest.fixture(params=["rtu", "ascii"])

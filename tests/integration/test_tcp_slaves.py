@@ -7,16 +7,15 @@ slave and the answer is matched by the gateway's id.
 
 from __future__ import annotations
 
-import asyncio
 import socket
 import threading
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway
 from metrics_harness import samples, series
+from pymodbus_harness import PymodbusServerThread, sim_device
 
 from gateway.config import ConfigError, build_config
 from gateway.sim.device import pack_registers
@@ -26,47 +25,16 @@ def h(text: str) -> bytes:
     return bytes.fromhex(text)
 
 
-class PymodbusTcpSlave:
+class PymodbusTcpSlave(PymodbusServerThread):
     """pymodbus's Modbus TCP server (unit 7) on its own loop in a thread."""
 
     def __init__(self) -> None:
         from pymodbus.server import ModbusTcpServer
-        from pymodbus.simulator import DataType, SimData, SimDevice
 
-        device = SimDevice(
-            id=7,
-            simdata=(
-                [SimData(0, values=[i % 3 == 0 for i in range(32)], datatype=DataType.BITS)],
-                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-                [SimData(0, values=[10 * i for i in range(32)], datatype=DataType.REGISTERS)],
-                [SimData(0, count=16, values=0, datatype=DataType.REGISTERS)],
-            ),
+        device = sim_device(7, [i % 3 == 0 for i in range(32)], [10 * i for i in range(32)])
+        super().__init__(
+            lambda: ModbusTcpServer(device, address=("127.0.0.1", 0)), "pymodbus-tcp-slave"
         )
-        self.loop = asyncio.new_event_loop()
-        self.server: Any = None
-        ready = threading.Event()
-
-        async def start() -> None:
-            self.server = ModbusTcpServer(device, address=("127.0.0.1", 0))
-            await self.server.serve_forever(background=True)
-
-        def serve() -> None:
-            asyncio.set_event_loop(self.loop)
-            self.loop.run_until_complete(start())
-            ready.set()
-            self.loop.run_forever()
-
-        self._thread = threading.Thread(target=serve, name="pymodbus-tcp-slave", daemon=True)
-        self._thread.start()
-        assert ready.wait(DEADLINE_S), "pymodbus did not listen"
-        server: Any = self.server  # partly untyped; port 0 asked: read the one bound
-        self.port: int = server.transport.sockets[0].getsockname()[1]
-
-    def close(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(DEADLINE_S)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(DEADLINE_S)
-        self.loop.close()
 
 
 @pytest.fixture

@@ -10,7 +10,6 @@ reason and logged once.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import datetime as dt
 import logging
@@ -27,6 +26,7 @@ from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, LogCollector, RunningGateway, SimFactory
+from pymodbus_harness import PymodbusServerThread, sim_device
 from test_sim import FUNCTION_VECTORS
 
 from gateway.sim import plc
@@ -302,51 +302,21 @@ def test_a_slave_that_refuses_the_gateways_certificate_with_an_alert(
 # --------------------------------------------------------------------------- independent slave
 
 
-class PymodbusTlsSlave:
+class PymodbusTlsSlave(PymodbusServerThread):
     """pymodbus's Modbus/TCP Security server (unit 7), client certificates required."""
 
     def __init__(self, pki: Pki) -> None:
         from pymodbus.server import ModbusTlsServer
-        from pymodbus.simulator import DataType, SimData, SimDevice
 
-        device = SimDevice(
-            id=7,
-            simdata=(
-                [SimData(0, values=[i % 3 == 0 for i in range(32)], datatype=DataType.BITS)],
-                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-                [SimData(0, values=[10 * i for i in range(32)], datatype=DataType.REGISTERS)],
-                [SimData(0, count=16, values=0, datatype=DataType.REGISTERS)],
-            ),
-        )
+        device = sim_device(7, [i % 3 == 0 for i in range(32)], [10 * i for i in range(32)])
         context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
         context.load_cert_chain(str(pki.server_chain), str(pki.server_key))
         context.load_verify_locations(cafile=str(pki.ca))
         context.verify_mode = ssl.CERT_REQUIRED
-        self.loop = asyncio.new_event_loop()
-        self.server: Any = None
-        ready = threading.Event()
-
-        async def start() -> None:
-            self.server = ModbusTlsServer(device, address=("127.0.0.1", 0), sslctx=context)
-            await self.server.serve_forever(background=True)
-
-        def serve() -> None:
-            asyncio.set_event_loop(self.loop)
-            self.loop.run_until_complete(start())
-            ready.set()
-            self.loop.run_forever()
-
-        self._thread = threading.Thread(target=serve, name="pymodbus-tls-slave", daemon=True)
-        self._thread.start()
-        assert ready.wait(DEADLINE_S), "pymodbus did not listen"
-        server: Any = self.server
-        self.port: int = server.transport.sockets[0].getsockname()[1]
-
-    def close(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(DEADLINE_S)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(DEADLINE_S)
-        self.loop.close()
+        super().__init__(
+            lambda: ModbusTlsServer(device, address=("127.0.0.1", 0), sslctx=context),
+            "pymodbus-tls-slave",
+        )
 
 
 def test_pymodbus_tls_server_as_an_independent_slave(
