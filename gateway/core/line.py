@@ -153,6 +153,10 @@ class LinePolicy(Protocol):
     def late_window_for(self, slave: int) -> float: ...
 
 
+def no_reply(_pdu: bytes, _outcome: str) -> None:
+    """A reply that goes nowhere: a broadcast's, or a request's once it has been answered."""
+
+
 @dataclass(slots=True, eq=False)
 class LineRequest:
     """One master's request for one slave; ``reply`` is for the driver, never called here."""

@@ -29,7 +29,7 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, LineRequest, Note, Transmit
+from ..core.line import Delivery, LineRequest, Note, Transmit, no_reply
 from ..core.outcome import LineEvent, Outcome, SlaveState
 from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
@@ -44,15 +44,6 @@ log = logging.getLogger("gateway.bus")
 
 #: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``.
 Request = LineRequest
-
-
-def _replied(_pdu: bytes, _outcome: str) -> None:
-    """What a request's ``reply`` becomes once called: a second answer goes nowhere.
-
-    It also frees the request at once: a master's reply callback usually refers to its
-    own request, a reference cycle the garbage collector would otherwise have to find,
-    one per transaction.
-    """
 
 
 _REOPEN_FIRST_DELAY = 0.05
@@ -199,7 +190,7 @@ class Bus:
         """Answer each request 0x0A (gateway path unavailable)."""
         for request in requests:
             request.answered = True
-            reply, request.reply = request.reply, _replied
+            reply, request.reply = request.reply, no_reply  # see ``_deliver``
             reply(
                 fc.exception_pdu(request.pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
                 Outcome.NO_ROUTE,
@@ -295,7 +286,10 @@ class Bus:
             if delivery.wire_time >= 0.0:
                 observe(delivery.wire_time)
             request = delivery.request
-            reply, request.reply = request.reply, _replied
+            # A second answer goes nowhere, and the request is freed at once: a master's
+            # reply callback usually refers to its own request, a reference cycle the
+            # garbage collector would otherwise have to find, one per transaction.
+            reply, request.reply = request.reply, no_reply
             try:
                 reply(delivery.pdu, delivery.outcome)
             except Exception:  # a boundary: one master's broken reply path must not cost

@@ -43,6 +43,7 @@ from ..config import ListenerConfig
 from ..core import pdu as fc
 from ..core.ascii import encode_ascii
 from ..core.errors import ExceptionCode, ModbusError
+from ..core.line import no_reply
 from ..core.policy import Policy, Principal
 from ..core.rtu import MAX_RTU_FRAME
 from ..core.rtu_stream import encode_rtu_reply, heard_request
@@ -328,7 +329,7 @@ class SerialSlave:
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
         for bus in self.router.broadcast_buses:
             if bus.up:
-                bus.submit(Request(0, pdu, self, _ignore_reply, broadcast=True))
+                bus.submit(Request(0, pdu, self, no_reply, broadcast=True))
 
     def _answer(self, number: int, unit: int, pdu: bytes, outcome: str) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
@@ -380,7 +381,3 @@ _FAULT_TEXT = {
     FrameFault.OVERSIZE: "more than 513 characters without an end (ASCII)",
     FrameFault.INCOMPLETE: "a frame whose characters stopped (inter_char_timeout)",
 }
-
-
-def _ignore_reply(_response: bytes, _outcome: str) -> None:
-    """A broadcast has no answer."""
