@@ -196,23 +196,20 @@ def validate_request(pdu: bytes) -> None:
     if len(pdu) > MAX_PDU:
         raise _fail(ExceptionCode.ILLEGAL_DATA_VALUE, f"PDU of {len(pdu)} bytes exceeds {MAX_PDU}")
     function = pdu[0]
-    if function in _PLAIN_READ_LIMITS and len(pdu) == 5:  # the common case, checked inline
-        quantity = (pdu[3] << 8) | pdu[4]
-        if (
-            1 <= quantity <= _PLAIN_READ_LIMITS[function]
-            and ((pdu[1] << 8) | pdu[2]) + quantity <= 0x10000
-        ):
-            return
+    limit = _PLAIN_READ_LIMITS.get(function)
+    if limit is not None:  # the common case: the checks inline, the helpers to say why
+        if len(pdu) == 5:
+            quantity = (pdu[3] << 8) | pdu[4]
+            if 1 <= quantity <= limit and ((pdu[1] << 8) | pdu[2]) + quantity <= 0x10000:
+                return
+        name = function_name(function)
+        _need_length(pdu, 5, name)
+        _check_range(pdu, name, 1, limit)
+        return
     if function == 0 or function & EXCEPTION_FLAG:
         raise _fail(ExceptionCode.ILLEGAL_FUNCTION, f"function code {function} is not a request")
     name = function_name(function)
-    if function in (READ_COILS, READ_DISCRETE_INPUTS):
-        _need_length(pdu, 5, name)
-        _check_range(pdu, name, 1, 2000)
-    elif function in (READ_HOLDING_REGISTERS, READ_INPUT_REGISTERS):
-        _need_length(pdu, 5, name)
-        _check_range(pdu, name, 1, 125)
-    elif function == WRITE_SINGLE_COIL:
+    if function == WRITE_SINGLE_COIL:
         _need_length(pdu, 5, name)
         value = _u16(pdu, 3)
         if value not in (0x0000, 0xFF00):
