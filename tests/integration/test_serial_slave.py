@@ -77,16 +77,18 @@ Setup = tuple[SimBus, RunningGateway, RtuMaster]
 
 @pytest.fixture
 def reverse(make_sim: SimFactory, make_gateway: GatewayFactory) -> Iterator[Any]:
-    """``reverse(**listener)``: a PLC (1) and ZL-69X (2) on line a, a serial-slave listener."""
+    """``reverse(devices=None, **listener)``: a PLC (1) and ZL-69X (2), or ``devices``, on
+    line a, and a serial-slave listener."""
     pairs = []
 
-    def factory(**listener: Any) -> Setup:
-        sim = make_sim({1: plc(1), 2: zl69x(2)})
+    def factory(devices: dict[int, Any] | None = None, **listener: Any) -> Setup:
+        sim = make_sim(devices if devices is not None else {1: plc(1), 2: zl69x(2)})
         pair = open_pty_pair()
         pairs.append(pair)
         entry = {"name": "field", "protocol": "serial-slave", "device": pair.path,
                  "baudrate": BAUD, **listener}  # fmt: skip
-        gateway = make_gateway({"lines": {"a": sim.line_table([1, 2])}, "listeners": [entry]})
+        units = sorted(devices) if devices is not None else [1, 2]
+        gateway = make_gateway({"lines": {"a": sim.line_table(units)}, "listeners": [entry]})
         slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
         deadline = time.monotonic() + DEADLINE_S
         while not gateway.call(lambda: slave.up):
@@ -235,24 +237,10 @@ def test_mbpoll_as_rtu_master_in_reverse_mode(
     assert sim.device(1).coils[40] == 1
 
 
-def test_every_function_code_through_an_rtu_serial_slave(
-    make_sim: SimFactory, make_gateway: GatewayFactory
-) -> None:
+def test_every_function_code_through_an_rtu_serial_slave(reverse: Any) -> None:
     """The simulator's vectors, each to a fresh device (its own unit), answered byte-exact."""
     units = range(1, len(FUNCTION_VECTORS) + 1)
-    sim = make_sim({unit: plc(unit) for unit in units})
-    pair = open_pty_pair()
-    try:
-        entry = {"name": "field", "protocol": "serial-slave", "device": pair.path, "baudrate": BAUD}
-        gateway = make_gateway({"lines": {"a": sim.line_table(list(units))}, "listeners": [entry]})
-        slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
-        deadline = time.monotonic() + DEADLINE_S
-        while not gateway.call(lambda: slave.up):
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        master = RtuMaster(pair.sim_fd)
-        for unit, (request_hex, response_hex) in zip(units, FUNCTION_VECTORS, strict=True):
-            answer = master.request(unit, h(request_hex), len(h(response_hex)))
-            assert answer == h(response_hex), request_hex
-    finally:
-        pair.close()
+    _, _, master = reverse(devices={unit: plc(unit) for unit in units})
+    for unit, (request_hex, response_hex) in zip(units, FUNCTION_VECTORS, strict=True):
+        answer = master.request(unit, h(request_hex), len(h(response_hex)))
+        assert answer == h(response_hex), request_hex
