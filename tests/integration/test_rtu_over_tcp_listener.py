@@ -73,20 +73,27 @@ class RtuClient:
             return True
 
 
-Start = Any  # start(listener_overrides=None, policies=None) -> (SimBus, RunningGateway)
+Start = Any  # start(listener=None, policies=None, devices=None) -> (SimBus, RunningGateway)
 
 
 @pytest.fixture
 def start(make_sim: SimFactory, make_gateway: GatewayFactory) -> Start:
-    """A simulated PLC (1) and ZL-69X (2); listeners ``tcp`` and ``rtu`` (rtu-over-tcp)."""
+    """A simulated PLC (1) and ZL-69X (2), or ``devices``; listeners ``tcp`` and ``rtu``
+    (rtu-over-tcp)."""
 
     def factory(
-        listener: dict[str, Any] | None = None, policies: dict[str, Any] | None = None
+        listener: dict[str, Any] | None = None,
+        policies: dict[str, Any] | None = None,
+        devices: dict[int, Any] | None = None,
     ) -> tuple[SimBus, RunningGateway]:
-        sim = make_sim({1: plc(1), 2: zl69x(2)})
+        devices = devices if devices is not None else {1: plc(1), 2: zl69x(2)}
+        sim = make_sim(devices)
         entry = {"name": "rtu", "protocol": "rtu-over-tcp", "listen": "127.0.0.1:0"}
         entry.update(listener or {})
-        raw: dict[str, Any] = {"lines": {"a": sim.line_table([1, 2])}, "listeners": [entry]}
+        raw: dict[str, Any] = {
+            "lines": {"a": sim.line_table(sorted(devices))},
+            "listeners": [entry],
+        }
         if policies:
             raw["policies"] = policies
         return sim, make_gateway(raw)
@@ -236,16 +243,10 @@ def test_pymodbus_master_with_the_rtu_framer_over_tcp(start: Start) -> None:
 
 @pytest.mark.parametrize(("request_hex", "response_hex"), FUNCTION_VECTORS)
 def test_every_function_code_through_the_listener(
-    make_sim: SimFactory, make_gateway: GatewayFactory, request_hex: str, response_hex: str
+    start: Start, request_hex: str, response_hex: str
 ) -> None:
     """The simulator's vectors, sent as RTU frames over TCP: the same answers, byte for byte."""
-    sim = make_sim({7: plc(7)})
-    gw = make_gateway(
-        {
-            "lines": {"a": sim.line_table([7])},
-            "listeners": [{"name": "rtu", "protocol": "rtu-over-tcp", "listen": "127.0.0.1:0"}],
-        }
-    )
+    _, gw = start(devices={7: plc(7)})
     client = RtuClient(listener_address(gw))
     try:
         assert client.request(7, h(request_hex), len(h(response_hex))) == h(response_hex)
