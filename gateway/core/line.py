@@ -67,6 +67,11 @@ from .rtu import RtuFrame
 from .timing import character_time
 
 INFINITY: Final = float("inf")
+#: Builds a NamedTuple from a tuple without its Python-level ``__new__``: the actions made
+#: once per transaction use it (``Transmit(...)`` elsewhere means the same).
+_tuple_new: Final = tuple.__new__
+#: Distinct request frames kept encoded per line (about 70 kB at most).
+FRAME_CACHE_SIZE: Final = 256
 
 #: Frames that are not garbage, just not this answer: discard them and go on waiting.
 DISCARD_KINDS: Final = frozenset(
@@ -283,6 +288,11 @@ class LineCore:
         self.framing = framing
         self._encode = framing.encode  # bound once: for RTU, encode_rtu itself
         self._new_decoder = framing.decoder  # for RTU, the RtuResponseDecoder class
+        #: Request frames by (slave, PDU): masters poll the same requests over and over, and
+        #: a frame is a pure function of them (not for MBAP: its frames carry a fresh id).
+        self._frames: dict[tuple[int, bytes], bytes] | None = (
+            {} if framing.transaction_ids is None else None
+        )
         self.transmits: list[Transmit] = []
         self.deliveries: list[Delivery] = []
         self.notes: list[Note] = []
@@ -684,7 +694,7 @@ class LineCore:
                 self._send_broadcast(request, master, now)
                 self._send_at = self._quiet_since + self._gap  # after the turnaround
                 return
-            if not request.wanted:
+            if request.cancelled and not request.wanted:
                 self._close_to_joiners(request)
                 self._deliver(request, b"", Outcome.DROPPED, -1.0)
                 if master is not None:
@@ -719,7 +729,9 @@ class LineCore:
                     skipped.append(master)
                 continue
             master.queue.remove(request)
-            self._dequeued(master, request)
+            master.queued -= 1  # ``_dequeued``
+            self._queued -= 1
+            self.stats.queue_depth = self._queued
             if vtime > self._vclock:
                 self._vclock = vtime
             chosen = request, master, False
@@ -799,7 +811,7 @@ class LineCore:
             request.sent = True
             self._close_to_joiners(request)
         slave = request.slave
-        frame = self._encode(slave, request.pdu)
+        frame = self._frame(slave, request.pdu)
         transmit_time = len(frame) * self._char_time
         self._attempt = _Attempt(
             request,
@@ -816,10 +828,26 @@ class LineCore:
             self.notes.append(Note(LineEvent.RETRY, slave))
         if self._echo:
             self._echo_left = frame
-        self.transmits.append(Transmit(frame, request, now - request.enqueued_at, retry))
+        self.transmits.append(
+            _tuple_new(Transmit, (frame, request, now - request.enqueued_at, retry))
+        )
+
+    def _frame(self, slave: int, pdu: bytes) -> bytes:
+        """The request frame for ``pdu`` to ``slave``, encoded once per distinct request."""
+        frames = self._frames
+        if frames is None:
+            return self._encode(slave, pdu)
+        key = (slave, pdu)
+        frame = frames.get(key)
+        if frame is None:
+            frame = self._encode(slave, pdu)
+            if len(frames) >= FRAME_CACHE_SIZE:
+                frames.clear()  # a bound, not an LRU: polling refills it with what is used
+            frames[key] = frame
+        return frame
 
     def _send_broadcast(self, request: LineRequest, master: _Master | None, now: float) -> None:
-        frame = self._encode(0, request.pdu)
+        frame = self._frame(0, request.pdu)
         transmit_time = len(frame) * self._char_time
         self._quiet_since = now + transmit_time + self.policy.broadcast_turnaround
         self.stats.frames_sent += 1
@@ -843,9 +871,14 @@ class LineCore:
         slave = request.slave
         function = request.pdu[0]
         self.stats.frames_received += 1
-        record = self._record(slave)
+        record = self._slaves.get(slave)
+        if record is None:
+            record = self._record(slave)
         record.answered.add(function)
-        self._alive(slave, record)
+        if record.state is SlaveState.UP:
+            record.misses = 0  # ``_alive``, for a slave that was up
+        else:
+            self._alive(slave, record)
         response = frame.pdu
         if record.guard_until and request is not record.guard_owner:
             if response[0] & fc.EXCEPTION_FLAG:
@@ -859,7 +892,8 @@ class LineCore:
         if response[0] & fc.EXCEPTION_FLAG:
             outcome = Outcome.SLAVE_EXCEPTION
         elif function in fc.READ_FUNCTIONS:
-            self._store_cache(request, response, now)
+            if self.policy.cache:
+                self._store_cache(request, response, now)
             outcome = Outcome.OK
         else:
             outcome = Outcome.OK
@@ -1071,8 +1105,8 @@ class LineCore:
             master.vtime = max(master.vtime, self._vclock) + wire
             if master.heap_seq >= 0:
                 self._push_master(master)  # its old entry goes stale
-        if master is not None:
-            self._reschedule(master)
+        if master is not None and (master.gone or (master.queue and master.heap_seq < 0)):
+            self._reschedule(master)  # back in the fair order, or forgotten
 
     def _credit_now(self, now: float) -> float:
         """The isolated slaves' share of line time banked so far (negative: in debt)."""
@@ -1249,7 +1283,7 @@ class LineCore:
             self._joined_leaders.pop(request, None)
         if not request.answered:
             request.answered = True
-            deliveries.append(Delivery(request, pdu, outcome, wire))
+            deliveries.append(_tuple_new(Delivery, (request, pdu, outcome, wire)))
         for follower in request.followers:
             if not follower.answered:
                 follower.answered = True

@@ -11,6 +11,7 @@ refuses further input.
 
 from __future__ import annotations
 
+import struct
 from typing import NamedTuple
 
 from .errors import FramingError, ResponseError
@@ -20,6 +21,10 @@ HEADER_LENGTH = 7
 MIN_LENGTH_FIELD = 2  # unit id + function code
 MAX_LENGTH_FIELD = 254  # unit id + 253-byte PDU
 MAX_ADU = HEADER_LENGTH - 1 + MAX_LENGTH_FIELD  # 260
+
+
+_pack_header = struct.Struct(">HHHB").pack  # transaction id, protocol id, length, unit id
+_tuple_new = tuple.__new__  # ``MbapFrame(...)`` without its Python-level ``__new__`` (per request)
 
 
 class MbapFrame(NamedTuple):
@@ -32,21 +37,7 @@ class MbapFrame(NamedTuple):
 
 def encode_mbap(transaction_id: int, unit_id: int, pdu: bytes) -> bytes:
     """Build an ADU: MBAP header (protocol id 0) followed by ``pdu``."""
-    length = len(pdu) + 1
-    return (
-        bytes(
-            (
-                (transaction_id >> 8) & 0xFF,
-                transaction_id & 0xFF,
-                0,
-                0,
-                length >> 8,
-                length & 0xFF,
-                unit_id & 0xFF,
-            )
-        )
-        + pdu
-    )
+    return _pack_header(transaction_id & 0xFFFF, 0, len(pdu) + 1, unit_id & 0xFF) + pdu
 
 
 class MbapDecoder:
@@ -95,7 +86,9 @@ class MbapDecoder:
         end = HEADER_LENGTH - 1 + length
         if len(buffer) < end:
             return None
-        frame = MbapFrame((buffer[0] << 8) | buffer[1], buffer[6], bytes(buffer[HEADER_LENGTH:end]))
+        frame = _tuple_new(
+            MbapFrame, ((buffer[0] << 8) | buffer[1], buffer[6], bytes(buffer[HEADER_LENGTH:end]))
+        )
         del buffer[:end]
         return frame
 

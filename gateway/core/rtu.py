@@ -25,6 +25,9 @@ MIN_RTU_FRAME: Final = 4  # unit + function + CRC
 NEED_MORE: Final = -1  # the frame's length cannot be told yet: wait for more bytes
 
 
+_tuple_new: Final = tuple.__new__
+
+
 class RtuFrame(NamedTuple):
     """A checked RTU frame: the unit (slave address) and the PDU, CRC removed."""
 
@@ -249,7 +252,7 @@ class RtuResponseDecoder:
             mismatch = _mismatch(self._request_pdu, pdu)
             if mismatch:
                 raise ResponseError("mismatch", mismatch, frame)
-        return RtuFrame(frame[0], pdu)
+        return _tuple_new(RtuFrame, (frame[0], pdu))  # ``RtuFrame(...)``, minus a Python call
 
 
 def check_identity(unit: int, function: int, request_pdu: bytes, got_unit: int, pdu: bytes) -> None:

@@ -253,11 +253,11 @@ class MasterConnection(asyncio.BufferedProtocol):
             return
         if self._in_flight >= self._server.config.max_pipeline:
             self._pause(ReadPause.PIPELINE)
-        else:
+        elif self._pauses:
             self._resume(ReadPause.PIPELINE)
         if budget <= 0 and self._decoder.buffered and not self._pauses & ReadPause.PIPELINE:
             self._schedule_batch()  # more frames may be complete: after the other masters
-        else:
+        elif self._pauses:
             self._resume(ReadPause.BATCH)
 
     def _protocol_error(self, error: FramingError) -> None:

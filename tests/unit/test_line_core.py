@@ -111,6 +111,26 @@ def test_a_read_goes_at_once_and_its_answer_comes_back() -> None:
     assert pdu == registers_answer(1, read(100), 100)[1:-2]
 
 
+def test_request_frames_are_encoded_once_and_stay_exact_past_the_cache_bound() -> None:
+    """Frames are kept per (slave, PDU) up to a bound; every frame sent is still the request's."""
+    from gateway.core.line import FRAME_CACHE_SIZE
+
+    line = Line()
+    now = 0.0
+    # Past the bound, then the same PDUs again to the same and to another slave.
+    pairs = [(1, address) for address in range(FRAME_CACHE_SIZE + 40)]
+    pairs += [(1, 300), (2, 300), (1, 0), (3, 0), (1, 0)]
+    for slave, address in pairs:
+        line.submit(slave, read(address), now)
+        (frame,) = line.sent()
+        assert frame == encode_rtu(slave, read(address))
+        now += tx_time(frame) + 0.001
+        line.receive(registers_answer(slave, read(address), address), now)
+        now += GAP
+    assert [outcome for [(_, outcome)] in line.answers.values()] == [Outcome.OK] * len(pairs)
+    assert 0 < len(line.core._frames or {}) <= FRAME_CACHE_SIZE
+
+
 def test_nothing_is_sent_before_the_gap_after_the_last_byte() -> None:
     line = Line()
     line.submit(1, read(100), 0.0)
