@@ -35,7 +35,7 @@ from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
-from .clock import PreciseClock
+from .clock import PreciseClock, wait_until
 from .link import Link, LinkError, TcpLink, TlsLink, connect_tcp, connect_tls
 from .serial_port import SerialLink, SerialPortError, open_serial
 from .tls import LineTlsFailure, line_failure_message, line_failure_reason
@@ -68,6 +68,7 @@ class Bus:
         self._metrics = metrics
         self._loop = loop
         self._clock = clock
+        self._timer_at = 0.0  # the deadline the clock is armed for (``_on_timer``)
         self._core = new_line_core(
             config,
             time.monotonic(),
@@ -203,8 +204,13 @@ class Bus:
         self._pump()
 
     def _on_timer(self) -> None:
-        self._core.handle_timer(time.monotonic())
-        self._pump()
+        # Armed ``ahead``: this may run just before the deadline. The core decides for the
+        # deadline now, and the pump acts no earlier than it (the same inputs as deciding
+        # after a spin: nothing else runs in between).
+        at = self._timer_at
+        now = time.monotonic()
+        self._core.handle_timer(at if now < at else now)
+        self._pump(not_before=at)
 
     def _on_lost(self, error: OSError) -> None:
         link = self._link
@@ -235,14 +241,18 @@ class Bus:
 
     # -- the pump ------------------------------------------------------------------------
 
-    def _pump(self) -> None:
-        """Execute the core's actions in order, then arm its next deadline."""
+    def _pump(self, not_before: float = 0.0) -> None:
+        """Execute the core's actions in order (none before ``not_before``), then arm its
+        next deadline."""
         if self._pumping:
             return  # an answer's callback submitted more: the outer pump takes it
         self._pumping = True
         core = self._core
         try:
             while core.transmits or core.deliveries or core.notes:
+                if not_before:
+                    wait_until(not_before)
+                    not_before = 0.0
                 if core.transmits:
                     transmits, core.transmits = core.transmits, []
                     self._transmit(transmits)
@@ -260,7 +270,8 @@ class Bus:
             if self._clock.deadline:
                 self._clock.disarm()
         else:
-            self._clock.arm(deadline, self._on_timer)
+            self._timer_at = deadline
+            self._clock.arm(deadline, self._on_timer, ahead=True)
         if core.idle is not self._idle:
             self._idle = not self._idle
             if self._idle:

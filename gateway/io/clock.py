@@ -74,6 +74,7 @@ class PreciseClock:
         self._fallback: asyncio.TimerHandle | None = None
         self._fallback_at = 0.0  # when ``_fallback`` wakes the clock (monotonic seconds)
         self._fd_armed = False
+        self._ahead = False
 
     @property
     def uses_timerfd(self) -> bool:
@@ -96,8 +97,14 @@ class PreciseClock:
             os.close(self._fd)
             self._fd = -1
 
-    def arm(self, deadline: float, callback: Callable[[], None]) -> None:
+    def arm(self, deadline: float, callback: Callable[[], None], *, ahead: bool = False) -> None:
         """Call ``callback`` at ``deadline`` (``time.monotonic()`` seconds), replacing any other.
+
+        With ``ahead``, the callback runs at the start of the last stretch instead (up to
+        ``2 * SPIN_MARGIN`` early, or ``2 * _FALLBACK_MARGIN`` without a timerfd), and
+        it is the caller's to decide what happens at ``deadline`` and ``wait_until`` it
+        before acting: the stretch is spent deciding rather than spinning, so the act comes
+        on time even when the deciding is slow (its code and data cold after a quiet spell).
 
         A deadline more than ``COARSE_LIMIT`` away (a response timeout) first waits on the
         loop's own timer, which costs no system call, and is re-armed precisely when near:
@@ -107,6 +114,7 @@ class PreciseClock:
         loop timer per timeout period, not one per transaction.
         """
         self._callback = callback
+        self._ahead = ahead
         if deadline == self._deadline:
             return
         self._deadline = deadline
@@ -180,8 +188,14 @@ class PreciseClock:
             return
         if remaining > 2 * _FALLBACK_MARGIN:
             return  # a wake-up for an earlier deadline; the timerfd waits for this one
-        while time.monotonic() < deadline:  # the last stretch
-            pass
+        if not self._ahead:
+            wait_until(deadline)  # the last stretch
         self._deadline = 0.0
         self._callback = None
         callback()
+
+
+def wait_until(deadline: float) -> None:
+    """Spin until ``time.monotonic()`` reaches ``deadline`` (a stretch of microseconds)."""
+    while time.monotonic() < deadline:
+        pass

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from gateway.io.clock import COARSE_LIMIT, PreciseClock
+from gateway.io.clock import _FALLBACK_MARGIN, COARSE_LIMIT, SPIN_MARGIN, PreciseClock, wait_until
 
 LATE_BOUND_S = 0.05
 
@@ -33,6 +33,38 @@ def test_a_deadline_is_met_never_early(delay: float) -> None:
         clock.close()
         assert fired_at[0] >= deadline
         assert fired_at[0] - deadline < LATE_BOUND_S
+        assert clock.deadline == 0.0
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("delay", [0.0005, 0.003, COARSE_LIMIT * 2.5])
+def test_ahead_calls_back_within_the_last_stretch_and_wait_until_is_never_early(
+    delay: float,
+) -> None:
+    """``ahead``: the callback may come early, by at most the last stretch; the act that
+    follows ``wait_until(deadline)`` never comes early."""
+
+    async def scenario() -> None:
+        clock = PreciseClock(asyncio.get_running_loop())
+        fired = asyncio.Event()
+        called_at: list[float] = []
+        acted_at: list[float] = []
+
+        def callback() -> None:
+            called_at.append(time.monotonic())
+            wait_until(deadline)
+            acted_at.append(time.monotonic())
+            fired.set()
+
+        deadline = time.monotonic() + delay
+        clock.arm(deadline, callback, ahead=True)
+        await asyncio.wait_for(fired.wait(), 5.0)
+        stretch = 2 * SPIN_MARGIN if clock.uses_timerfd else 2 * _FALLBACK_MARGIN
+        clock.close()
+        assert called_at[0] >= deadline - stretch - 1e-6
+        assert acted_at[0] >= deadline
+        assert acted_at[0] - deadline < LATE_BOUND_S
         assert clock.deadline == 0.0
 
     asyncio.run(scenario())
