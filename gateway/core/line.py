@@ -29,6 +29,13 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   (plus the turnaround after a broadcast).
 * **Safe retries.** Only requests without side effects (``pdu.is_safe_to_retry``)
   are sent again after a failed attempt, unless ``retry_unsafe`` says otherwise.
+* **Order.** One master's requests to one slave keep read-after-write order: a
+  request that may change the slave (a write, any code but a plain read; a broadcast
+  changes every slave) passes none of its master's earlier requests to it, and nothing
+  of that master passes it, also through the isolated slaves' lane. A read joins another
+  master's identical queued read only when no change to that slave was submitted after
+  that read and none of its own master's waits; the cache keeps no answer older than a
+  change still to run.
 * **Fair share.** Masters are served in start-time fair order, charged with the
   wire time their transactions actually took (timeouts included), so a master
   provoking timeouts spends its own share. Each master has its own queue bound
@@ -179,6 +186,7 @@ class LineRequest:
     single: bool = False  # one attempt only (it went through the lane: a probe)
     lane_deadline: float = INFINITY
     epoch: int = 0
+    order: int = 0  # its place among the line's submissions (set by ``submit``)
     followers: list[LineRequest] = field(default_factory=list)
 
     @property
@@ -319,6 +327,7 @@ class LineCore:
         self._joined_leaders: dict[LineRequest, None] = {}
         self._write_epoch: dict[int, int] = {}
         self._broadcast_epoch = 0
+        self._submitted = 0  # requests submitted so far (``LineRequest.order``)
         self._cache: dict[tuple[int, bytes], tuple[float, bytes]] = {}
         self._echo_left = b""  # the part of our own frame still to come back (``echo``)
         self._apply_policy(policy)
@@ -418,6 +427,8 @@ class LineCore:
     def submit(self, request: LineRequest, now: float) -> None:
         """Queue ``request``, or answer it at once (line down, full, isolated, cached...)."""
         request.enqueued_at = now
+        self._submitted += 1
+        request.order = self._submitted
         if self._stopping or not self._up:
             self._answer(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
             return
@@ -490,7 +501,11 @@ class LineCore:
         if self.policy.coalesce:
             epoch = self._write_epoch.get(slave, 0) + self._broadcast_epoch
             leader = self._open_reads.get(key)
-            if leader is not None and leader.epoch == epoch:
+            if (
+                leader is not None
+                and leader.epoch == epoch
+                and not self._change_pending(request.master, slave)
+            ):
                 leader.followers.append(request)
                 self._joined_leaders[leader] = None
                 self.notes.append(Note(LineEvent.COALESCED, slave))
@@ -755,7 +770,7 @@ class LineCore:
         slaves = self._slaves
         for request in master.queue:
             if request.broadcast:
-                return None if blocked else request
+                return None if blocked or self._broadcast_held(master.key, request) else request
             slave = request.slave
             safe = fc.is_safe_to_retry(request.pdu) if blocked else True
             if blocked is not None and slave in blocked and not (blocked[slave] and safe):
@@ -772,6 +787,44 @@ class LineCore:
                 safe = fc.is_safe_to_retry(request.pdu)
             blocked[slave] = blocked.get(slave, True) and safe
         return None
+
+    def _change_pending(self, master: Hashable, slave: int) -> bool:
+        """True while a request of ``master`` that may change ``slave`` waits for the line.
+
+        A read of that master must not join another master's queued read meanwhile: the
+        other master's read may go first, and its answer would predate the change.
+        """
+        record = self._masters.get(master)
+        if record is not None and any(may_change(r, slave) for r in record.queue):
+            return True
+        retry = self._retry
+        if retry is not None and retry.master == master and may_change(retry, slave):
+            return True
+        return any(r.master == master and may_change(r, slave) for r in self._lane.values())
+
+    def _broadcast_held(self, master: Hashable, broadcast: LineRequest) -> bool:
+        """True while a read ``master`` submitted before ``broadcast`` has not gone: in the
+        isolated slaves' lane, or joined to another master's queued read."""
+        for request in self._lane.values():
+            if request.master == master and request.order < broadcast.order:
+                return True
+        for leader in self._joined_leaders:
+            for follower in leader.followers:
+                if (
+                    follower.master == master
+                    and follower.order < broadcast.order
+                    and not follower.cancelled
+                ):
+                    return True
+        return False
+
+    def _behind_broadcast(self, request: LineRequest) -> bool:
+        """True while a broadcast its master submitted before ``request`` waits (a request
+        from the lane must not pass it)."""
+        master = self._masters.get(request.master)
+        return master is not None and any(
+            queued.broadcast and queued.order < request.order for queued in master.queue
+        )
 
     def _held_by_joined(self, master: Hashable, write: LineRequest) -> bool:
         """True while a read ``master`` sent before ``write`` waits inside another master's
@@ -796,7 +849,7 @@ class LineCore:
         best: LineRequest | None = None
         for request in self._lane.values():
             record = self._slaves[request.slave]
-            if self._guarded(record, request, now):
+            if self._guarded(record, request, now) or self._behind_broadcast(request):
                 continue
             if best is None or request.enqueued_at < best.enqueued_at:
                 best = request
@@ -1036,7 +1089,12 @@ class LineCore:
         master = self._masters.get(request.master)
         if master is None:
             master = self._masters[request.master] = _Master(request.master)
-        master.queue.appendleft(request)
+        # Back from the lane: first, but behind its master's earlier broadcasts.
+        place = 0
+        for index, queued in enumerate(master.queue):
+            if queued.broadcast and queued.order < request.order:
+                place = index + 1
+        master.queue.insert(place, request)
         master.queued += 1
         self._queued += 1
         self.stats.queue_depth = self._queued

@@ -327,8 +327,10 @@ class PipelinedLineCore(LineCore):
         held: set[int] | None = None
         for request in master.queue:
             if request.broadcast:
-                if held or self._in_flight:
-                    self._draining = not held
+                if held or self._broadcast_held(master.key, request):
+                    return None  # its master's earlier requests go first
+                if self._in_flight:
+                    self._draining = True
                     return None
                 return request
             slave = request.slave
@@ -345,15 +347,8 @@ class PipelinedLineCore(LineCore):
         """The oldest lane request that the ordering rule lets go, and that no broadcast
         of its master submitted before it still waits for."""
         best: LineRequest | None = None
-        masters = self._masters
         for request in self._lane.values():
-            if not self._may_go(request):
-                continue
-            master = masters.get(request.master)
-            if master is not None and any(
-                queued.broadcast and queued.enqueued_at <= request.enqueued_at
-                for queued in master.queue
-            ):
+            if not self._may_go(request) or self._behind_broadcast(request):
                 continue
             if best is None or request.enqueued_at < best.enqueued_at:
                 best = request
@@ -441,6 +436,17 @@ class PipelinedLineCore(LineCore):
 
     def _on_wire_for(self, master: Hashable) -> int:
         return sum(1 for flight in self._in_flight.values() if flight.request.master == master)
+
+    def _change_pending(self, master: Hashable, slave: int) -> bool:
+        """Also a change of ``master`` outstanding or due for a retry: another master's
+        read sent now could run before it."""
+        if any(
+            request.master == master and may_change(request, slave)
+            for request in [flight.request for flight in self._in_flight.values()]
+            + list(self._retries)
+        ):
+            return True
+        return super()._change_pending(master, slave)
 
     def _change_waits_for(self, slave: int) -> bool:
         """Also a write outstanding or due for a retry: it may run after this read's answer."""

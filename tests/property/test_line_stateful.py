@@ -30,7 +30,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from gateway.config import LineConfig
+from gateway.config import CacheRule, LineConfig
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
@@ -46,6 +46,10 @@ TIMEOUT = 0.1
 MASTERS = ("a", "b", "c")
 SLAVES = (1, 2, 3, 4)
 PER_MASTER = 6
+#: The slaves answer at most 4 x TIMEOUT late (``behave``), and an attempt may fail early
+#: (noise, garbage): the late-answer window covers them from the failure on. A slave later
+#: than its window is outside what the line promises (the README's residual risk).
+LATE_WINDOW = 5 * TIMEOUT
 
 
 @dataclass
@@ -65,6 +69,7 @@ class Sent:
 
     request: LineRequest
     at: float
+    event: int  # its place in the order of everything the core did (``LineMachine.events``)
 
 
 @dataclass(order=True)
@@ -84,7 +89,8 @@ class LineMachine(RuleBasedStateMachine):
         self.config = LineConfig(
             name="p", device="/dev/null", baudrate=BAUD, timeout=TIMEOUT, retries=1,
             max_queue_per_master=PER_MASTER, max_queue=12, dead_after=3, probe_interval=0.3,
-            probe_max_interval=0.6, noisy_after=0.5, **self.line_settings,  # type: ignore[arg-type]
+            probe_max_interval=0.6, noisy_after=0.5, late_answer_window=LATE_WINDOW,
+            **self.line_settings,  # type: ignore[arg-type]
         )  # fmt: skip
         self.char = character_time(
             BAUD, self.config.data_bits, self.config.parity, self.config.stop_bits
@@ -105,15 +111,38 @@ class LineMachine(RuleBasedStateMachine):
         self.turnaround_until = 0.0
         self.problems: list[str] = []
         self.heard_back: set[int] = set()  # id(request) of requests whose slave's answer came
+        # For the ordering invariants: every frame sent and every answer delivered is one
+        # event, numbered in the order the core produced them.
+        self.events = 0
+        self.order: dict[int, int] = {}  # id(request) -> its index in ``requests``
+        self.sent_at: dict[int, list[int]] = {}  # id(request) -> events of its frames
+        self.done_at: dict[int, int] = {}  # id(request) -> event of its answer
+        self.leader_of: dict[int, LineRequest] = {}  # id(read) -> the queued read it joined
 
     # -- the core's actions ------------------------------------------------------------
 
     def pump(self) -> None:
+        """Execute the core's actions in the order it took them.
+
+        Within one call the core first answers what that call ended (an answer, a
+        timeout, a refusal) and then sends; only a broadcast is answered after its own
+        frame, once sent. The events are numbered in that order.
+        """
         core = self.core
-        for transmit in core.transmits:
+        transmits, core.transmits = core.transmits, []
+        deliveries, core.deliveries = core.deliveries, []
+        broadcasts = {id(t.request) for t in transmits if t.request.broadcast}
+        for delivery in deliveries:
+            if id(delivery.request) not in broadcasts:
+                self.check_answer(delivery.request, delivery.pdu, delivery.outcome)
+        for transmit in transmits:
             self.check_quiet(transmit.frame)
             request = transmit.request
             self.transmissions[id(request)] = self.transmissions.get(id(request), 0) + 1
+            self.events += 1
+            self.sent_at.setdefault(id(request), []).append(self.events)
+            if self.changes(request):
+                self.check_write_after_reads(request)
             end = self.now + len(transmit.frame) * self.char
             self.last_tx_end = end
             if self.config.echo:  # the adapter hears the whole frame as it goes out
@@ -124,10 +153,9 @@ class LineMachine(RuleBasedStateMachine):
                 self.turnaround_until = end + self.config.broadcast_turnaround
             else:
                 self.slave_hears(request, end)
-        core.transmits.clear()
-        for delivery in core.deliveries:
-            self.check_answer(delivery.request, delivery.pdu, delivery.outcome)
-        core.deliveries.clear()
+        for delivery in deliveries:
+            if id(delivery.request) in broadcasts:
+                self.check_answer(delivery.request, delivery.pdu, delivery.outcome)
         core.notes.clear()
 
     def check_quiet(self, frame: bytes) -> None:
@@ -143,7 +171,7 @@ class LineMachine(RuleBasedStateMachine):
             return
         nonce = self.next_nonce
         self.next_nonce += 1
-        self.nonces[nonce] = Sent(request, self.now)
+        self.nonces[nonce] = Sent(request, self.now, self.events)
         function = request.pdu[0]
         if function in (fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS):
             quantity = (request.pdu[3] << 8) | request.pdu[4]
@@ -177,11 +205,13 @@ class LineMachine(RuleBasedStateMachine):
     def check_answer(self, request: LineRequest, pdu: bytes, outcome: str) -> None:
         key = id(request)
         self.answers[key] = self.answers.get(key, 0) + 1
+        self.events += 1
+        self.done_at.setdefault(key, self.events)
         if self.answers[key] > 1:
             self.problems.append(f"request {request.pdu.hex()} answered twice")
         if outcome == Outcome.OK and request.pdu[0] == 6 and id(request) not in self.heard_back:
             self.problems.append(f"write {request.pdu.hex()} answered before its slave did")
-        if outcome != Outcome.OK or request.pdu[0] not in (3, 4):
+        if outcome not in (Outcome.OK, Outcome.CACHED) or request.pdu[0] not in (3, 4):
             return
         nonce = struct.unpack(">H", pdu[2:4])[0]
         sent = self.nonces.get(nonce)
@@ -192,13 +222,108 @@ class LineMachine(RuleBasedStateMachine):
         if answered is not request and (
             answered.pdu != request.pdu
             or answered.slave != request.slave
-            or sent.at < request.enqueued_at
+            or (outcome == Outcome.OK and sent.at < request.enqueued_at)
         ):
             self.problems.append(
                 f"answer to {answered.slave}:{answered.pdu.hex()} (sent {sent.at:.4f}) "
                 f"delivered to {request.slave}:{request.pdu.hex()} "
                 f"(submitted {request.enqueued_at:.4f})"
             )
+            return
+        self.check_read_order(request, sent, outcome == Outcome.CACHED)
+
+    # -- ordering ------------------------------------------------------------------------
+
+    @staticmethod
+    def changes(request: LineRequest, slave: int | None = None) -> bool:
+        """True when ``request`` may change what ``slave`` holds (any slave when None):
+        a write or user-defined code sent to it, or a broadcast."""
+        if request.broadcast:
+            return True
+        return request.pdu[0] not in (3, 4) and slave in (None, request.slave)
+
+    def describe(self, request: LineRequest) -> str:
+        return (
+            f"#{self.order.get(id(request))} {request.master}:{request.slave}:{request.pdu.hex()}"
+        )
+
+    def check_read_order(self, read: LineRequest, sent: Sent, cached: bool) -> None:
+        """A read's answer, named by its nonce, against the changes around the read.
+
+        The transmission ``sent`` answered ``read``: its own, that of the queued read it
+        joined (the *leader*), or, ``cached``, the one whose answer the cache kept. Each
+        change to the read's slave that must come before the read must have ended (been
+        answered) before that transmission went on the wire, or have ended without a
+        frame of its own (refused, isolated, ...):
+        1. read after write: the read's own master's changes submitted before it;
+        3. coalescing never crosses a change: every change submitted between the leader
+           and the read that joined it;
+        4. the cache never answers with a value older than a change submitted before
+           the read, by any master.
+        And 2. none of the read's master's changes submitted after it was sent before
+        the transmission that answered it.
+        """
+        index = self.order[id(read)]
+        slave = read.slave
+        carrier = sent.request
+        joined_after = self.order[id(carrier)] if carrier is not read and not cached else index
+        for change in self.requests[:index]:
+            if not self.changes(change, slave):
+                continue
+            if cached:
+                rule = "4 (cache)"
+            elif change.master == read.master:
+                rule = "1 (read after write)"
+            elif self.order[id(change)] > joined_after:
+                rule = "3 (coalescing)"
+            else:
+                continue
+            done = self.done_at.get(id(change))
+            if done is None:
+                self.problems.append(
+                    f"rule {rule}: {self.describe(read)} answered from the frame of "
+                    f"{self.describe(carrier)} while {self.describe(change)} still waits"
+                )
+            elif id(change) in self.sent_at and done > sent.event:
+                self.problems.append(
+                    f"rule {rule}: {self.describe(read)} answered from the frame of "
+                    f"{self.describe(carrier)} (event {sent.event}), sent before "
+                    f"{self.describe(change)} ended (event {done})"
+                )
+        for change in self.requests[index + 1 :]:
+            frames = self.sent_at.get(id(change))
+            if (
+                frames
+                and change.master == read.master
+                and self.changes(change, slave)
+                and frames[0] < sent.event
+            ):
+                self.problems.append(
+                    f"rule 2 (write after read): {self.describe(change)} went on the wire "
+                    f"(event {frames[0]}) before the frame that answered the earlier "
+                    f"{self.describe(read)} (event {sent.event})"
+                )
+
+    def check_write_after_reads(self, change: LineRequest) -> None:
+        """2. A change goes on the wire only after its master's earlier reads to that
+        slave (every slave, for a broadcast) went: their own frames, or that of the
+        queued read they joined; or they were answered without one."""
+        index = self.order[id(change)]
+        for read in self.requests[:index]:
+            if (
+                read.master != change.master
+                or read.pdu[0] not in (3, 4)
+                or not (change.broadcast or read.slave == change.slave)
+                or id(read) in self.done_at
+            ):
+                continue
+            carrier = self.leader_of.get(id(read), read)
+            if id(carrier) not in self.sent_at:
+                self.problems.append(
+                    f"rule 2 (write after read): {self.describe(change)} sent before the "
+                    f"earlier {self.describe(read)}"
+                    + (f" (joined {self.describe(carrier)})" if carrier is not read else "")
+                )
 
     # -- time ----------------------------------------------------------------------------
 
@@ -245,17 +370,31 @@ class LineMachine(RuleBasedStateMachine):
             pdu = struct.pack(">BHH", 6, address, quantity)
         else:
             pdu = bytes((0x41, address))
-        request = LineRequest(slave, pdu, master, lambda answer, outcome: None)
+        self.put(LineRequest(slave, pdu, master, lambda answer, outcome: None))
+
+    def put(self, request: LineRequest) -> None:
+        """Submit ``request``, noting the queued read it joined if it joined one."""
+        self.order[id(request)] = len(self.requests)
         self.requests.append(request)
         self.core.submit(request, self.now)
+        if request.pdu[0] in (3, 4) and not request.answered:
+            for leader in self.requests:
+                if request in leader.followers:
+                    self.leader_of[id(request)] = leader
+                    break
         self.pump()
+
+    @precondition(lambda self: bool(self.requests))
+    @rule(master=st.sampled_from(MASTERS), index=st.integers(0, 60))
+    def again(self, master: str, index: int) -> None:
+        """A read identical to an earlier one (joins a queued one, or finds it cached)."""
+        earlier = self.requests[-1 - index % len(self.requests)]
+        if earlier.pdu[0] in (3, 4):
+            self.put(LineRequest(earlier.slave, earlier.pdu, master, lambda a, o: None))
 
     @rule(master=st.sampled_from(MASTERS))
     def broadcast(self, master: str) -> None:
-        request = LineRequest(0, bytes.fromhex("0600010001"), master, lambda a, o: None, True)
-        self.requests.append(request)
-        self.core.submit(request, self.now)
-        self.pump()
+        self.put(LineRequest(0, bytes.fromhex("0600010001"), master, lambda a, o: None, True))
 
     @rule(step=st.sampled_from((0.0005, 0.002, 0.01, 0.05, 0.15, 0.4)))
     def wait(self, step: float) -> None:
@@ -455,7 +594,7 @@ class PipelinedLineMachine(LineMachine):
         tid = (self.frame_heard[0] << 8) | self.frame_heard[1]
         nonce = self.next_nonce
         self.next_nonce += 1
-        self.nonces[nonce] = Sent(request, self.now)
+        self.nonces[nonce] = Sent(request, self.now, self.events)
         function = request.pdu[0]
         if function in (fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS):
             quantity = (request.pdu[3] << 8) | request.pdu[4]
@@ -518,3 +657,26 @@ class PipelinedLineMachine(LineMachine):
 
 PipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestPipelinedLineCore = PipelinedLineMachine.TestCase
+
+#: A read cache over every register the machines read, on every slave.
+CACHE = tuple(CacheRule(unit, function, 0, 8, 0.3) for unit in SLAVES for function in (3, 4))
+
+
+class CachedLineMachine(LineMachine):
+    """The RTU machine with a read cache (``max_age`` 0.3 s) over every register it reads."""
+
+    line_settings = {"cache": CACHE}  # noqa: RUF012
+
+
+CachedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestCachedLineCore = CachedLineMachine.TestCase
+
+
+class CachedPipelinedLineMachine(PipelinedLineMachine):
+    """The pipelined machine with the same read cache: answers overtake each other."""
+
+    line_settings = {**PipelinedLineMachine.line_settings, "cache": CACHE}  # noqa: RUF012
+
+
+CachedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestCachedPipelinedLineCore = CachedPipelinedLineMachine.TestCase

@@ -53,7 +53,7 @@ class Line:
         def reply(answer: bytes, outcome: str) -> None:
             self.answers.setdefault(index, []).append((answer, outcome))
 
-        request = LineRequest(slave, pdu, master, reply)
+        request = LineRequest(slave, pdu, master, reply, broadcast=slave == 0)
         self.requests.append(request)
         self.core.submit(request, now)
         self.flush()
@@ -562,6 +562,120 @@ def test_a_masters_write_does_not_overtake_its_read_waiting_in_another_masters()
     assert line.answer_of(joined)[1] == Outcome.OK
     line.timer()
     assert line.sent() == [encode_rtu(1, write)]
+
+
+def test_a_masters_read_does_not_join_another_masters_while_its_own_write_waits() -> None:
+    """Fair order may send b's read before a's earlier write: a's read after its write must
+    not share b's transaction, or its answer would predate its own write."""
+    write = bytes.fromhex("0600640001")
+    line = Line()
+    line.submit(1, read(50), 0.0, master="a")  # a has used the line: b is due first
+    line.sent()
+    line.receive(registers_answer(1, read(50), 50), 0.01)
+    line.submit(2, read(60), 0.02, master="x")  # on the wire
+    assert line.sent() == [encode_rtu(2, read(60))]
+    line.submit(1, write, 0.021, master="a")
+    shared = line.submit(1, read(100), 0.022, master="b")
+    mine = line.submit(1, read(100), 0.023, master="a")
+    assert shared.followers == []
+    line.receive(registers_answer(2, read(60), 60), 0.03)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100))]  # b's read, alone
+    line.receive(registers_answer(1, read(100), 7), 0.05)
+    assert line.answer_of(shared)[1] == Outcome.OK
+    assert line.requests.index(mine) not in line.answers
+    line.timer()
+    assert line.sent() == [encode_rtu(1, write)]
+    line.receive(encode_rtu(1, write), 0.07)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100))]  # a's read, after its write
+    line.receive(registers_answer(1, read(100), 8), 0.09)
+    assert line.answer_of(mine) == (registers_answer(1, read(100), 8)[1:-2], Outcome.OK)
+
+
+def test_a_masters_broadcast_does_not_overtake_its_read_waiting_in_another_masters() -> None:
+    broadcast = bytes.fromhex("0600010001")
+    line = Line()
+    line.submit(1, read(50), 0.0, master="b")  # b has used the line: a is due first
+    line.sent()
+    line.receive(registers_answer(1, read(50), 50), 0.01)
+    line.submit(2, read(60), 0.02, master="x")  # on the wire
+    assert line.sent() == [encode_rtu(2, read(60))]
+    shared = line.submit(1, read(100), 0.021, master="b")
+    joined = line.submit(1, read(100), 0.022, master="a")
+    assert shared.followers == [joined]
+    line.submit(0, broadcast, 0.023, master="a")
+    line.receive(registers_answer(2, read(60), 60), 0.03)
+    line.timer()
+    assert line.sent() == [encode_rtu(1, read(100))]  # the shared read, then a's broadcast
+    line.receive(registers_answer(1, read(100), 7), 0.05)
+    assert line.answer_of(joined)[1] == Outcome.OK
+    line.timer()
+    assert line.sent() == [encode_rtu(0, broadcast)]
+
+
+def suspect_slave_9(line: Line) -> float:
+    """Slave 9 misses one answer (no retry): suspect, its late-answer window open."""
+    line.submit(9, read(0), 0.0, master="x")
+    assert line.sent() == [encode_rtu(9, read(0))]
+    now = line.timer()
+    assert line.core.slave_state(9) is SlaveState.SUSPECT
+    return now
+
+
+def test_a_masters_broadcast_waits_for_its_earlier_read_in_the_isolated_lane() -> None:
+    broadcast = bytes.fromhex("0600010001")
+    line = Line(timeout=0.1, retries=0)
+    suspect_slave_9(line)
+    line.submit(2, read(60), 0.2, master="y")  # on the wire
+    line.sent()
+    lane = line.submit(9, read(1, 3), 0.201, master="a")  # waits in the lane
+    line.submit(0, broadcast, 0.202, master="a")
+    line.receive(registers_answer(2, read(60), 60), 0.21)
+    line.timer()
+    assert line.sent() == [encode_rtu(9, read(1, 3))]  # a's read, then its broadcast
+    line.receive(registers_answer(9, read(1, 3), 1), 0.23)
+    assert line.answer_of(lane)[1] == Outcome.OK
+    line.timer()
+    assert line.sent() == [encode_rtu(0, broadcast)]
+
+
+def test_a_read_in_the_isolated_lane_waits_for_its_masters_earlier_broadcast() -> None:
+    broadcast = bytes.fromhex("0600010001")
+    line = Line(timeout=0.1, retries=0, broadcast_turnaround=0.01)
+    suspect_slave_9(line)
+    line.submit(2, read(60), 5.0, master="y")  # on the wire; the isolated share has recovered
+    line.sent()
+    line.submit(0, broadcast, 5.001, master="a")
+    lane = line.submit(9, read(1, 3), 5.002, master="a")  # waits in the lane
+    line.receive(registers_answer(2, read(60), 60), 5.01)
+    line.timer(5.02)  # (the window's stale deadline would come first)
+    assert line.sent() == [encode_rtu(0, broadcast)]  # a's broadcast, then its read
+    line.timer()
+    assert line.sent() == [encode_rtu(9, read(1, 3))]
+    line.receive(registers_answer(9, read(1, 3), 1), 5.1)
+    assert line.answer_of(lane)[1] == Outcome.OK
+
+
+def test_a_read_back_from_the_lane_stays_behind_its_masters_earlier_broadcast() -> None:
+    """The slave's lost answer arrives: it is alive, and the lane's request rejoins its
+    master's queue, first, but not before that master's broadcast submitted before it."""
+    broadcast = bytes.fromhex("0600010001")
+    line = Line(timeout=0.1, retries=0)
+    suspect_slave_9(line)
+    line.submit(2, read(60), 0.2, master="y")  # on the wire
+    line.sent()
+    line.submit(0, broadcast, 0.201, master="a")
+    lane = line.submit(9, read(1, 3), 0.202, master="a")  # waits in the lane
+    line.receive(registers_answer(2, read(60), 60), 0.21)
+    line.receive(registers_answer(9, read(0), 0), 0.211)  # x's lost answer: 9 is up again
+    assert line.core.slave_state(9) is SlaveState.UP
+    line.timer()
+    assert line.sent() == [encode_rtu(0, broadcast)]
+    line.timer()
+    assert line.sent() == [encode_rtu(9, read(1, 3))]
+    line.receive(registers_answer(9, read(1, 3), 1), 0.3)
+    assert line.answer_of(lane)[1] == Outcome.OK
 
 
 def test_the_cache_answers_within_max_age_and_a_write_empties_it() -> None:

@@ -452,3 +452,22 @@ def test_changing_max_in_flight_on_reload_reconnects_the_line() -> None:
     line = LineConfig(name="t", device="h:502", kind="tcp")
     assert _port_changed(line, replace(line, max_in_flight=4))
     assert not _port_changed(line, replace(line, timeout=2.0))
+
+
+def test_a_masters_read_does_not_join_another_masters_while_its_own_write_is_outstanding() -> None:
+    """b's read may go while a's write is still outstanding (it holds only a's requests):
+    a's read after its write must not share it, or its answer could predate the write."""
+    line = Line(max_in_flight=2)
+    line.submit(2, read(60), 0.0, master="x")
+    line.submit(1, write(0, 3), 0.0, master="a")
+    assert line.sent() == [1, 2]
+    shared = line.submit(1, read(0), 0.001, master="b")  # waits for a free slot
+    mine = line.submit(1, read(0), 0.002, master="a")
+    assert shared.followers == []
+    line.answer(1, 0.01)
+    assert line.sent() == [3]  # b's read, while a's write is outstanding
+    line.answer(2, 0.02)  # the write is done: now a's read goes
+    assert line.sent() == [4]
+    assert line.wire[4] == (1, read(0))
+    line.answer(4, 0.03, value=3)
+    assert line.answer_of(mine) == (answer_to(read(0), 3), Outcome.OK)
