@@ -385,12 +385,24 @@ class LineMachine(RuleBasedStateMachine):
         self.pump()
 
     @precondition(lambda self: bool(self.requests))
-    @rule(master=st.sampled_from(MASTERS), index=st.integers(0, 60))
+    @rule(master=st.sampled_from(MASTERS), index=st.integers(0, 7))
     def again(self, master: str, index: int) -> None:
         """A read identical to an earlier one (joins a queued one, or finds it cached)."""
         earlier = self.requests[-1 - index % len(self.requests)]
         if earlier.pdu[0] in (3, 4):
             self.put(LineRequest(earlier.slave, earlier.pdu, master, lambda a, o: None))
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        other=st.sampled_from(MASTERS),
+        slave=st.sampled_from(SLAVES),
+        address=st.integers(0, 3),
+    )
+    def write_then_read_back(self, master: str, other: str, slave: int, address: int) -> None:
+        """A master writes and reads back while another master reads the same register."""
+        self.submit(master, slave, "write", address, 1)
+        self.submit(other, slave, "read", address, 1)
+        self.submit(master, slave, "read", address, 1)
 
     @rule(master=st.sampled_from(MASTERS))
     def broadcast(self, master: str) -> None:
