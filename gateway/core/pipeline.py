@@ -34,7 +34,8 @@ What changes with pipelining:
   difference when the answer comes: one master's deep pipeline does not take every
   slot while others wait.
 * **Cache.** A read's answer is cached only if no write to its slave was submitted
-  after it was sent (answers may overtake each other).
+  after it was sent, nor was outstanding when it was sent (answers may overtake each
+  other, and a device may run the write after the read).
 
 The serial core is untouched: a line with ``max_in_flight = 1`` (the default) uses
 ``LineCore`` itself (``new_line_core``).
@@ -380,6 +381,11 @@ class PipelinedLineCore(LineCore):
             if master.queue and master.heap_seq < 0:
                 self._push_master(master)
         transmit_time = len(frame) * self._char_time
+        epoch = self._write_epoch.get(slave, 0) + self._broadcast_epoch
+        if self.policy.cache and any(
+            may_change(f.request, slave) for f in self._in_flight.values()
+        ):
+            epoch = -1  # a change to it is outstanding: the device may run it after this read
         self._in_flight[tid] = _Flight(
             request,
             self._new_decoder(slave, pdu),
@@ -387,7 +393,7 @@ class PipelinedLineCore(LineCore):
             now + transmit_time + self.policy.timeout_for(slave),
             from_credit,
             tid=tid,
-            epoch=self._write_epoch.get(slave, 0) + self._broadcast_epoch,
+            epoch=epoch,
             charged=charged,
         )
         stats = self.stats

@@ -78,6 +78,7 @@ class Emission:
     seq: int
     data: bytes = field(compare=False)
     answers: LineRequest | None = field(default=None, compare=False)  # None: not a slave's
+    echo: bool = field(default=False, compare=False)  # the adapter hearing our own frame
 
 
 class LineMachine(RuleBasedStateMachine):
@@ -147,7 +148,7 @@ class LineMachine(RuleBasedStateMachine):
             self.last_tx_end = end
             if self.config.echo:  # the adapter hears the whole frame as it goes out
                 self.seq += 1
-                self.emissions.append(Emission(end, self.seq, transmit.frame))
+                self.emissions.append(Emission(end, self.seq, transmit.frame, echo=True))
                 self.emissions.sort()
             if request.broadcast:
                 self.turnaround_until = end + self.config.broadcast_turnaround
@@ -442,6 +443,8 @@ class LineMachine(RuleBasedStateMachine):
     @precondition(lambda self: self.core.up)
     @rule()
     def lose_port(self) -> None:
+        # The echo of a frame comes back as it goes out: none survives the port it went on.
+        self.emissions = [emission for emission in self.emissions if not emission.echo]
         self.core.port_lost(self.now)
         self.pump()
         self.core.port_opened(self.now)

@@ -471,3 +471,20 @@ def test_a_masters_read_does_not_join_another_masters_while_its_own_write_is_out
     assert line.wire[4] == (1, read(0))
     line.answer(4, 0.03, value=3)
     assert line.answer_of(mine) == (answer_to(read(0), 3), Outcome.OK)
+
+
+def test_a_read_sent_while_a_write_is_outstanding_is_not_cached() -> None:
+    """The write is answered first, but the device may have run the read before it: the
+    read's value may be the one before the write, and must not answer later reads."""
+    rule = build_config(
+        {"lines": {"t": {"kind": "tcp", "address": "h:502", "units": [1],
+                         "cache": [{"unit": 1, "count": 10, "max_age": 10}]}}}
+    ).line("t").cache  # fmt: skip
+    line = Line(cache=rule)
+    line.submit(1, write(0, 3), 0.0, master="a")
+    line.submit(1, read(0), 0.0, master="b")
+    assert line.sent() == [1, 2]
+    line.answer(1, 0.01)  # the write's answer first
+    line.answer(2, 0.02, value=0)
+    line.submit(1, read(0), 0.03, master="a")
+    assert line.sent() == [3]  # not served from the cache
