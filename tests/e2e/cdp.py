@@ -99,7 +99,7 @@ class WebSocket:
 class Browser:
     """Headless Chromium with one page under DevTools control."""
 
-    def __init__(self, executable: str, deadline: float = 20.0) -> None:
+    def __init__(self, executable: str, deadline: float = 60.0) -> None:
         self.deadline = deadline
         self.profile = tempfile.TemporaryDirectory(prefix="chromium-profile-")
         self.process = subprocess.Popen(

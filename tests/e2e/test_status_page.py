@@ -24,7 +24,9 @@ def test_the_status_page_in_chromium(gateway_with: GatewayOnSim, tmp_path: Path)
     sim, gw = gateway_with(
         {1: plc(1), 2: zl69x(2)},
         line={
-            "timeout": 0.05,
+            # Slave 1 must stay "up" on one answer: a timeout far above what a busy machine
+            # delays the simulator by (only slave 2's two timeouts wait it out).
+            "timeout": 1.0,
             "retries": 0,
             "dead_after": 2,
             "probe_interval": 60,

@@ -661,7 +661,21 @@ def test_an_answer_right_behind_noise_is_taken_without_a_retry(
 def test_foreign_or_garbled_frames_never_become_wrong_data(
     gateway_with: GatewayOnSim, fault: dict[str, object]
 ) -> None:
-    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line={"timeout": 0.2, "retries": 1})
+    # A frame from another unit is discarded and the wait goes on; after a garbled frame
+    # the gateway listens on for the answer behind it: there, every answer must arrive.
+    every_answer = "wrong_unit_reply" in fault or fault.get("garbage_before_reply") == h(
+        "02 03 02 0000 0000"
+    )
+    line: dict[str, object] = {"timeout": 0.2, "retries": 1}
+    if every_answer:
+        # The simulator leaves t3.5 (1.75 ms) between the garbage and the answer; the
+        # gateway listens on for 2 x ``silence`` after a garbled frame. With the default
+        # silence (t3.5) the margin is below what a busy machine delays the simulator's
+        # thread by, and the retry then goes out while the answer is still pending (a
+        # collision). A 50 ms silence and a 1 s timeout keep every wait far above
+        # scheduling delays; the 2 x t3.5 rule itself is a unit test with literal times.
+        line.update(timeout=1.0, silence=0.05)
+    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line=line)
     for key, value in fault.items():
         setattr(sim.faults(1), key, value)
     outcomes = []
@@ -673,9 +687,7 @@ def test_foreign_or_garbled_frames_never_become_wrong_data(
             outcomes.append(reply[0])
         # Unit 2, on the same line, still gets its own answers.
         assert client.request(2, read_pdu(3, 1000, 1)) == h("03 02 03E8")
-    if "wrong_unit_reply" in fault or fault.get("garbage_before_reply") == h("02 03 02 0000 0000"):
-        # A frame from another unit is discarded and the wait goes on; after a garbled
-        # frame the gateway listens on for the answer behind it: every answer arrives.
+    if every_answer:
         assert outcomes == [0x03] * 6
     assert sim.stats().collisions == 0
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import select
 import socket
 import struct
@@ -24,6 +25,7 @@ from contextlib import contextmanager, suppress
 import pytest
 from conftest import (
     DEADLINE_S,
+    ConnectionClosedError,
     GatewayFactory,
     GatewayOnSim,
     LogCollector,
@@ -41,6 +43,11 @@ READ_1 = bytes.fromhex("03 0000 0001")
 ATTACK_S = 2.0
 #: The honest master's bound: every poll answered within this, whatever the attacker does.
 HONEST_BOUND_S = 0.5
+#: The line under the honest master: the simulated slave is a thread of this process, which
+#: a busy machine (and the attackers' own threads) can delay past the default timeout
+#: (~0.12 s at the test line's rate); a 0x0B then says nothing about the gateway. What the
+#: gateway owes the honest master is bounded by ``HONEST_BOUND_S`` instead.
+HONEST_LINE = {"timeout": 2.0}
 ATTACKER = "127.0.0.2"
 OTHER_HONEST = "127.0.0.3"
 MINIMUM_POLLS = 10
@@ -118,7 +125,7 @@ def closed_reason(gw: RunningGateway, reason: str) -> float:
 def test_unread_flood_is_throttled_then_closed_and_the_honest_master_is_served(
     gateway_with: GatewayOnSim,
 ) -> None:
-    _sim, gw = gateway_with({1: plc(1)}, server={"send_timeout": 1.0})
+    _sim, gw = gateway_with({1: plc(1)}, line=HONEST_LINE, server={"send_timeout": 1.0})
     payload = flood_payload(99)
     attacker = connect_from(ATTACKER, gw.address)
     attacker.setblocking(False)
@@ -146,7 +153,7 @@ def test_unread_flood_is_throttled_then_closed_and_the_honest_master_is_served(
 def test_flood_that_reads_its_replies_does_not_starve_the_honest_master(
     gateway_with: GatewayOnSim,
 ) -> None:
-    _sim, gw = gateway_with({1: plc(1)})
+    _sim, gw = gateway_with({1: plc(1)}, line=HONEST_LINE)
     payload = flood_payload(99, 512) + mbap(1, 0, bytes((0x03, 0, 0, 0, 200)))  # + an invalid one
     attacker = connect_from(ATTACKER, gw.address)
     replies = 0
@@ -166,8 +173,11 @@ def test_flood_that_reads_its_replies_does_not_starve_the_honest_master(
     reader.start()
     try:
         with HonestMaster(gw) as honest:
-            for _ in until(ATTACK_S):
-                attacker.sendall(payload)
+            started = time.monotonic()
+            for _ in until(DEADLINE_S):  # ATTACK_S, longer only if the machine is too busy
+                attacker.sendall(payload)  # to serve the attacker its 1000 replies meanwhile
+                if time.monotonic() - started >= ATTACK_S and replies > 1000:
+                    break
         honest.check()
     finally:
         stop.set()
@@ -180,7 +190,7 @@ def test_flood_that_reads_its_replies_does_not_starve_the_honest_master(
 def test_connections_closed_for_bad_framing_release_their_unsent_replies(
     gateway_with: GatewayOnSim,
 ) -> None:
-    _sim, gw = gateway_with({1: plc(1)})
+    _sim, gw = gateway_with({1: plc(1)}, line=HONEST_LINE)
     # Requests answered locally, unread replies, then a header no Modbus peer sends.
     payload = flood_payload(99, 2000) + mbap(1, 1, READ_1, protocol_id=7)
     attackers = [connect_from(ATTACKER, gw.address) for _ in range(3)]
@@ -207,7 +217,9 @@ def test_connection_bursts_do_not_cost_honest_masters_their_service(
 ) -> None:
     limit = 20
     _sim, gw = gateway_with(
-        {1: plc(1)}, server={"max_connections": limit, "max_connections_per_source": 10}
+        {1: plc(1)},
+        line=HONEST_LINE,
+        server={"max_connections": limit, "max_connections_per_source": 10},
     )
     stop = threading.Event()
     per_poll_ok: list[bool] = []
@@ -244,15 +256,19 @@ def test_connection_bursts_do_not_cost_honest_masters_their_service(
     assert value(gw, refused) >= 80
 
 
-def closed_within(socks: list[socket.socket], expected: int, timeout: float) -> int:
-    """How many of ``socks`` the gateway closed, waiting until ``expected`` or ``timeout``."""
+def closed_within(socks: list[socket.socket], expected: int, hold: float) -> int:
+    """How many of ``socks`` the gateway closed, waiting (bounded) until ``expected`` are.
+
+    The rest are held open until ``hold`` seconds have passed: the burst's pressure. The
+    wait for the closes is not ``hold``: a busy machine may take longer to refuse them.
+    """
     closed: set[socket.socket] = set()
-    deadline = time.monotonic() + timeout
+    started = time.monotonic()
+    deadline = started + DEADLINE_S
     while len(closed) < expected and (left := deadline - time.monotonic()) > 0:
         readable, _, _ = select.select([s for s in socks if s not in closed], [], [], left)
         closed.update(s for s in readable if _wait_closed(s, 0.0))
-    if len(closed) >= expected:  # the burst is held until the 0.5 s are over
-        select.select([], [], [], max(0.0, deadline - time.monotonic()))
+    select.select([], [], [], max(0.0, started + hold - time.monotonic()))  # the hold
     return len(closed)
 
 
@@ -285,10 +301,16 @@ def test_eviction_takes_only_masters_idle_long_enough_and_never_busy_ones(
         admitted_at = None
         for _ in until(DEADLINE_S):
             with gw.connect() as newcomer:
-                if not newcomer.is_closed_by_peer(0.05):
-                    admitted_at = time.monotonic()
-                    assert newcomer.request(1, READ_1)[0] == 0x03
-                    break
+                # Admitted or refused is told by what comes back (a reply, or the close),
+                # never by how soon: a busy machine may take long to refuse.
+                try:
+                    tid = newcomer.send(1, READ_1)
+                    reply = newcomer.receive(timeout=DEADLINE_S)
+                except (ConnectionClosedError, ConnectionError):
+                    continue  # refused: idle has not been idle long enough yet
+                admitted_at = time.monotonic()
+                assert (reply.transaction_id, reply.pdu[0]) == (tid, 0x03)
+                break
         assert admitted_at is not None and admitted_at - became_idle >= 0.3
         assert idle.is_closed_by_peer(DEADLINE_S)  # the idle one made room
         reply = busy.receive(timeout=DEADLINE_S)  # the busy one kept its connection
@@ -334,7 +356,9 @@ def collected_logs(level: int) -> Iterator[LogCollector]:
 
 def test_one_client_cannot_flood_the_log(gateway_with: GatewayOnSim) -> None:
     _sim, gw = gateway_with(
-        {1: plc(1)}, server={"max_connections": 10, "max_connections_per_source": 5}
+        {1: plc(1)},
+        line=HONEST_LINE,
+        server={"max_connections": 10, "max_connections_per_source": 5},
     )
     attacks: list[Callable[[], None]] = []
 
@@ -363,7 +387,9 @@ def test_one_client_cannot_flood_the_log(gateway_with: GatewayOnSim) -> None:
             held = [connect_from(ATTACKER, gw.address) for _ in range(8)]  # past both limits
             for sock in held:
                 sock.close()
-        wait_until(lambda: gw.call(lambda: _open_connections(gw)) == 1, "attackers gone")
+        # (An honest master that failed has left too: its error is what check() reports.)
+        wait_until(lambda: gw.call(lambda: _open_connections(gw)) == 1 or bool(honest.errors),
+                   "attackers gone")  # fmt: skip
     honest.check()
     assert count >= 30
     loud = [r for r in logs.records if r.levelno >= logging.INFO and r.name == "gateway.tcp"]
@@ -383,15 +409,29 @@ def test_connection_events_are_summarised_once_per_interval(gateway_with: Gatewa
     _sim, gw = gateway_with({1: plc(1)})
     server = gw.gateway.server
     assert server is not None
-    gw.call(lambda: setattr(server.events, "interval", 0.3))
+    interval = 0.3
+    gw.call(lambda: setattr(server.events, "interval", interval))
+
+    def summaries() -> list[str]:
+        return [m for m in logs.messages if "connections in the last" in m]
+
+    def opened() -> int:
+        found = (re.search(r"(\d+) opened", summary) for summary in summaries())
+        return sum(int(match[1]) for match in found if match)
+
     with collected_logs(logging.INFO) as logs:
+        started = time.monotonic()
         for _ in range(20):
             with connect_from(ATTACKER, gw.address) as sock:
                 sock.sendall(mbap(1, 1, READ_1))
                 sock.recv(64)
-        wait_until(lambda: any("connections in the last" in m for m in logs.messages), "summary")
-    [summary] = [m for m in logs.messages if "connections in the last" in m]
-    assert "20 opened" in summary and "most from 127.0.0.2" in summary, summary
+        # One line per interval: the 20 connections take one interval on an idle machine,
+        # more when it is busy; every one is counted either way.
+        wait_until(lambda: opened() >= 20, "the summaries of 20 connections")
+        intervals = (time.monotonic() - started) / interval
+    assert opened() == 20, summaries()
+    assert len(summaries()) <= intervals + 1, summaries()
+    assert all("most from 127.0.0.2" in summary for summary in summaries()), summaries()
 
 
 # --------------------------------------------------------------------------- metrics
@@ -457,7 +497,9 @@ def test_idle_http_connections_cannot_lock_out_scrapes_or_masters(
 
 
 def test_a_noisy_line_is_live_and_ready(gateway_with: GatewayOnSim) -> None:
-    sim, gw = gateway_with({1: plc(1)}, line={"timeout": 0.05, "retries": 0})
+    # Every answer must come back (damaged) within the timeout, not after it: a timeout far
+    # above what a busy machine delays the simulator by (a damaged answer fails at once).
+    sim, gw = gateway_with({1: plc(1)}, line={"timeout": 1.0, "retries": 0})
     sim.faults(1).crc_error_rate = 1.0  # every answer garbled: the line is open, but noisy
     with gw.connect() as master:
         for _ in range(5):

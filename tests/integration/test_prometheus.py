@@ -36,7 +36,10 @@ PROMETHEUS_CONFIG = REPO / "conf" / "prometheus.yml"
 ALERT_RULES = REPO / "conf" / "rules" / "modbus-gateway.yml"
 DASHBOARD = REPO / "conf" / "grafana" / "dashboards" / "modbus-gateway.json"
 DOCS = REPO / "docs" / "metrics.md"
-QUERY_DEADLINE_S = 20.0
+#: Generous: Prometheus loads its targets every ~5 s, and a busy machine slows it further.
+QUERY_DEADLINE_S = 60.0
+#: How long the load's masters may take (400 reads; seconds when the machine is idle).
+LOAD_DEADLINE_S = 120.0
 READ_10 = bytes.fromhex("03 0000 000A")
 
 
@@ -214,7 +217,9 @@ def make_prometheus(prometheus_binary: str, tmp_path: Path) -> Iterator[Any]:
 def test_prometheus_scrapes_the_gateway_under_load(
     gateway_with: GatewayOnSim, make_prometheus: Any
 ) -> None:
-    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line={"timeout": 0.05, "retries": 1})
+    # Every read of unit 1 must be answered and unit 2 must time out exactly twice: a
+    # timeout far above what a busy machine delays the simulator by (only unit 2 waits it out).
+    sim, gw = gateway_with({1: plc(1), 2: plc(2)}, line={"timeout": 1.0, "retries": 1})
     with gw.connect() as master:  # unit 2 answers once: requests_total names it from now on
         assert master.request(2, READ_10)[0] == 0x03
     sim.faults(2).silent = True
@@ -241,9 +246,11 @@ def test_prometheus_scrapes_the_gateway_under_load(
     threads = [threading.Thread(target=load) for _ in range(masters)]
     for thread in threads:
         thread.start()
+    deadline = time.monotonic() + LOAD_DEADLINE_S
     for thread in threads:
-        thread.join(30)
+        thread.join(max(0.0, deadline - time.monotonic()))
     assert not errors, errors
+    assert not any(thread.is_alive() for thread in threads), "the load did not finish"
     total = masters * per_master
 
     ok = 'modbus_gateway_requests_total{line="a",unit="1",outcome="ok"}'
@@ -261,8 +268,8 @@ def test_prometheus_scrapes_the_gateway_under_load(
     # Identical reads of the masters may share one transaction (coalescing): fewer waits.
     [queue] = prometheus.query('modbus_gateway_queue_wait_seconds_count{line="a"}')
     assert 0 < float(queue["value"][1]) <= total + 1
-    up = prometheus.query('up{job="modbus-gateway"}')
-    assert [float(sample["value"][1]) for sample in up] == [1.0]
+    # The latest scrape succeeded (one scrape may time out while the machine is busy).
+    prometheus.wait_for('up{job="modbus-gateway"}', 1)
 
 
 # --------------------------------------------------------------------------- dashboard and docs

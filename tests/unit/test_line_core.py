@@ -222,6 +222,35 @@ def test_a_damaged_answer_is_retried_at_once_without_a_window() -> None:
     assert line.answer_of(request)[1] == Outcome.OK
 
 
+def test_after_a_garbled_frame_the_answer_behind_it_is_taken_within_twice_the_silence() -> None:
+    """A whole frame of another unit with a bad CRC may be noise in front of the answer."""
+    line = Line()
+    silence = line.config.silence
+    request = line.submit(1, read(100), 0.0)
+    line.sent()
+    line.receive(bytes.fromhex("02 03 02 0000 0000"), 0.010)  # bad CRC, not the answer's unit
+    assert line.core.get_timer() == pytest.approx(0.010 + 2 * silence)
+    line.receive(registers_answer(1, read(100), 100), 0.010 + 1.9 * silence)
+    assert line.answer_of(request)[1] == Outcome.OK
+    assert line.sent() == []  # taken without a retry
+
+
+def test_after_a_garbled_frame_and_twice_the_silence_of_quiet_the_request_is_retried() -> None:
+    line = Line()
+    silence = line.config.silence
+    line.submit(1, read(100), 0.0)
+    line.sent()
+    line.receive(bytes.fromhex("02 03 02 0000 0000"), 0.010)
+    line.timer(0.010 + 1.9 * silence)
+    assert line.sent() == []  # still listening for the answer behind the garbage
+    assert line.timer() == pytest.approx(0.010 + 2 * silence)  # quiet since the garbage
+    sent = line.sent()
+    if not sent:
+        line.timer()  # the frame gap, if any is left
+        sent = line.sent()
+    assert sent == [encode_rtu(1, read(100))]
+
+
 # --------------------------------------------------------------------------- late answers
 
 
