@@ -571,16 +571,23 @@ def test_identical_queued_reads_share_one_transaction_but_not_across_a_write() -
     assert after_write not in first.followers
 
 
+def busy_line_after(used: str) -> Line:
+    """A line where master ``used`` has had a transaction (so others are due before it) and
+    master x's read of slave 2 is on the wire until ``line.receive(... read(60) ...)``."""
+    line = Line()
+    line.submit(1, read(50), 0.0, master=used)
+    line.sent()
+    line.receive(registers_answer(1, read(50), 50), 0.01)
+    line.submit(2, read(60), 0.02, master="x")
+    assert line.sent() == [encode_rtu(2, read(60))]
+    return line
+
+
 def test_a_masters_write_does_not_overtake_its_read_waiting_in_another_masters() -> None:
     """Master a's read joined b's identical queued read; a's later write to that slave waits
     until the shared read has gone, though fair order would have sent a's write first."""
     write = bytes.fromhex("0600640001")
-    line = Line()
-    line.submit(1, read(50), 0.0, master="b")  # b has used the line: a is due first
-    line.sent()
-    line.receive(registers_answer(1, read(50), 50), 0.01)
-    line.submit(2, read(60), 0.02, master="x")  # on the wire
-    assert line.sent() == [encode_rtu(2, read(60))]
+    line = busy_line_after(used="b")  # a is due first
     line.submit(1, read(100), 0.021, master="b")
     joined = line.submit(1, read(100), 0.022, master="a")
     line.submit(1, write, 0.023, master="a")
@@ -597,12 +604,7 @@ def test_a_masters_read_does_not_join_another_masters_while_its_own_write_waits(
     """Fair order may send b's read before a's earlier write: a's read after its write must
     not share b's transaction, or its answer would predate its own write."""
     write = bytes.fromhex("0600640001")
-    line = Line()
-    line.submit(1, read(50), 0.0, master="a")  # a has used the line: b is due first
-    line.sent()
-    line.receive(registers_answer(1, read(50), 50), 0.01)
-    line.submit(2, read(60), 0.02, master="x")  # on the wire
-    assert line.sent() == [encode_rtu(2, read(60))]
+    line = busy_line_after(used="a")  # b is due first
     line.submit(1, write, 0.021, master="a")
     shared = line.submit(1, read(100), 0.022, master="b")
     mine = line.submit(1, read(100), 0.023, master="a")
@@ -624,12 +626,7 @@ def test_a_masters_read_does_not_join_another_masters_while_its_own_write_waits(
 
 def test_a_masters_broadcast_does_not_overtake_its_read_waiting_in_another_masters() -> None:
     broadcast = bytes.fromhex("0600010001")
-    line = Line()
-    line.submit(1, read(50), 0.0, master="b")  # b has used the line: a is due first
-    line.sent()
-    line.receive(registers_answer(1, read(50), 50), 0.01)
-    line.submit(2, read(60), 0.02, master="x")  # on the wire
-    assert line.sent() == [encode_rtu(2, read(60))]
+    line = busy_line_after(used="b")  # a is due first
     shared = line.submit(1, read(100), 0.021, master="b")
     joined = line.submit(1, read(100), 0.022, master="a")
     assert shared.followers == [joined]

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from gateway.cli import apply_overrides, build_parser
-from gateway.config import ConfigError, LineConfig, build_config
+from gateway.config import CacheRule, ConfigError, LineConfig, build_config
 from gateway.core.framing import is_mbap, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.mbap import encode_mbap
@@ -246,12 +246,16 @@ def test_identical_reads_still_share_one_transaction_while_they_wait() -> None:
     assert [line.answer_of(r) for r in shared] == [(answer_to(read(0), 4), Outcome.OK)] * 3
 
 
-def test_a_read_overtaken_by_a_write_is_not_cached() -> None:
-    rule = build_config(
+def cache_unit_1() -> tuple[CacheRule, ...]:
+    """The read-cache rules of a tcp line caching unit 1's registers 0-9 for 10 s."""
+    return build_config(
         {"lines": {"t": {"kind": "tcp", "address": "h:502", "units": [1],
                          "cache": [{"unit": 1, "count": 10, "max_age": 10}]}}}
     ).line("t").cache  # fmt: skip
-    line = Line(cache=rule)
+
+
+def test_a_read_overtaken_by_a_write_is_not_cached() -> None:
+    line = Line(cache=cache_unit_1())
     line.submit(1, read(0), 0.0, master="a")
     line.submit(1, write(0, 3), 0.0, master="b")
     assert line.sent() == [1, 2]
@@ -265,20 +269,24 @@ def test_a_read_overtaken_by_a_write_is_not_cached() -> None:
     assert line.answer_of(cached)[1] == Outcome.CACHED  # a read with no write after it is
 
 
-def test_a_read_answered_while_an_earlier_write_is_outstanding_is_not_cached() -> None:
-    """The write went first but is still unanswered: the device may run it after the read,
-    so the read's value may be the one before it."""
-    rule = build_config(
-        {"lines": {"t": {"kind": "tcp", "address": "h:502", "units": [1],
-                         "cache": [{"unit": 1, "count": 10, "max_age": 10}]}}}
-    ).line("t").cache  # fmt: skip
-    line = Line(cache=rule)
-    line.submit(1, write(0, 3), 0.0, master="b")
-    line.submit(1, read(0), 0.0, master="a")
+@pytest.mark.parametrize("write_answered_first", [False, True])
+def test_a_read_sent_while_a_write_is_outstanding_is_not_cached(
+    write_answered_first: bool,
+) -> None:
+    """The write went first but is still unanswered when the read goes: the device may run
+    the read before it, so the read's value may be the one before the write, whichever of
+    the two answers comes first, and must not answer later reads."""
+    line = Line(cache=cache_unit_1())
+    line.submit(1, write(0, 3), 0.0, master="a")
+    line.submit(1, read(0), 0.0, master="b")
     assert line.sent() == [1, 2]
-    line.answer(2, 0.01, value=0)  # the read, before the write's answer
-    line.answer(1, 0.02)
-    line.submit(1, read(0), 0.03, master="b")
+    if write_answered_first:
+        line.answer(1, 0.01)
+        line.answer(2, 0.02, value=0)
+    else:
+        line.answer(2, 0.01, value=0)
+        line.answer(1, 0.02)
+    line.submit(1, read(0), 0.03, master="a")
     assert line.sent() == [3]  # not served from the cache
 
 
@@ -471,20 +479,3 @@ def test_a_masters_read_does_not_join_another_masters_while_its_own_write_is_out
     assert line.wire[4] == (1, read(0))
     line.answer(4, 0.03, value=3)
     assert line.answer_of(mine) == (answer_to(read(0), 3), Outcome.OK)
-
-
-def test_a_read_sent_while_a_write_is_outstanding_is_not_cached() -> None:
-    """The write is answered first, but the device may have run the read before it: the
-    read's value may be the one before the write, and must not answer later reads."""
-    rule = build_config(
-        {"lines": {"t": {"kind": "tcp", "address": "h:502", "units": [1],
-                         "cache": [{"unit": 1, "count": 10, "max_age": 10}]}}}
-    ).line("t").cache  # fmt: skip
-    line = Line(cache=rule)
-    line.submit(1, write(0, 3), 0.0, master="a")
-    line.submit(1, read(0), 0.0, master="b")
-    assert line.sent() == [1, 2]
-    line.answer(1, 0.01)  # the write's answer first
-    line.answer(2, 0.02, value=0)
-    line.submit(1, read(0), 0.03, master="a")
-    assert line.sent() == [3]  # not served from the cache
