@@ -87,7 +87,7 @@ _FIXED_UNITS = frozenset({OTHER_UNIT, "0"})
 #: (counted in ``crc_errors_total``).
 DISCARD_REASONS = (
     "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
-    "short_frame", "oversize", "trailing_bytes",
+    "short_frame", "oversize", "trailing_bytes", "noise",
     "restarted", "bad_char",  # ASCII: ':' inside a frame, a character that is not hex
     "unexpected_tid", "bad_header",  # Modbus TCP slaves: another transaction, a broken header
 )  # fmt: skip

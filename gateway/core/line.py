@@ -82,7 +82,7 @@ FRAME_CACHE_SIZE: Final = 256
 
 #: Frames that are not garbage, just not this answer: discard them and go on waiting.
 DISCARD_KINDS: Final = frozenset(
-    {"unexpected_unit", "unexpected_function", "mismatch", "unexpected_tid"}
+    {"unexpected_unit", "unexpected_function", "mismatch", "unexpected_tid", "noise"}
 )
 
 
@@ -614,14 +614,19 @@ class LineCore:
             return
         if attempt.garbled is not None:
             attempt.garbled_at = now + self._garbled_wait  # the line is not quiet yet
+        self._decode(attempt, data, now)
+
+    def _decode(self, attempt: _Attempt, data: bytes, now: float) -> None:
+        """Feed ``data`` to the attempt's decoder: complete it, skip what is not its answer,
+        or note that it was garbled."""
         decoder = attempt.decoder
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
                 if error.kind in DISCARD_KINDS:
-                    # Another unit's frame, or a late answer to an earlier request: drop
-                    # it and keep decoding whatever followed it in the same read.
+                    # Another unit's frame, a late answer to an earlier request, or noise
+                    # in front of the answer: drop it and keep decoding what followed it.
                     self._discard(error.kind, 1, attempt.request.slave)
                     if self._guards and error.frame:
                         self._late_frame(error.frame)
@@ -658,11 +663,14 @@ class LineCore:
                 try:
                     frame = decoder.end_of_frame()
                 except ResponseError as error:
+                    rest = decoder.leftover  # bytes behind noise: the answer may start there
                     if error.kind in DISCARD_KINDS:
                         self._discard(error.kind, 1, attempt.request.slave)
                     else:
                         self._garbled(attempt, error, decoder.looks_like_answer, now)
                     decoder.reset()
+                    if rest and self._attempt is attempt:
+                        self._decode(attempt, rest, now)
                 else:
                     self._complete(attempt, frame, now)
             if self._attempt is attempt and now >= attempt.garbled_at:

@@ -22,6 +22,11 @@ from .errors import ResponseError
 
 MAX_RTU_FRAME: Final = 256
 MIN_RTU_FRAME: Final = 4  # unit + function + CRC
+MIN_ANSWER: Final = 5  # the shortest answer: an exception (unit, function, code, CRC)
+#: Bytes in front of an answer searched for its start: a transceiver turning around puts a
+#: byte or two there. Fewer than a request's echo (8 bytes for a read): an adapter that
+#: echoes needs ``echo = true``, not this.
+MAX_NOISE: Final = 4
 NEED_MORE: Final = -1  # the frame's length cannot be told yet: wait for more bytes
 
 
@@ -190,21 +195,31 @@ class RtuResponseDecoder:
         Raises ``ResponseError`` for a frame that must not be passed on.
         """
         buffer = self._buffer
-        room = MAX_RTU_FRAME - len(buffer)
+        before = len(buffer)
+        room = MAX_RTU_FRAME - before
         rest = data[room:]
         buffer += data[:room]  # bounded before buffering: never more than one RTU frame
         if self._expected == NEED_MORE:
             self._expected = response_length(self._request_pdu, buffer)
             if self._expected is not None and self._expected > MAX_RTU_FRAME:
+                self._skip_noise(bytes(buffer) + bytes(rest), whole_only=self._starts_like_answer)
                 raise ResponseError("oversize", f"response announces {self._expected} bytes")
         expected = self._expected
         if expected is None or expected == NEED_MORE or len(buffer) < expected:
             if rest:
+                self._skip_noise(bytes(buffer) + bytes(rest), whole_only=self._starts_like_answer)
                 raise ResponseError("oversize", f"response exceeds {MAX_RTU_FRAME} bytes")
+            if not self._starts_like_answer:  # the answer may already be whole behind it
+                self._skip_noise(bytes(buffer), whole_only=True, complete_after=before)
             return None
         self.leftover = bytes(buffer[expected:]) + bytes(rest)
         del buffer[expected:]
-        return self._check(bytes(buffer))
+        try:
+            return self._check(bytes(buffer))
+        except ResponseError as error:
+            if error.kind == "crc":
+                self._skip_noise(bytes(buffer) + self.leftover, whole_only=self.looks_like_answer)
+            raise
 
     @property
     def looks_like_answer(self) -> bool:
@@ -224,7 +239,58 @@ class RtuResponseDecoder:
 
     def end_of_frame(self) -> RtuFrame:
         """The line went silent: whatever was collected is the whole frame."""
-        return self._check(bytes(self._buffer))
+        frame = bytes(self._buffer)
+        try:
+            return self._check(frame)
+        except ResponseError as error:
+            if error.kind in ("crc", "short_frame"):
+                self._skip_noise(frame, whole_only=self.looks_like_answer)
+                if frame and frame[0] != self._unit and len(frame) < MIN_ANSWER:
+                    raise ResponseError(
+                        "noise", f"{len(frame)} bytes, shorter than any answer"
+                    ) from None
+            raise
+
+    @property
+    def _starts_like_answer(self) -> bool:
+        """True unless the first bytes collected are not the awaited unit and function."""
+        buffer = self._buffer
+        return not buffer or (
+            buffer[0] == self._unit and (len(buffer) < 2 or buffer[1] & 0x7F == self._function)
+        )
+
+    def _skip_noise(self, data: bytes, *, whole_only: bool, complete_after: int = 0) -> None:
+        """Raise ``noise`` when the awaited answer starts behind bytes that came before it.
+
+        A transceiver turning around often puts a byte or two on the line just before
+        the slave's answer. ``data`` (all that was collected) is searched for the answer's
+        start, the awaited unit and function, within its first ``MAX_NOISE`` bytes; the
+        first start that ends a whole frame with a valid CRC, or (unless ``whole_only``)
+        that the bytes so far cannot tell yet, is where the answer is taken to begin:
+        ``leftover`` is set to start there, for the caller to feed again, and the frame
+        must still pass every check then. A frame with the answer's own shape is the
+        answer itself, damaged, unless a whole valid answer is found inside it
+        (``whole_only``). ``complete_after``: only starts whose frame ends past it are
+        checked, so bytes arriving one by one cost each start one CRC at most.
+        """
+        unit = bytes((self._unit,))
+        function = self._function
+        start = data.find(unit, 1, MAX_NOISE + 1)
+        while start > 0:
+            following = start + 1
+            if following == len(data) or data[following] & 0x7F == function:
+                candidate = data[start:]
+                length = response_length(self._request_pdu, candidate)
+                if length is not None and 0 < length <= len(candidate):
+                    if start + length > complete_after and check_crc(candidate[:length]):
+                        self._take_from(candidate, start)
+                elif not whole_only:
+                    self._take_from(candidate, start)
+            start = data.find(unit, following, MAX_NOISE + 1)
+
+    def _take_from(self, candidate: bytes, skipped: int) -> None:
+        self.leftover = candidate
+        raise ResponseError("noise", f"{skipped} bytes in front of the answer")
 
     def reset(self) -> None:
         """Forget a discarded frame and wait for the real answer."""

@@ -1,5 +1,6 @@
-"""RTU properties: CRC residue, encode/decode round trip under any chunking, bounded decoder,
-length predictors and request validation that never fail outside the ProtocolError family."""
+"""RTU properties: CRC residue, encode/decode round trip under any chunking, the answer found
+behind noise, bounded decoder, length predictors and request validation that never fail
+outside the ProtocolError family."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from gateway.core.crc import append_crc, check_crc, crc16, crc16_bytes
 from gateway.core.errors import ModbusError, ResponseError
 from gateway.core.pdu import validate_request
 from gateway.core.rtu import (
+    MAX_NOISE,
     MAX_RTU_FRAME,
     NEED_MORE,
     RtuFrame,
@@ -144,6 +146,74 @@ def test_round_trip_under_any_chunking(exchange: Exchange, unit: int, cuts: list
         assert decoder.feed(chunk) is None
     assert decoder.feed(chunks[-1]) == RtuFrame(unit, exchange.response)
     assert not decoder.waits_for_silence
+
+
+def decode_as_the_core_does(decoder: RtuResponseDecoder, chunks: list[bytes]) -> list[object]:
+    """Feed ``chunks`` and, when the decoder waits for it, the line's silence; after an
+    error feed what was left over again. What happened, in order: error kinds, frames."""
+    happened: list[object] = []
+    pending = list(chunks)
+    while pending:
+        try:
+            frame = decoder.feed(pending.pop(0))
+        except ResponseError as error:
+            happened.append(error.kind)
+        else:
+            if frame is not None:
+                happened.append(frame)
+                return happened
+            if pending or not decoder.waits_for_silence:
+                continue
+            try:
+                happened.append(decoder.end_of_frame())
+                return happened
+            except ResponseError as error:
+                happened.append(error.kind)
+        rest = decoder.leftover
+        decoder.reset()
+        if rest:
+            pending.insert(0, rest)
+    return happened
+
+
+@st.composite
+def noise_in_front(draw: st.DrawFn) -> tuple[Exchange, int, bytes]:
+    """An exchange, its unit, and up to ``MAX_NOISE`` bytes of noise without that unit's
+    address (a transceiver turning around puts such bytes before the answer)."""
+    exchange = draw(exchanges())
+    unit = draw(st.integers(1, 247))
+    byte = st.integers(0, 255).filter(lambda value: value != unit)
+    noise = bytes(draw(st.lists(byte, min_size=1, max_size=MAX_NOISE)))
+    return exchange, unit, noise
+
+
+@SETTINGS
+@given(noise_in_front())
+def test_the_answer_behind_noise_in_the_same_read_is_found(
+    case: tuple[Exchange, int, bytes],
+) -> None:
+    exchange, unit, noise = case
+    decoder = RtuResponseDecoder(unit, exchange.request)
+    happened = decode_as_the_core_does(decoder, [noise + encode_rtu(unit, exchange.response)])
+    # Noise that happens to be a valid frame of another unit is skipped as that.
+    assert happened[0] in ("noise", "unexpected_unit"), happened
+    assert happened[1:] == [RtuFrame(unit, exchange.response)]
+
+
+@SETTINGS
+@given(noise_in_front(), st.lists(st.integers(min_value=0), max_size=12))
+def test_the_answer_behind_noise_is_found_under_any_chunking(
+    case: tuple[Exchange, int, bytes], cuts: list[int]
+) -> None:
+    """Noise decided on its own (before the answer's bytes came) fails as garbage; the
+    answer behind it is still found, and nothing else is ever taken for it."""
+    exchange, unit, noise = case
+    decoder = RtuResponseDecoder(unit, exchange.request)
+    chunks = [chunk for chunk in split(noise + encode_rtu(unit, exchange.response), cuts) if chunk]
+    happened = decode_as_the_core_does(decoder, chunks)
+    assert happened[-1] == RtuFrame(unit, exchange.response)
+    skipped = {"noise", "unexpected_unit", "crc", "oversize", "short_frame"}
+    assert set(happened[:-1]) <= skipped, happened
 
 
 @SETTINGS

@@ -251,6 +251,35 @@ def test_after_a_garbled_frame_and_twice_the_silence_of_quiet_the_request_is_ret
     assert sent == [encode_rtu(1, read(100))]
 
 
+def test_noise_right_before_the_answer_is_skipped_and_the_answer_taken() -> None:
+    """A transceiver turning around puts a byte on the line just before the answer."""
+    line = Line()
+    request = line.submit(1, read(100), 0.0)
+    line.sent()
+    line.receive(b"\xff" + registers_answer(1, read(100), 100), 0.010)
+    assert line.answer_of(request) == (bytes.fromhex("03 04 0064 0065"), Outcome.OK)
+    assert [n.detail for n in line.notes(LineEvent.DISCARDED)] == ["noise"]
+    assert line.notes(LineEvent.RETRY) == []
+    assert line.notes(LineEvent.CRC_ERROR) == []  # noise is not a damaged answer
+
+
+def test_a_burst_of_noise_ended_by_silence_leaves_the_wait_for_the_answer_as_it_was() -> None:
+    """Too short to be any answer: the attempt keeps its deadline, so a slave answering
+    long after the noise is heard, not talked over by a retry."""
+    line = Line()
+    silence = line.config.silence
+    request = line.submit(1, read(100), 0.0)
+    line.sent()
+    deadline = line.core.get_timer()
+    line.receive(bytes.fromhex("FF 00 55"), 0.002)  # a length nobody can tell: silence ends it
+    assert line.timer() == pytest.approx(0.002 + silence)
+    assert [n.detail for n in line.notes(LineEvent.DISCARDED)] == ["noise"]
+    assert line.core.get_timer() == deadline
+    line.receive(registers_answer(1, read(100), 100), 0.002 + 20 * silence)
+    assert line.answer_of(request)[1] == Outcome.OK
+    assert line.sent() == []
+
+
 # --------------------------------------------------------------------------- late answers
 
 

@@ -11,6 +11,7 @@ import pytest
 from gateway.core.crc import append_crc
 from gateway.core.errors import ProtocolError, ResponseError
 from gateway.core.rtu import (
+    MAX_NOISE,
     MAX_RTU_FRAME,
     NEED_MORE,
     RtuFrame,
@@ -441,3 +442,135 @@ def test_a_write_file_record_answer_must_echo_the_request() -> None:
     assert caught.value.kind == "mismatch"
     decoder.reset()
     assert decoder.feed(encode_rtu(1, request)) == RtuFrame(1, request)
+
+
+# ---- noise in front of the answer (a transceiver turning around) ----------------------
+
+
+def decode_as_the_core_does(decoder: RtuResponseDecoder, chunks: list[bytes]) -> list[object]:
+    """Feed ``chunks``, then the line's silence when the decoder waits for it; after a
+    skipped frame, feed what followed it again (the core's loop).
+
+    Returns what happened in order: the kinds of the errors, then the frame if one came.
+    """
+    happened: list[object] = []
+    pending = list(chunks)
+    while pending:
+        data = pending.pop(0)
+        try:
+            frame = decoder.feed(data)
+        except ResponseError as error:
+            happened.append(error.kind)
+            rest = decoder.leftover
+            decoder.reset()
+            if rest:
+                pending.insert(0, rest)
+            continue
+        if frame is not None:
+            happened.append(frame)
+            return happened
+        if not pending and decoder.waits_for_silence:
+            try:
+                happened.append(decoder.end_of_frame())
+            except ResponseError as error:
+                happened.append(error.kind)
+                rest = decoder.leftover
+                decoder.reset()
+                if rest:
+                    pending.append(rest)
+    return happened
+
+
+ANSWER_REQUEST = h("03 0064 0002")
+ANSWER = encode_rtu(1, h("03 04 0064 0065"))
+
+
+@pytest.mark.parametrize("noise", ["FF", "00", "FE 00", "FF 00 55", "01 03 02", "01 83"])
+@pytest.mark.parametrize("split", [False, True], ids=["one_read", "two_reads"])
+def test_the_answer_right_behind_noise_is_found(noise: str, split: bool) -> None:
+    """A byte or two from a transceiver turning around, or the start of an answer that
+    broke off, runs straight into the answer: skipped as noise, the answer is taken."""
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    chunks = [h(noise), ANSWER] if split else [h(noise) + ANSWER]
+    happened = decode_as_the_core_does(decoder, chunks)
+    assert happened == ["noise", RtuFrame(1, h("03 04 0064 0065"))]
+
+
+def test_the_answer_behind_noise_may_come_in_single_bytes() -> None:
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    chunks = [h("FF")] + [bytes((byte,)) for byte in ANSWER]
+    happened = decode_as_the_core_does(decoder, chunks)
+    assert happened == ["noise", RtuFrame(1, h("03 04 0064 0065"))]
+
+
+def test_a_damaged_answer_with_the_answers_start_in_its_data_still_fails_at_once() -> None:
+    """``01 03`` inside the data of a damaged answer is no answer: nothing whole and valid
+    starts there, so the frame is the answer itself, damaged (retried at once)."""
+    answer = encode_rtu(1, h("03 04 0103 0000"))
+    damaged = answer[:-1] + bytes((answer[-1] ^ 0xFF,))
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    with pytest.raises(ResponseError) as caught:
+        decoder.feed(damaged)
+    assert caught.value.kind == "crc"
+    assert decoder.looks_like_answer
+
+
+def test_noise_that_contains_the_units_address_is_still_skipped() -> None:
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    happened = decode_as_the_core_does(decoder, [h("01 FF 01") + ANSWER])
+    assert happened[-1] == RtuFrame(1, h("03 04 0064 0065"))
+    assert set(happened[:-1]) == {"noise"}
+
+
+@pytest.mark.parametrize("burst", ["FF 00 55", "00", "FE FF"])
+def test_a_burst_shorter_than_any_answer_ended_by_silence_is_noise(burst: str) -> None:
+    """Not the start of the answer (another first byte) and too short to be any answer:
+    noise, so the wait for the answer goes on (no retry that would collide with it)."""
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    decoder.feed(h(burst))
+    with pytest.raises(ResponseError) as caught:
+        decoder.end_of_frame()
+    assert caught.value.kind == "noise"
+
+
+def test_a_whole_answer_behind_noise_of_unknown_length_is_taken_without_the_silence() -> None:
+    """Noise whose length cannot be told would collect until silence; the whole answer
+    behind it is found as soon as it is in."""
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    with pytest.raises(ResponseError) as caught:
+        decoder.feed(h("FF 00 55") + ANSWER)  # function 0: a length nobody can tell
+    assert caught.value.kind == "noise"
+    assert decoder.leftover == ANSWER
+
+
+def test_on_silence_the_start_of_the_answer_behind_noise_is_followed() -> None:
+    """A USB adapter may hand over the answer's first bytes, then the rest after a pause."""
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    assert decoder.feed(h("FF 00 55") + ANSWER[:2]) is None
+    with pytest.raises(ResponseError) as caught:
+        decoder.end_of_frame()
+    assert caught.value.kind == "noise"
+    assert decoder.leftover == ANSWER[:2]
+
+
+def test_noise_is_searched_only_near_the_frames_start() -> None:
+    """Past ``MAX_NOISE`` bytes the frame in front is not noise from a turnaround: the
+    answer behind it is not looked for (what it is stays a garbled frame)."""
+    near = RtuResponseDecoder(1, ANSWER_REQUEST)
+    with pytest.raises(ResponseError) as caught:
+        near.feed(bytes(MAX_NOISE) + ANSWER)
+    assert caught.value.kind == "noise"
+    far = RtuResponseDecoder(1, ANSWER_REQUEST)
+    assert far.feed(bytes(MAX_NOISE + 1) + ANSWER) is None  # function 0: silence ends it
+    with pytest.raises(ResponseError) as caught:
+        far.end_of_frame()
+    assert caught.value.kind == "crc"
+
+
+def test_a_late_answer_behind_noise_is_still_told_from_the_answer() -> None:
+    """What the noise hid must pass every check: a late answer to a shorter read is
+    skipped as a mismatch, never taken."""
+    decoder = RtuResponseDecoder(1, ANSWER_REQUEST)
+    late = encode_rtu(1, h("03 02 0001"))
+    happened = decode_as_the_core_does(decoder, [h("FF") + late + ANSWER])
+    assert happened == ["noise", "mismatch", RtuFrame(1, h("03 04 0064 0065"))]
