@@ -27,6 +27,8 @@ import pytest
 
 from gateway.app import Gateway
 from gateway.config import build_config
+from gateway.core.errors import ResponseError
+from gateway.core.framing import ResponseDecoder
 from gateway.sim import LineStats, PtyPair, SimulatedDevice, SimulatedLine, UnitFaults
 from gateway.sim import open_pty_pair as _open_pty_pair
 
@@ -389,3 +391,31 @@ class RawClient:
             return False
         assert not data, f"expected the connection to close, got {data.hex()}"
         return True
+
+
+def decode_as_the_core_does(decoder: ResponseDecoder, chunks: list[bytes]) -> list[object]:
+    """Feed ``chunks`` and, when the decoder waits for it, the line's silence; after an
+    error feed what was left over again. What happened, in order: error kinds, frames."""
+    happened: list[object] = []
+    pending = list(chunks)
+    while pending:
+        try:
+            frame = decoder.feed(pending.pop(0))
+        except ResponseError as error:
+            happened.append(error.kind)
+        else:
+            if frame is not None:
+                happened.append(frame)
+                return happened
+            if pending or not decoder.waits_for_silence:
+                continue
+            try:
+                happened.append(decoder.end_of_frame())
+                return happened
+            except ResponseError as error:
+                happened.append(error.kind)
+        rest = decoder.leftover
+        decoder.reset()
+        if rest:
+            pending.insert(0, rest)
+    return happened

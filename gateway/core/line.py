@@ -786,7 +786,11 @@ class LineCore:
                 continue
             record = slaves.get(slave)
             held = record is not None and self._guarded(record, request, now)
-            if not held and self._joined_leaders and request.pdu[0] not in fc.READ_FUNCTIONS:
+            if (
+                not held
+                and (self._joined_leaders or self._lane)
+                and request.pdu[0] not in fc.READ_FUNCTIONS
+            ):
                 held = self._held_by_joined(master.key, request)
             if not held:
                 return request
@@ -816,7 +820,7 @@ class LineCore:
         for request in self._lane.values():
             if request.master == master and request.order < broadcast.order:
                 return True
-        for leader in self._joined_leaders:
+        for leader in self._leaders():
             for follower in leader.followers:
                 if (
                     follower.master == master
@@ -825,6 +829,13 @@ class LineCore:
                 ):
                     return True
         return False
+
+    def _leaders(self) -> list[LineRequest]:
+        """Reads that others joined and that still wait: queued, or back in the isolated
+        slaves' lane after a failed attempt (their followers still wait with them)."""
+        leaders = list(self._joined_leaders)
+        leaders.extend(r for r in self._lane.values() if r.followers)
+        return leaders
 
     def _behind_broadcast(self, request: LineRequest) -> bool:
         """True while a broadcast its master submitted before ``request`` waits (a request
@@ -837,7 +848,7 @@ class LineCore:
     def _held_by_joined(self, master: Hashable, write: LineRequest) -> bool:
         """True while a read ``master`` sent before ``write`` waits inside another master's
         queued read (it joined it): the write must not overtake it."""
-        for leader in self._joined_leaders:
+        for leader in self._leaders():
             if leader.slave == write.slave and leader.epoch < write.epoch:
                 for follower in leader.followers:
                     if follower.master == master and not follower.cancelled:

@@ -14,7 +14,7 @@ is never passed on.
 
 from __future__ import annotations
 
-from typing import Final, NamedTuple
+from typing import Final, NamedTuple, NoReturn
 
 from . import pdu as fc
 from .crc import check_crc, crc16_bytes
@@ -288,7 +288,8 @@ class RtuResponseDecoder:
                     self._take_from(candidate, start)
             start = data.find(unit, following, MAX_NOISE + 1)
 
-    def _take_from(self, candidate: bytes, skipped: int) -> None:
+    def _take_from(self, candidate: bytes, skipped: int) -> NoReturn:
+        """The answer starts ``skipped`` bytes in: the caller feeds ``candidate`` again."""
         self.leftover = candidate
         raise ResponseError("noise", f"{skipped} bytes in front of the answer")
 

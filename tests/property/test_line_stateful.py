@@ -695,3 +695,16 @@ class CachedPipelinedLineMachine(PipelinedLineMachine):
 
 CachedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestCachedPipelinedLineCore = CachedPipelinedLineMachine.TestCase
+
+
+def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
+    """Found by the machine: master a's read joins b's; b's read times out, its slave turns
+    suspect and the read (with a's follower) goes to the isolated slaves' lane. a's later
+    broadcast must still wait for it (and so must a's writes to that slave)."""
+    machine = EchoLineMachine()
+    machine.behave(delay=0.125, garble=False, ignores=frozenset(), noise=False, slave=1)
+    machine.submit(address=0, kind="read", master="b", quantity=1, slave=1)
+    machine.submit(address=0, kind="read", master="a", quantity=1, slave=1)
+    machine.broadcast(master="a")
+    machine.wait(step=0.002)
+    machine.teardown()

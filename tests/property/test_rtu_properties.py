@@ -7,6 +7,7 @@ from __future__ import annotations
 from itertools import pairwise
 from typing import NamedTuple
 
+from conftest import decode_as_the_core_does
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -146,34 +147,6 @@ def test_round_trip_under_any_chunking(exchange: Exchange, unit: int, cuts: list
         assert decoder.feed(chunk) is None
     assert decoder.feed(chunks[-1]) == RtuFrame(unit, exchange.response)
     assert not decoder.waits_for_silence
-
-
-def decode_as_the_core_does(decoder: RtuResponseDecoder, chunks: list[bytes]) -> list[object]:
-    """Feed ``chunks`` and, when the decoder waits for it, the line's silence; after an
-    error feed what was left over again. What happened, in order: error kinds, frames."""
-    happened: list[object] = []
-    pending = list(chunks)
-    while pending:
-        try:
-            frame = decoder.feed(pending.pop(0))
-        except ResponseError as error:
-            happened.append(error.kind)
-        else:
-            if frame is not None:
-                happened.append(frame)
-                return happened
-            if pending or not decoder.waits_for_silence:
-                continue
-            try:
-                happened.append(decoder.end_of_frame())
-                return happened
-            except ResponseError as error:
-                happened.append(error.kind)
-        rest = decoder.leftover
-        decoder.reset()
-        if rest:
-            pending.insert(0, rest)
-    return happened
 
 
 @st.composite

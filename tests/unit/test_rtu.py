@@ -7,6 +7,7 @@ they do not cover, from the worked examples of the Modbus Application Protocol v
 from __future__ import annotations
 
 import pytest
+from conftest import decode_as_the_core_does
 
 from gateway.core.crc import append_crc
 from gateway.core.errors import ProtocolError, ResponseError
@@ -445,40 +446,6 @@ def test_a_write_file_record_answer_must_echo_the_request() -> None:
 
 
 # ---- noise in front of the answer (a transceiver turning around) ----------------------
-
-
-def decode_as_the_core_does(decoder: RtuResponseDecoder, chunks: list[bytes]) -> list[object]:
-    """Feed ``chunks``, then the line's silence when the decoder waits for it; after a
-    skipped frame, feed what followed it again (the core's loop).
-
-    Returns what happened in order: the kinds of the errors, then the frame if one came.
-    """
-    happened: list[object] = []
-    pending = list(chunks)
-    while pending:
-        data = pending.pop(0)
-        try:
-            frame = decoder.feed(data)
-        except ResponseError as error:
-            happened.append(error.kind)
-            rest = decoder.leftover
-            decoder.reset()
-            if rest:
-                pending.insert(0, rest)
-            continue
-        if frame is not None:
-            happened.append(frame)
-            return happened
-        if not pending and decoder.waits_for_silence:
-            try:
-                happened.append(decoder.end_of_frame())
-            except ResponseError as error:
-                happened.append(error.kind)
-                rest = decoder.leftover
-                decoder.reset()
-                if rest:
-                    pending.append(rest)
-    return happened
 
 
 ANSWER_REQUEST = h("03 0064 0002")
