@@ -816,7 +816,7 @@ class LineCore:
 
     def _broadcast_held(self, master: Hashable, broadcast: LineRequest) -> bool:
         """True while a read ``master`` submitted before ``broadcast`` has not gone: in the
-        isolated slaves' lane, or joined to another master's queued read."""
+        isolated slaves' lane, or joined to another master's read that still waits."""
         for request in self._lane.values():
             if request.master == master and request.order < broadcast.order:
                 return True
@@ -847,7 +847,7 @@ class LineCore:
 
     def _held_by_joined(self, master: Hashable, write: LineRequest) -> bool:
         """True while a read ``master`` sent before ``write`` waits inside another master's
-        queued read (it joined it): the write must not overtake it."""
+        read (it joined it; queued, or back in the lane): the write must not overtake it."""
         for leader in self._leaders():
             if leader.slave == write.slave and leader.epoch < write.epoch:
                 for follower in leader.followers:
