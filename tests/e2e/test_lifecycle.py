@@ -448,8 +448,14 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
 
 
 def line_table(device: str, units: list[int], **options: Any) -> dict[str, Any]:
-    """A ``[lines.NAME]`` table."""
-    return {"device": device, "baudrate": 115200, "units": units, **options}
+    """A ``[lines.NAME]`` table.
+
+    Its timeout is 1 s unless given: the simulated slaves answer from a thread of the test
+    process, which a loaded machine can hold past 115200 baud's automatic timeout (0.12 s);
+    one such timeout makes the slave suspect and its next requests 0x0B, which the tests
+    that expect only replies would report as a fault of the gateway. Tests that time out on
+    purpose give their own."""
+    return {"device": device, "baudrate": 115200, "units": units, "timeout": 1.0, **options}
 
 
 # --------------------------------------------------------------------------- stop signals

@@ -24,7 +24,7 @@ and on a Modbus TCP line with ``max_in_flight`` 3 whose slaves answer in any ord
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
@@ -119,6 +119,12 @@ class LineMachine(RuleBasedStateMachine):
         self.sent_at: dict[int, list[int]] = {}  # id(request) -> events of its frames
         self.done_at: dict[int, int] = {}  # id(request) -> event of its answer
         self.leader_of: dict[int, LineRequest] = {}  # id(read) -> the queued read it joined
+        #: A master that disconnects comes back as a new connection: a new key for the core.
+        self.connection = dict.fromkeys(MASTERS, 0)
+
+    def key(self, master: str) -> str:
+        """The core's key for ``master``'s current connection."""
+        return f"{master}{self.connection[master]}"
 
     # -- the core's actions ------------------------------------------------------------
 
@@ -371,7 +377,7 @@ class LineMachine(RuleBasedStateMachine):
             pdu = struct.pack(">BHH", 6, address, quantity)
         else:
             pdu = bytes((0x41, address))
-        self.put(LineRequest(slave, pdu, master, lambda answer, outcome: None))
+        self.put(LineRequest(slave, pdu, self.key(master), lambda answer, outcome: None))
 
     def put(self, request: LineRequest) -> None:
         """Submit ``request``, noting the queued read it joined if it joined one."""
@@ -391,7 +397,7 @@ class LineMachine(RuleBasedStateMachine):
         """A read identical to an earlier one (joins a queued one, or finds it cached)."""
         earlier = self.requests[-1 - index % len(self.requests)]
         if earlier.pdu[0] in (3, 4):
-            self.put(LineRequest(earlier.slave, earlier.pdu, master, lambda a, o: None))
+            self.put(LineRequest(earlier.slave, earlier.pdu, self.key(master), lambda a, o: None))
 
     @rule(
         master=st.sampled_from(MASTERS),
@@ -407,7 +413,9 @@ class LineMachine(RuleBasedStateMachine):
 
     @rule(master=st.sampled_from(MASTERS))
     def broadcast(self, master: str) -> None:
-        self.put(LineRequest(0, bytes.fromhex("0600010001"), master, lambda a, o: None, True))
+        self.put(
+            LineRequest(0, bytes.fromhex("0600010001"), self.key(master), lambda a, o: None, True)
+        )
 
     @rule(step=st.sampled_from((0.0005, 0.002, 0.01, 0.05, 0.15, 0.4)))
     def wait(self, step: float) -> None:
@@ -450,6 +458,49 @@ class LineMachine(RuleBasedStateMachine):
         self.core.port_opened(self.now)
         self.pump()
 
+    @rule(master=st.sampled_from(MASTERS))
+    def disconnect(self, master: str) -> None:
+        """The master's connection closes; it comes back at once as a new one.
+
+        What it had waiting is dropped (answered ``DROPPED``) unless another master joined
+        it; what it had on the wire finishes, so its late answer is guarded as ever."""
+        key = self.key(master)
+        self.connection[master] += 1
+        self.core.cancel(key, self.now)
+        self.pump()
+        for request in self.requests:
+            if (
+                request.master == key
+                and not request.wanted
+                and self.transmissions.get(id(request), 0) == 0
+                and id(request) not in self.done_at
+            ):
+                self.problems.append(f"{self.describe(request)} still waits after its master left")
+
+    @rule(
+        timeout=st.sampled_from((TIMEOUT / 2, TIMEOUT)),
+        retries=st.integers(0, 2),
+        dead_after=st.integers(0, 3),
+        coalesce=st.booleans(),
+        cache=st.booleans(),
+    )
+    def reload(
+        self, timeout: float, retries: int, dead_after: int, coalesce: bool, cache: bool
+    ) -> None:
+        """A reload with new timeouts, retries, isolation, coalescing (and cache, where the
+        machine has one): the late-answer window stays, so the slaves' lateness stays
+        within what the line promises."""
+        self.config = replace(
+            self.config,
+            timeout=timeout,
+            retries=retries,
+            dead_after=dead_after,
+            coalesce=coalesce,
+            cache=self.line_settings.get("cache", ()) if cache else (),  # type: ignore[arg-type]
+        )
+        self.core.reconfigure(self.config, self.now)
+        self.pump()
+
     # -- invariants ----------------------------------------------------------------------
 
     @invariant()
@@ -459,7 +510,7 @@ class LineMachine(RuleBasedStateMachine):
     @invariant()
     def queues_stay_bounded(self) -> None:
         for master in MASTERS:
-            assert self.core.queued_for(master) <= PER_MASTER
+            assert self.core.queued_for(self.key(master)) <= PER_MASTER
 
     @invariant()
     def side_effects_are_sent_once(self) -> None:
@@ -555,7 +606,7 @@ class PipelinedLineMachine(LineMachine):
         for transmit in self.core.transmits:
             self.check_order(transmit.request)
             if not transmit.request.broadcast:
-                deadline = self.now + len(transmit.frame) * self.char + TIMEOUT
+                deadline = self.now + len(transmit.frame) * self.char + self.config.timeout
                 self.live[id(transmit.request)] = deadline
             outstanding = [
                 key
