@@ -18,6 +18,7 @@ import shutil
 import socket
 import struct
 import threading
+import time
 from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -38,6 +39,16 @@ T = TypeVar("T")
 DEADLINE_S = 10.0
 #: Gateway baud rate used for an unpaced simulator: t3.5 is then the fixed 1.75 ms.
 UNPACED_BAUDRATE = 115200
+
+
+def wait_until(condition: Callable[[], bool], what: str = "", timeout: float = DEADLINE_S) -> None:
+    """Poll ``condition`` (a state the gateway reaches by itself) until it holds; fail naming
+    ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what or condition}")
+        time.sleep(0.002)
 
 
 # --------------------------------------------------------------------------- log records

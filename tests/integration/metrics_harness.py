@@ -10,8 +10,7 @@ Waits that have no such point poll with a deadline.
 from __future__ import annotations
 
 import http.client
-import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 from conftest import DEADLINE_S, RunningGateway
 from prometheus_client.parser import text_string_to_metric_families
@@ -23,15 +22,6 @@ Series = tuple[str, tuple[tuple[str, str], ...]]
 def series(name: str, **labels: str) -> Series:
     """The key of one sample, as ``samples`` returns them."""
     return name, tuple(sorted(labels.items()))
-
-
-def wait_until(predicate: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
-    """Poll ``predicate`` until it holds; fail after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.002)
 
 
 def metrics_address(gw: RunningGateway) -> tuple[str, int]:

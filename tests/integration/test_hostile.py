@@ -32,8 +32,9 @@ from conftest import (
     RunningGateway,
     SimFactory,
     mbap,
+    wait_until,
 )
-from metrics_harness import exposition, http_get, metrics_address, series, value, wait_until
+from metrics_harness import exposition, http_get, metrics_address, series, value
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.sim import plc

@@ -9,23 +9,14 @@ from __future__ import annotations
 
 import struct
 import time
-from collections.abc import Callable
 
-from conftest import DEADLINE_S, GatewayOnSim, RawClient, RunningGateway
+from conftest import GatewayOnSim, RawClient, RunningGateway, wait_until
 
 from gateway.config import build_config
 from gateway.sim import plc
 
 READ_10 = bytes.fromhex("03 0000 000A")
 SLOW_READ = bytes.fromhex("03 0100 007D")  # 125 registers: ~265 ms on the wire at 9600 baud
-
-
-def wait_for(condition: Callable[[], bool], what: str, deadline: float = DEADLINE_S) -> None:
-    """Poll ``condition`` until it holds, failing with ``what`` after ``deadline`` seconds."""
-    end = time.monotonic() + deadline
-    while not condition():
-        assert time.monotonic() < end, f"timed out waiting for {what}"
-        time.sleep(0.005)
 
 
 def sample(gw: RunningGateway, name: str, **labels: str) -> float:
@@ -70,13 +61,13 @@ def test_a_dead_slave_is_isolated_then_probed_back(gateway_with: GatewayOnSim) -
             assert master.request(2, READ_10) == bytes([0x83, 0x0B])
             return sim.stats().silent_drops == 4
 
-        wait_for(probed, "a probe of the dead slave")
+        wait_until(probed, "a probe of the dead slave")
         sim.faults(2).silent = False
 
         def answers() -> bool:
             return master.request(2, READ_10)[0] == 0x03
 
-        wait_for(answers, "the slave to be marked up by a probe's answer")
+        wait_until(answers, "the slave to be marked up by a probe's answer")
         assert sample(gw, "modbus_gateway_slave_up", line="a", unit="2") == 1
         requests_before = sim.stats().requests
         assert registers(master.request(2, READ_10))[:3] == [0, 2, 4]

@@ -12,8 +12,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, GatewayOnSim, RunningGateway, SimFactory
-from metrics_harness import http_get, metrics_address, samples, series, wait_until
+from conftest import (
+    DEADLINE_S,
+    GatewayFactory,
+    GatewayOnSim,
+    RunningGateway,
+    SimFactory,
+    wait_until,
+)
+from metrics_harness import http_get, metrics_address, samples, series
 
 from gateway import live
 from gateway.live import QUEUE_LIMIT

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import socket
 
-from conftest import GatewayFactory, GatewayOnSim, RawClient, SimFactory, mbap
+from conftest import GatewayFactory, GatewayOnSim, RawClient, SimFactory, mbap, wait_until
 from metrics_harness import (
     Series,
     counter_changes,
@@ -19,7 +19,6 @@ from metrics_harness import (
     samples,
     series,
     value,
-    wait_until,
 )
 from prometheus_client.parser import text_string_to_metric_families
 

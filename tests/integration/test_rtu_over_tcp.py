@@ -32,6 +32,7 @@ from conftest import (
     SimBus,
     SimFactory,
     require_tool,
+    wait_until,
 )
 
 from gateway.core.crc import append_crc
@@ -199,14 +200,6 @@ def socat_line(
 def line_up(gateway: RunningGateway) -> bool:
     """True once the gateway is connected to the device server (it connects in the background)."""
     return gateway.call(lambda: gateway.gateway.buses["net"].up)
-
-
-def wait_until(condition: Any, timeout: float = DEADLINE_S) -> None:
-    """Poll ``condition`` (a state the gateway reaches by itself) until it holds."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
 
 
 # --------------------------------------------------------------------------- every function code
@@ -394,8 +387,8 @@ def test_device_server_killed_and_restarted_under_load(
         thread.start()
     try:
         for _ in range(3):
-            before = sum(answered)
-            wait_until(lambda before=before: sum(answered) >= before + 50)
+            goal = sum(answered) + 50
+            wait_until(lambda: sum(answered) >= goal)  # noqa: B023 (called before goal changes)
             server.kill()
             wait_until(lambda: not line_up(gateway))
             server.start()

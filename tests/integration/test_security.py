@@ -18,7 +18,7 @@ import socket
 import ssl
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -33,6 +33,7 @@ from conftest import (
     SimBus,
     SimFactory,
     require_tool,
+    wait_until,
 )
 
 from gateway.config import build_config
@@ -180,7 +181,7 @@ def test_each_roles_rights_request_by_request(
             else:
                 assert answer == exception(pdu[0]), f"{case}: {answer.hex()}"
             # A broadcast is answered once it is on the wire, maybe before the slave counted it.
-            assert wait_until(functools.partial(line_has_seen, sim, expected)), case
+            wait_until(functools.partial(line_has_seen, sim, expected), case)
             assert sim.stats().requests == expected, f"{case}: a denied request reached the line"
     finally:
         for master in masters.values():
@@ -238,17 +239,7 @@ def test_handshakes_that_fail(
         master.request(1, bytes.fromhex("03 0000 0001"))
     assert sim.stats().requests == before
     labels = {"listener": "tls", "reason": reason}
-    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 1.0)
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
-    """True as soon as ``condition()`` holds, False after ``timeout`` (polled every 1 ms)."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
+    wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 1.0)
 
 
 def line_has_seen(sim: SimBus, requests: int) -> bool:
@@ -256,9 +247,9 @@ def line_has_seen(sim: SimBus, requests: int) -> bool:
     return sim.stats().requests >= requests
 
 
-def wait_for_sample(gw: RunningGateway, name: str, labels: dict[str, str], value: float) -> bool:
-    """True once the metric reaches ``value`` (the server may count after the client's error)."""
-    return wait_until(lambda: sample(gw, name, labels) >= value)
+def wait_for_sample(gw: RunningGateway, name: str, labels: dict[str, str], value: float) -> None:
+    """Wait until the metric reaches ``value`` (the server may count after the client's error)."""
+    wait_until(lambda: sample(gw, name, labels) >= value, f"{name}{labels} >= {value}")
 
 
 # --------------------------------------------------------------------------- independent peers
@@ -330,7 +321,7 @@ def test_openssl_s_client_sees_the_handshake_rules(
     assert old.returncode != 0
     assert sample(gw, "modbus_gateway_tls_handshake_failures_total",
                   {"listener": "tls", "reason": "no_certificate"}) >= 1  # fmt: skip
-    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total",
+    wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total",
                            {"listener": "tls", "reason": "protocol_version"}, 1)  # fmt: skip
 
 
@@ -442,7 +433,7 @@ def test_garbage_instead_of_a_client_hello_is_counted_and_closed(
                     assert closed_soon(confused.sock)
                 assert honest.request(1, bytes.fromhex("03 0000 0001"))[0] == 3
     labels = {"listener": "tls", "reason": "not_tls"}
-    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 20)
+    wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 20)
 
 
 def closed_soon(sock: socket.socket) -> bool:
@@ -481,7 +472,7 @@ def test_silent_tls_clients_are_cut_off_at_the_handshake_timeout(
         for sock in silent:
             sock.close()
     labels = {"listener": "tls", "reason": "timeout"}
-    assert wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 8)
+    wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 8)
     assert sample(gw, "modbus_gateway_connections_open") == 0
 
 

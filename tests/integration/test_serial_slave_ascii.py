@@ -21,7 +21,15 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, LogCollector, RunningGateway, SimBus, SimFactory
+from conftest import (
+    DEADLINE_S,
+    GatewayFactory,
+    LogCollector,
+    RunningGateway,
+    SimBus,
+    SimFactory,
+    wait_until,
+)
 from metrics_harness import samples, series
 from test_live import status, stream
 from test_serial_slave import socat_ptys  # noqa: F401  (a fixture)
@@ -118,10 +126,8 @@ Setup = tuple[SimBus, RunningGateway, LineMaster, SerialSlave]
 
 
 def wait_for(gateway: RunningGateway, condition: Callable[[], bool]) -> None:
-    deadline = time.monotonic() + DEADLINE_S
-    while not gateway.call(condition):
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
+    """Wait until ``condition`` holds, evaluated on the gateway's loop."""
+    wait_until(lambda: gateway.call(condition))
 
 
 @pytest.fixture

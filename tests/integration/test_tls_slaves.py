@@ -25,7 +25,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, LogCollector, RunningGateway, SimFactory
+from conftest import (
+    DEADLINE_S,
+    GatewayFactory,
+    LogCollector,
+    RunningGateway,
+    SimFactory,
+    wait_until,
+)
 from pymodbus_harness import PymodbusServerThread, sim_device
 from test_sim import FUNCTION_VECTORS
 
@@ -93,13 +100,6 @@ def tls_port(gw: RunningGateway) -> int:
 def sample(gw: RunningGateway, name: str, **labels: str) -> float:
     value = gw.call(lambda: gw.gateway.metrics.registry.get_sample_value(name, labels))
     return 0.0 if value is None else value
-
-
-def wait_until(condition: Any, what: str) -> None:
-    deadline = time.monotonic() + DEADLINE_S
-    while not condition():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.01)
 
 
 def line_up(gw: RunningGateway, line: str = "plc") -> bool:

@@ -6,8 +6,8 @@ import logging
 from collections.abc import Iterator
 
 import pytest
-from conftest import GatewayOnSim, LogCollector, RunningGateway
-from metrics_harness import http_get, wait_until
+from conftest import GatewayOnSim, LogCollector, RunningGateway, wait_until
+from metrics_harness import http_get
 
 from gateway.sim import plc
 from gateway.trace import Tracer
