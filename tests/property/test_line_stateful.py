@@ -479,20 +479,28 @@ class LineMachine(RuleBasedStateMachine):
 
     @rule(
         timeout=st.sampled_from((TIMEOUT / 2, TIMEOUT)),
+        slave_timeouts=st.dictionaries(st.sampled_from(SLAVES), st.just(TIMEOUT / 2)),
         retries=st.integers(0, 2),
         dead_after=st.integers(0, 3),
         coalesce=st.booleans(),
         cache=st.booleans(),
     )
     def reload(
-        self, timeout: float, retries: int, dead_after: int, coalesce: bool, cache: bool
+        self,
+        timeout: float,
+        slave_timeouts: dict[int, float],
+        retries: int,
+        dead_after: int,
+        coalesce: bool,
+        cache: bool,
     ) -> None:
-        """A reload with new timeouts, retries, isolation, coalescing (and cache, where the
-        machine has one): the late-answer window stays, so the slaves' lateness stays
-        within what the line promises."""
+        """A reload with new timeouts (the line's and some slaves' own), retries, isolation,
+        coalescing (and cache, where the machine has one). The late-answer window stays, so
+        the slaves' lateness stays within what the line promises."""
         self.config = replace(
             self.config,
             timeout=timeout,
+            slave_timeouts=slave_timeouts,
             retries=retries,
             dead_after=dead_after,
             coalesce=coalesce,
@@ -606,7 +614,8 @@ class PipelinedLineMachine(LineMachine):
         for transmit in self.core.transmits:
             self.check_order(transmit.request)
             if not transmit.request.broadcast:
-                deadline = self.now + len(transmit.frame) * self.char + self.config.timeout
+                timeout = self.config.timeout_for(transmit.request.slave)
+                deadline = self.now + len(transmit.frame) * self.char + timeout
                 self.live[id(transmit.request)] = deadline
             outstanding = [
                 key
