@@ -121,6 +121,7 @@ class LineMachine(RuleBasedStateMachine):
         self.leader_of: dict[int, LineRequest] = {}  # id(read) -> the queued read it joined
         #: A master that disconnects comes back as a new connection: a new key for the core.
         self.connection = dict.fromkeys(MASTERS, 0)
+        self.stopped = False
 
     def key(self, master: str) -> str:
         """The core's key for ``master``'s current connection."""
@@ -384,6 +385,8 @@ class LineMachine(RuleBasedStateMachine):
         self.order[id(request)] = len(self.requests)
         self.requests.append(request)
         self.core.submit(request, self.now)
+        if self.stopped and not request.answered:
+            self.problems.append(f"{self.describe(request)} queued by a stopping line")
         if request.pdu[0] in (3, 4) and not request.answered:
             for leader in self.requests:
                 if request in leader.followers:
@@ -508,6 +511,21 @@ class LineMachine(RuleBasedStateMachine):
         )
         self.core.reconfigure(self.config, self.now)
         self.pump()
+
+    @precondition(lambda self: len(self.requests) > 20 and not self.stopped)
+    @rule(abandon=st.booleans())
+    def stop(self, abandon: bool) -> None:
+        """The gateway stops: what waits is answered 0x0A at once, the attempt on the wire
+        may finish (or, ``abandon``, the grace is over: it is answered 0x0A too), and
+        whatever comes later is answered 0x0A at once."""
+        self.stopped = True
+        self.core.stop(self.now)
+        self.pump()
+        assert self.core.queued == 0
+        if abandon:
+            self.core.abandon(self.now)
+            self.pump()
+            assert self.core.idle
 
     # -- invariants ----------------------------------------------------------------------
 
