@@ -2,8 +2,10 @@
 
 Hypothesis drives ``LineCore`` with masters submitting reads and writes, time moving
 in steps, slaves that answer at once, late by any amount, garbled, never, or not for
-some function codes, and a babbling transceiver. The slaves are sequential, like
-every Modbus serial slave: they answer their requests in the order received.
+some function codes, and a babbling transceiver; masters disconnect and come back,
+the port is lost and reopened, the line is reloaded with new timeouts, retries,
+isolation, coalescing and cache, and the gateway stops. The slaves are sequential,
+like every Modbus serial slave: they answer their requests in the order received.
 
 Checked on every step:
 * every request is answered at most once, and at the end exactly once;
