@@ -521,30 +521,54 @@ class LineCore:
                 del self._cache[key]
 
     def cancel(self, master: Hashable, now: float) -> None:
-        """``master`` left: drop its waiting requests unless another master joined one."""
+        """``master`` left: drop what nobody still connected waits for. Its requests stay
+        when a connected master joined them; a read it had joined goes when it was the
+        last to wait for it (the read's own master left before)."""
+        joined = self._leaders()
+        if self._retry is not None:
+            joined.append(self._retry)
+        if self._attempt is not None:
+            joined.append(self._attempt.request)  # not retried if nobody waits any more
+        for leader in joined:
+            for follower in leader.followers:
+                if follower.master == master:
+                    follower.cancelled = True
         record = self._masters.get(master)
-        if record is None:
-            return
-        record.gone = True
-        for request in list(record.queue):
-            request.cancelled = True
-            if not request.wanted:
-                record.queue.remove(request)
-                self._dequeued(record, request)
-                self._close_to_joiners(request)
-                self._deliver(request, b"", Outcome.DROPPED, -1.0)
-        for request in list(self._lane.values()):
+        if record is not None:
+            record.gone = True
+            for request in record.queue:
+                request.cancelled = True
+        for request in self._lane.values():
             if request.master == master:
                 request.cancelled = True
-                if not request.wanted:
-                    self._lane_remove(request)
-                    self._close_to_joiners(request)
-                    self._deliver(request, b"", Outcome.DROPPED, -1.0)
         if self._retry is not None and self._retry.master == master:
             self._retry.cancelled = True
-        if not record.queue and record.queued == 0:
-            del self._masters[master]
+        for request in self._leaders():  # reads that others joined, this master's or not
+            if not request.wanted:
+                self._drop(request)
+        if record is not None:
+            for request in [r for r in record.queue if not r.wanted]:
+                self._drop(request)
+            if not record.queue and record.queued == 0:
+                self._masters.pop(master, None)
+        for request in [r for r in self._lane.values() if not r.wanted]:
+            self._drop(request)
         self._service(now)
+
+    def _drop(self, request: LineRequest) -> None:
+        """Take ``request`` from where it waits (its master's queue or the lane), answered
+        ``DROPPED``: every master that waited for it has left."""
+        if request.answered:
+            return  # met twice (a joined read back in the lane)
+        if self._lane.get(request.slave) is request:
+            self._lane_remove(request)
+        else:
+            owner = self._masters[request.master]
+            owner.queue.remove(request)
+            self._dequeued(owner, request)
+            self._reschedule(owner)
+        self._close_to_joiners(request)
+        self._deliver(request, b"", Outcome.DROPPED, -1.0)
 
     # -- the line's side -----------------------------------------------------------------
 

@@ -173,10 +173,16 @@ class PipelinedLineCore(LineCore):
         return False
 
     def cancel(self, master: Hashable, now: float) -> None:
-        """``master`` left: its waiting retries are dropped when their turn comes."""
+        """``master`` left: its waiting retries are dropped when their turn comes (and
+        those it alone still waited for, having joined them)."""
         for request in self._retries:
             if request.master == master:
                 request.cancelled = True
+        outstanding = [flight.request for flight in self._in_flight.values()]
+        for request in [*self._retries, *outstanding]:
+            for follower in request.followers:
+                if follower.master == master:
+                    follower.cancelled = True  # not retried if nobody waits any more
         super().cancel(master, now)
 
     def take_queued(self) -> list[LineRequest]:
