@@ -195,6 +195,27 @@ class LineRequest:
         return not self.cancelled or any(not f.cancelled for f in self.followers)
 
 
+def hand_over(taken: list[LineRequest]) -> list[LineRequest]:
+    """Requests taken from a line, ready for another: in the order they were submitted, each
+    read that joined one of them again a request of its own (the new line joins them again
+    where it may), with no attempts made.
+
+    Nothing may stay hidden behind another request: the taker answers each request it got
+    (0x0A when the reload stops) or submits it, and a read that joins one there must not
+    carry followers of its own."""
+    handed: list[LineRequest] = []
+    for request in taken:
+        handed.append(request)
+        handed.extend(request.followers)
+        request.followers.clear()
+    handed.sort(key=lambda request: request.order)
+    for request in handed:
+        request.attempts = 0
+        request.single = False
+        request.lane_deadline = INFINITY
+    return handed
+
+
 def may_change(request: LineRequest, slave: int) -> bool:
     """True when ``request`` may change what ``slave`` holds: anything but a plain read,
     sent to it or broadcast."""
@@ -615,10 +636,7 @@ class LineCore:
         self._masters = {k: m for k, m in self._masters.items() if not m.gone}
         self._queued = 0
         self.stats.queue_depth = 0
-        for request in taken:
-            request.attempts = 0
-            request.lane_deadline = INFINITY
-        return taken
+        return hand_over(taken)
 
     def receive(self, data: bytes, now: float) -> None:
         """Bytes read from the line at ``now``."""

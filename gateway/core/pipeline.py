@@ -62,6 +62,7 @@ from .line import (
     _Attempt,
     _Master,
     _Slave,
+    hand_over,
     may_change,
 )
 from .mbap import MbapDecoder, TransactionIds
@@ -191,7 +192,7 @@ class PipelinedLineCore(LineCore):
         self._retries.clear()
         for request in retries:
             self._close_open(request)
-        return retries + super().take_queued()
+        return hand_over(retries + super().take_queued())
 
     # -- the line's side -----------------------------------------------------------------
 

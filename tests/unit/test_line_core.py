@@ -600,6 +600,41 @@ def test_identical_queued_reads_share_one_transaction_but_not_across_a_write() -
     assert after_write not in first.followers
 
 
+def test_a_reopening_reload_hands_over_every_waiting_request_in_submission_order() -> None:
+    """``take_queued`` hands over the reads that joined others as requests of their own, in
+    the order the masters submitted them: whoever takes them answers (0x0A) or resubmits each
+    one, and nothing waits hidden behind a request the new line lets join another."""
+    write = bytes.fromhex("0600640001")
+    old = Line()
+    old.submit(1, read(50), 0.0, master="x")  # on the wire: stays with the old line
+    old.submit(2, read(100), 0.001, master="a")
+    old.submit(2, write, 0.002, master="b")
+    second = old.submit(2, read(100), 0.003, master="b")  # after b's write: a read of its own
+    joined = old.submit(2, read(100), 0.004, master="a")  # joins b's
+    assert second.followers == [joined]
+    taken = old.core.take_queued()
+    assert [request.pdu for request in taken] == [read(100), write, read(100), read(100)]
+    assert taken == old.requests[1:] and all(not r.followers for r in taken)
+    assert old.core.queued == 0
+
+    new = Line()
+    for request in taken:
+        new.core.submit(request, 0.01)
+    new.flush()
+    assert new.sent() == [encode_rtu(2, read(100))]  # the first read; the rest wait
+    new.receive(registers_answer(2, read(100), 1), 0.02)
+    new.timer()
+    assert new.sent() == [encode_rtu(2, write)]
+    new.receive(encode_rtu(2, write), 0.03)
+    new.timer()
+    assert new.sent() == [encode_rtu(2, read(100))]  # second and joined, together again
+    new.receive(registers_answer(2, read(100), 2), 0.04)
+    answers = [old.answers.get(index, []) for index in range(1, 5)]
+    assert [len(answer) for answer in answers] == [1, 1, 1, 1]
+    assert [answer[0][1] for answer in answers] == [Outcome.OK] * 4
+    assert answers[3] == answers[2] != answers[0]  # joined again: b's read after b's write
+
+
 def busy_line_after(used: str) -> Line:
     """A line where master ``used`` has had a transaction (so others are due before it) and
     master x's read of slave 2 is on the wire until ``line.receive(... read(60) ...)``."""
