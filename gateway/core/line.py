@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Final, NamedTuple, Protocol
 
@@ -249,6 +249,16 @@ class Delivery(NamedTuple):
     pdu: bytes
     outcome: Outcome
     wire_time: float
+
+
+class LateWindow(NamedTuple):
+    """A slave's open late-answer window, handed on to the line that replaces this one."""
+
+    slave: int
+    until: float
+    signatures: frozenset[bytes]  # answers that may still come
+    owner: LineRequest | None  # the request whose attempts were lost
+    pending: int  # its attempts whose answers may still come
 
 
 class Note(NamedTuple):
@@ -616,6 +626,43 @@ class LineCore:
     def abandon(self, now: float) -> None:
         """Give up the attempt on the wire (a stop's grace is over): 0x0A for it."""
         self._abandon_attempt(now)
+
+    def late_windows(self) -> list[LateWindow]:
+        """The late-answer windows still open. A reload that reopens the line hands them
+        to its successor: the same slaves may still answer through the new port (the
+        device under another name, new RS485 settings, a device server's new connection).
+        An MBAP line has none to hand on: its lost answers went with the old connection."""
+        if self.framing.transaction_ids is not None:
+            return []
+        return [
+            LateWindow(
+                slave,
+                record.guard_until,
+                frozenset(record.guard_signatures),
+                record.guard_owner,
+                record.guard_pending,
+            )
+            for slave, record in self._guards.items()
+        ]
+
+    def adopt_late_windows(self, windows: Iterable[LateWindow], now: float) -> None:
+        """Keep the late-answer windows of the line this one replaces, as if opened here."""
+        if self.framing.transaction_ids is not None:
+            return  # answers carry transaction ids: a lost one cannot pass for another's
+        for window in windows:
+            if window.until <= now:
+                continue
+            record = self._record(window.slave)
+            record.guard_until = max(record.guard_until, window.until)
+            record.guard_signatures |= window.signatures
+            owner = window.owner
+            record.guard_owner = owner
+            record.guard_decoder = (
+                None if owner is None else self._new_decoder(window.slave, owner.pdu)
+            )
+            record.guard_pending = window.pending
+            self._guards[window.slave] = record
+        self._service(now)
 
     def take_queued(self) -> list[LineRequest]:
         """Remove every waiting request unanswered (a reload moves them to a reopened line)."""

@@ -29,7 +29,7 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, LineRequest, Note, Transmit, no_reply
+from ..core.line import Delivery, LateWindow, LineRequest, Note, Transmit, no_reply
 from ..core.outcome import LineEvent, Outcome, SlaveState
 from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
@@ -179,9 +179,15 @@ class Bus:
         self._pump()
         return requests
 
-    def adopt(self, requests: list[LineRequest]) -> None:
-        """Queue requests taken from this line's previous incarnation (0x0A if it cannot)."""
+    def late_windows(self) -> list[LateWindow]:
+        """The late-answer windows still open (after ``stop``: for the reopened line)."""
+        return self._core.late_windows()
+
+    def adopt(self, requests: list[LineRequest], windows: Iterable[LateWindow] = ()) -> None:
+        """Queue requests taken from this line's previous incarnation (0x0A if it cannot),
+        behind the late-answer windows it left open."""
         now = time.monotonic()
+        self._core.adopt_late_windows(windows, now)
         for request in requests:
             self._core.submit(request, now)
         self._pump()

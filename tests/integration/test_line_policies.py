@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 import time
+from pathlib import Path
 
 from conftest import GatewayOnSim, RawClient, RunningGateway, wait_until
 
@@ -231,3 +232,30 @@ def test_a_reload_that_reopens_the_line_keeps_its_queue(gateway_with: GatewayOnS
             reply = master.receive()
             assert reply.transaction_id == tid
             assert registers(reply.pdu) == [1000 + 10 * index]
+
+
+def test_a_late_answer_through_a_reopened_port_reaches_no_request(
+    gateway_with: GatewayOnSim, tmp_path: Path
+) -> None:
+    """A reload that reopens the line (here: the device under another name, the same wire)
+    keeps the slave's late-answer window: the answer to the read that timed out before the
+    reload arrives through the new port, and must not answer the same read sent after it,
+    when the register holds another value."""
+    sim, gw = gateway_with({1: plc(1)}, line={"timeout": 0.5, "retries": 0})
+    alias = tmp_path / "ttyBUS"
+    alias.symlink_to(sim.path)
+    sim.device(1).holding[7] = 100
+    sim.faults(1).reply_delay = 1.0  # answers 0.5 s after the gateway gave up
+    with gw.connect() as master:
+        lost = master.request(1, bytes.fromhex("03 0007 0001"))
+        assert lost == bytes.fromhex("83 0B")
+        raw = {
+            "server": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1], device=str(alias), timeout=0.5, retries=0)},
+        }
+        gw.run(gw.gateway.reload(build_config(raw, "<reload>")))
+        assert gw.gateway.buses["a"].config.device == str(alias)
+        sim.device(1).holding[7] = 200
+        sim.faults(1).reply_delay = 0.0
+        assert registers(master.request(1, bytes.fromhex("03 0007 0001"))) == [200]
+    assert sim.stats().responses == 2  # the late answer did come, through the new port

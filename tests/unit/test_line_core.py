@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 
 from gateway.config import LineConfig
+from gateway.core.framing import mbap_framing
 from gateway.core.line import LineCore, LineRequest, answer_signature
 from gateway.core.outcome import LineEvent, Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
@@ -381,6 +382,55 @@ def test_the_window_ends_on_its_own_and_the_held_read_goes() -> None:
     assert line.core.get_timer() == pytest.approx(failed_at + 1.5)
     line.timer()
     assert line.sent() == [encode_rtu(1, read(300))]
+
+
+def test_a_reopened_line_keeps_the_late_answer_windows_of_the_line_it_replaces() -> None:
+    """A reload that reopens the port hands the open windows on: the lost answer may come
+    through the new port (the same wire), so a read that looks like the lost one waits for
+    it there, and a distinguishable one goes at once."""
+    old = Line(timeout=0.5, retries=0, late_answer_window=2.0)
+    old.submit(1, read(100), 0.0)
+    old.sent()
+    failed_at = old.timer()
+    old.core.stop(failed_at)
+    windows = old.core.late_windows()
+    assert [(w.slave, w.until, w.pending) for w in windows] == [(1, failed_at + 2.0, 1)]
+
+    new = Line(timeout=0.5, retries=0, late_answer_window=2.0)
+    new.core.adopt_late_windows(windows, failed_at + 0.1)
+    held = new.submit(1, read(200), failed_at + 0.1)
+    assert new.sent() == []
+    assert new.core.get_timer() == pytest.approx(failed_at + 2.0)
+    other = new.submit(1, read(200, quantity=3), failed_at + 0.1, master="b")
+    assert new.sent() == [encode_rtu(1, read(200, quantity=3))]
+    # The lost answer comes through the new port during b's read: discarded there, and
+    # the window ends (every lost attempt's answer has come).
+    new.receive(registers_answer(1, read(100), 100), failed_at + 0.2)
+    assert [n.detail for n in new.notes(LineEvent.DISCARDED)][-1] == "mismatch"
+    new.receive(registers_answer(1, read(200, quantity=3), 3), failed_at + 0.25)
+    assert new.answer_of(other)[1] == Outcome.OK
+    new.timer()
+    assert new.sent() == [encode_rtu(1, read(200))]
+    new.receive(registers_answer(1, read(200), 200), failed_at + 0.3)
+    assert new.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
+    # Windows that closed before the handover are not kept.
+    closed = Line(timeout=0.5)
+    closed.core.adopt_late_windows(windows, failed_at + 2.0)
+    closed.submit(1, read(200), failed_at + 2.0)
+    assert closed.sent() == [encode_rtu(1, read(200))]
+
+
+def test_a_modbus_tcp_line_hands_on_no_late_answer_windows() -> None:
+    """A lost answer on an MBAP line went with the old connection, and its transaction id
+    tells it from another request's anyway: nothing waits on the reopened line."""
+    config = LineConfig(name="t", device="/dev/null", kind="tcp", timeout=0.5, retries=0)
+    core = LineCore(config, 0.0, framing=mbap_framing())
+    core.port_opened(0.0)
+    core.submit(LineRequest(1, read(100), "m", lambda answer, outcome: None), 0.0)
+    deadline = core.get_timer()
+    assert deadline is not None
+    core.handle_timer(deadline)
+    assert core.late_windows() == []
 
 
 def test_an_exception_to_a_read_of_the_same_function_keeps_the_window_open() -> None:
