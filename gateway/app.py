@@ -29,7 +29,7 @@ from .config import (
     build_config,
     read_config_file,
 )
-from .core.line import LateWindow
+from .core.line import Handover
 from .core.policy import Policy
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
@@ -302,18 +302,18 @@ class Gateway:
                 bus.tls_context = line_tls.get(line.name)
                 continue
             queued: list[Request] = []
-            windows: list[LateWindow] = []
+            handover: Handover | None = None
             if bus is not None:
                 log.info("reload: line %s port settings changed, reopening", line.name)
                 queued = bus.take_queued()  # they wait for the reopened line, not 0x0A
                 await self._close_bus(line.name, grace=5.0)
-                windows = bus.late_windows()  # its lost answers may come through the new port
+                handover = bus.handover()  # the same wire: turnaround, lost answers still due
             else:
                 log.info("reload: line %s added", line.name)
             if self._stopping:  # a stop signal came while the old line finished its transaction
                 Bus.answer_unavailable(queued)
                 return
-            self._open_bus(line, loop).adopt(queued, windows)
+            self._open_bus(line, loop).adopt(queued, handover)
         if (config.server.host, config.server.port) != (
             self.config.server.host,
             self.config.server.port,

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Callable, Hashable, Iterable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Final, NamedTuple, Protocol
 
@@ -259,6 +259,13 @@ class LateWindow(NamedTuple):
     signatures: frozenset[bytes]  # answers that may still come
     owner: LineRequest | None  # the request whose attempts were lost
     pending: int  # its attempts whose answers may still come
+
+
+class Handover(NamedTuple):
+    """The wire as a line leaves it to the line that replaces it (``LineCore.handover``)."""
+
+    quiet_since: float  # no frame before this plus the gap (a broadcast's turnaround)
+    windows: tuple[LateWindow, ...]
 
 
 class Note(NamedTuple):
@@ -627,42 +634,46 @@ class LineCore:
         """Give up the attempt on the wire (a stop's grace is over): 0x0A for it."""
         self._abandon_attempt(now)
 
-    def late_windows(self) -> list[LateWindow]:
-        """The late-answer windows still open. A reload that reopens the line hands them
-        to its successor: the same slaves may still answer through the new port (the
-        device under another name, new RS485 settings, a device server's new connection).
-        An MBAP line has none to hand on: its lost answers went with the old connection."""
-        if self.framing.transaction_ids is not None:
-            return []
-        return [
-            LateWindow(
-                slave,
-                record.guard_until,
-                frozenset(record.guard_signatures),
-                record.guard_owner,
-                record.guard_pending,
-            )
-            for slave, record in self._guards.items()
-        ]
+    def handover(self) -> Handover:
+        """What the line that replaces this one must know of the wire (after ``stop``: a
+        reload that reopens the line). The port is new, the wire and the slaves are not:
+        a broadcast's turnaround still runs, and the slaves' lost answers may still come
+        (the device under another name, new RS485 settings, a device server's new
+        connection). An MBAP line hands on no late-answer windows: its lost answers went
+        with the old connection."""
+        windows: list[LateWindow] = []
+        if self.framing.transaction_ids is None:
+            windows = [
+                LateWindow(
+                    slave,
+                    record.guard_until,
+                    frozenset(record.guard_signatures),
+                    record.guard_owner,
+                    record.guard_pending,
+                )
+                for slave, record in self._guards.items()
+            ]
+        return Handover(self._quiet_since, tuple(windows))
 
-    def adopt_late_windows(self, windows: Iterable[LateWindow], now: float) -> None:
-        """Keep the late-answer windows of the line this one replaces, as if opened here."""
-        if self.framing.transaction_ids is not None:
-            return  # answers carry transaction ids: a lost one cannot pass for another's
-        for window in windows:
-            if window.until <= now:
-                continue
-            record = self._record(window.slave)
-            record.guard_until = max(record.guard_until, window.until)
-            record.guard_signatures |= window.signatures
-            owner = window.owner
-            record.guard_owner = owner
-            record.guard_decoder = (
-                None if owner is None else self._new_decoder(window.slave, owner.pdu)
-            )
-            record.guard_pending = window.pending
-            self._guards[window.slave] = record
+    def take_over(self, handover: Handover, now: float) -> None:
+        """Start where the line this one replaces left the wire: quiet no earlier than it
+        was, its late-answer windows kept as if opened here."""
+        self._quiet_since = max(self._quiet_since, handover.quiet_since)
+        if self.framing.transaction_ids is None:  # else answers carry transaction ids
+            for window in handover.windows:
+                if window.until > now:
+                    self._keep_window(window)
         self._service(now)
+
+    def _keep_window(self, window: LateWindow) -> None:
+        record = self._record(window.slave)
+        record.guard_until = max(record.guard_until, window.until)
+        record.guard_signatures |= window.signatures
+        owner = window.owner
+        record.guard_owner = owner
+        record.guard_decoder = None if owner is None else self._new_decoder(window.slave, owner.pdu)
+        record.guard_pending = window.pending
+        self._guards[window.slave] = record
 
     def take_queued(self) -> list[LineRequest]:
         """Remove every waiting request unanswered (a reload moves them to a reopened line)."""

@@ -29,7 +29,7 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, LateWindow, LineRequest, Note, Transmit, no_reply
+from ..core.line import Delivery, Handover, LineRequest, Note, Transmit, no_reply
 from ..core.outcome import LineEvent, Outcome, SlaveState
 from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
@@ -179,15 +179,16 @@ class Bus:
         self._pump()
         return requests
 
-    def late_windows(self) -> list[LateWindow]:
-        """The late-answer windows still open (after ``stop``: for the reopened line)."""
-        return self._core.late_windows()
+    def handover(self) -> Handover:
+        """The wire as this line leaves it (after ``stop``), for the line that replaces it."""
+        return self._core.handover()
 
-    def adopt(self, requests: list[LineRequest], windows: Iterable[LateWindow] = ()) -> None:
+    def adopt(self, requests: list[LineRequest], handover: Handover | None = None) -> None:
         """Queue requests taken from this line's previous incarnation (0x0A if it cannot),
-        behind the late-answer windows it left open."""
+        starting from the wire as it left it."""
         now = time.monotonic()
-        self._core.adopt_late_windows(windows, now)
+        if handover is not None:
+            self._core.take_over(handover, now)
         for request in requests:
             self._core.submit(request, now)
         self._pump()

@@ -386,15 +386,19 @@ class LineMachine(RuleBasedStateMachine):
         """Submit ``request``, noting the queued read it joined if it joined one."""
         self.order[id(request)] = len(self.requests)
         self.requests.append(request)
-        self.core.submit(request, self.now)
+        self.submit_to_core(request)
         if self.stopped and not request.answered:
             self.problems.append(f"{self.describe(request)} queued by a stopping line")
+        self.pump()
+
+    def submit_to_core(self, request: LineRequest) -> None:
+        """Submit ``request`` now, noting the queued read it joined if it joined one."""
+        self.core.submit(request, self.now)
         if request.pdu[0] in (3, 4) and not request.answered:
             for leader in self.requests:
                 if request in leader.followers:
                     self.leader_of[id(request)] = leader
                     break
-        self.pump()
 
     @precondition(lambda self: bool(self.requests))
     @rule(master=st.sampled_from(MASTERS), index=st.integers(0, 7))
@@ -520,6 +524,37 @@ class LineMachine(RuleBasedStateMachine):
         )
         self.core.reconfigure(self.config, self.now)
         self.pump()
+
+    @precondition(lambda self: self.core.up and not self.stopped)
+    @rule()
+    def reopen(self) -> None:
+        """A reload with new port settings, as ``Gateway._apply`` does it: the queue is taken,
+        the old line stops (the attempt on the wire finishes within a grace of 1 s), then a
+        new core takes over the wire as the old one left it (a broadcast's turnaround, the
+        open late-answer windows) and the queue. The slaves and the wire
+        stay: what they still send reaches the new core."""
+        old = self.core
+        taken = old.take_queued()
+        old.stop(self.now)
+        self.pump()
+        grace_end = self.now + 1.0
+        while not old.idle and self.now < grace_end:
+            self.advance_to(min(self.now + 0.01, grace_end))
+        if not old.idle:
+            old.abandon(self.now)
+            self.pump()
+        handover = old.handover()
+        self.core = self.new_core()
+        self.core.port_opened(self.now)
+        self.core.take_over(handover, self.now)
+        for request in taken:  # handed over on its own: it may join another read again
+            self.leader_of.pop(id(request), None)
+        for request in taken:
+            self.submit_to_core(request)
+        self.pump()
+
+    def new_core(self) -> LineCore:
+        return LineCore(self.config, self.now, framing=self.framing)
 
     @precondition(lambda self: len(self.requests) > 20 and not self.stopped)
     @rule(abandon=st.booleans())
@@ -755,6 +790,10 @@ class PipelinedLineMachine(LineMachine):
     def lose_port(self) -> None:
         self.emissions.clear()  # what was on its way goes with the connection
         super().lose_port()
+
+    def new_core(self) -> LineCore:
+        self.emissions.clear()  # a new connection: the old one's answers went with it
+        return new_line_core(self.config, self.now, None, mbap_framing(), self.limit)
 
 
 PipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings

@@ -15,7 +15,7 @@ import pytest
 
 from gateway.config import LineConfig
 from gateway.core.framing import mbap_framing
-from gateway.core.line import LineCore, LineRequest, answer_signature
+from gateway.core.line import LineCore, LineRequest, answer_signature, no_reply
 from gateway.core.outcome import LineEvent, Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
@@ -393,11 +393,11 @@ def test_a_reopened_line_keeps_the_late_answer_windows_of_the_line_it_replaces()
     old.sent()
     failed_at = old.timer()
     old.core.stop(failed_at)
-    windows = old.core.late_windows()
-    assert [(w.slave, w.until, w.pending) for w in windows] == [(1, failed_at + 2.0, 1)]
+    handover = old.core.handover()
+    assert [(w.slave, w.until, w.pending) for w in handover.windows] == [(1, failed_at + 2.0, 1)]
 
     new = Line(timeout=0.5, retries=0, late_answer_window=2.0)
-    new.core.adopt_late_windows(windows, failed_at + 0.1)
+    new.core.take_over(handover, failed_at + 0.1)
     held = new.submit(1, read(200), failed_at + 0.1)
     assert new.sent() == []
     assert new.core.get_timer() == pytest.approx(failed_at + 2.0)
@@ -415,7 +415,7 @@ def test_a_reopened_line_keeps_the_late_answer_windows_of_the_line_it_replaces()
     assert new.answer_of(held) == (registers_answer(1, read(200), 200)[1:-2], Outcome.OK)
     # Windows that closed before the handover are not kept.
     closed = Line(timeout=0.5)
-    closed.core.adopt_late_windows(windows, failed_at + 2.0)
+    closed.core.take_over(handover, failed_at + 2.0)
     closed.submit(1, read(200), failed_at + 2.0)
     assert closed.sent() == [encode_rtu(1, read(200))]
 
@@ -430,7 +430,7 @@ def test_a_modbus_tcp_line_hands_on_no_late_answer_windows() -> None:
     deadline = core.get_timer()
     assert deadline is not None
     core.handle_timer(deadline)
-    assert core.late_windows() == []
+    assert core.handover().windows == ()
 
 
 def test_an_exception_to_a_read_of_the_same_function_keeps_the_window_open() -> None:
@@ -622,6 +622,22 @@ def test_a_broadcast_is_answered_at_once_and_followed_by_the_turnaround() -> Non
     line.submit(1, read(1), 0.001)
     assert line.sent() == []
     assert line.core.get_timer() == pytest.approx(tx_time(frame) + 0.1 + GAP)
+
+
+def test_a_reopened_line_keeps_the_turnaround_of_a_broadcast_sent_before() -> None:
+    """The old line sent a broadcast and stopped at once (a broadcast leaves nothing on the
+    wire to wait for): the slaves still execute it, so the new line waits out the
+    turnaround too."""
+    old = Line(broadcast_turnaround=0.1)
+    old.core.submit(LineRequest(0, bytes.fromhex("0600010003"), "m", no_reply, True), 0.0)
+    [frame] = old.sent()
+    old.core.stop(0.001)
+    assert old.core.idle
+    new = Line(broadcast_turnaround=0.1)
+    new.core.take_over(old.core.handover(), 0.002)
+    new.submit(1, read(1), 0.002)
+    assert new.sent() == []
+    assert new.core.get_timer() == pytest.approx(tx_time(frame) + 0.1 + GAP)
 
 
 def test_a_lost_port_answers_everything_0x0a() -> None:
