@@ -305,15 +305,23 @@ class Gateway:
             handover: Handover | None = None
             if bus is not None:
                 log.info("reload: line %s port settings changed, reopening", line.name)
-                queued = bus.take_queued()  # they wait for the reopened line, not 0x0A
-                await self._close_bus(line.name, grace=5.0)
-                handover = bus.handover()  # the same wire: turnaround, lost answers still due
+                # The queue, and what masters send while the transaction on the wire
+                # finishes, wait for the reopened line; so do the wire's turnaround and
+                # late-answer windows.
+                queued, handover = await bus.hand_over(grace=5.0)
+                self.buses.pop(line.name, None)  # (a stop meanwhile may have cleared both)
+                clock = self._clocks.pop(line.name, None)
+                if clock is not None:
+                    clock.close()
             else:
                 log.info("reload: line %s added", line.name)
             if self._stopping:  # a stop signal came while the old line finished its transaction
                 Bus.answer_unavailable(queued)
                 return
-            self._open_bus(line, loop).adopt(queued, handover)
+            reopened = self._open_bus(line, loop)
+            if bus is not None:
+                bus.successor = reopened
+            reopened.adopt(queued, handover)
         if (config.server.host, config.server.port) != (
             self.config.server.host,
             self.config.server.port,

@@ -358,10 +358,12 @@ class LineCore:
         self._noisy = False
         self._up = False
         self._stopping = False
+        self._paused = False
         self._credit = 0.0
         self._credit_at = now
         self._open_reads: dict[tuple[int, bytes], LineRequest] = {}
-        #: Queued reads that others joined, until sent or answered (``_held_by_joined``).
+        #: Queued reads that others joined, until sent or answered (``_held_by_joined``); a
+        #: read back in the queue after a failed attempt (from the lane) is queued again.
         self._joined_leaders: dict[LineRequest, None] = {}
         self._write_epoch: dict[int, int] = {}
         self._broadcast_epoch = 0
@@ -424,6 +426,11 @@ class LineCore:
     def idle(self) -> bool:
         """True when nothing is on the wire or waiting."""
         return self._attempt is None and self._queued == 0
+
+    @property
+    def wire_busy(self) -> bool:
+        """True while a transaction is on the wire."""
+        return self._attempt is not None
 
     def slave_state(self, slave: int) -> SlaveState:
         """The isolation state of ``slave``."""
@@ -625,6 +632,12 @@ class LineCore:
         self._abandon_attempt(now)
         self._fail_all(ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
 
+    def pause(self, now: float) -> None:
+        """Send nothing more: the transaction on the wire finishes and requests keep queuing
+        (a reload is about to reopen the line; ``take_queued`` hands them to the new one)."""
+        self._paused = True
+        self._service(now)
+
     def stop(self, now: float) -> None:
         """Take no more requests; answer the queue 0x0A; the attempt on the wire finishes."""
         self._stopping = True
@@ -694,7 +707,18 @@ class LineCore:
         self._masters = {k: m for k, m in self._masters.items() if not m.gone}
         self._queued = 0
         self.stats.queue_depth = 0
-        return hand_over(taken)
+        return self._hand_over(taken)
+
+    def _hand_over(self, taken: list[LineRequest]) -> list[LineRequest]:
+        """``hand_over`` the requests taken, but those whose master left: answered
+        ``DROPPED`` here, as ``cancel`` would have (nobody waits for them)."""
+        kept: list[LineRequest] = []
+        for request in hand_over(taken):
+            if request.cancelled:
+                self._deliver(request, b"", Outcome.DROPPED, -1.0)
+            else:
+                kept.append(request)
+        return kept
 
     def receive(self, data: bytes, now: float) -> None:
         """Bytes read from the line at ``now``."""
@@ -796,7 +820,7 @@ class LineCore:
     def _service(self, now: float) -> None:
         """Put the next request on the wire if one may go now."""
         self._send_at = INFINITY
-        if self._attempt is not None or not self._up or not self._queued:
+        if self._attempt is not None or not self._up or not self._queued or self._paused:
             self._wanting_since = None
             return
         ready_at = self._quiet_since + self._gap
@@ -1208,6 +1232,8 @@ class LineCore:
         master = self._masters.get(request.master)
         if master is None:
             master = self._masters[request.master] = _Master(request.master)
+        if request.followers:  # still waited for by the reads that joined it
+            self._joined_leaders[request] = None
         # Back from the lane: first, but behind its master's earlier broadcasts.
         place = 0
         for index, queued in enumerate(master.queue):

@@ -62,7 +62,6 @@ from .line import (
     _Attempt,
     _Master,
     _Slave,
-    hand_over,
     may_change,
 )
 from .mbap import MbapDecoder, TransactionIds
@@ -140,6 +139,11 @@ class PipelinedLineCore(LineCore):
         return not self._in_flight and self._queued == 0
 
     @property
+    def wire_busy(self) -> bool:
+        """True while an attempt is outstanding on the connection."""
+        return bool(self._in_flight)
+
+    @property
     def in_flight(self) -> int:
         """Attempts outstanding on the connection."""
         return len(self._in_flight)
@@ -192,7 +196,7 @@ class PipelinedLineCore(LineCore):
         self._retries.clear()
         for request in retries:
             self._close_open(request)
-        return hand_over(retries + super().take_queued())
+        return self._hand_over(retries + super().take_queued())
 
     # -- the line's side -----------------------------------------------------------------
 
@@ -277,7 +281,7 @@ class PipelinedLineCore(LineCore):
         """Send while there is room on the connection and a request may go."""
         self._send_at = INFINITY
         self._wanting_since = None
-        if not self._up or not self._queued:
+        if not self._up or not self._queued or self._paused:
             return
         in_flight = self._in_flight
         if self._draining:

@@ -81,6 +81,10 @@ class Bus:
         self._stopping = False
         self._pumping = False
         self._open_error = ""
+        #: The line that replaced this one (``hand_over``): requests go there from now on.
+        self.successor: Bus | None = None
+        self._watch_wire = False  # ``hand_over`` waits for ``_wire_free``
+        self._wire_free = asyncio.Event()
         self.idle = asyncio.Event()
         self.idle.set()
         self._idle = True  # mirrors ``idle``: the pump compares a bool, not a method call
@@ -143,6 +147,36 @@ class Bus:
             # an answer (0x0A, as for a lost line) rather than a closed connection.
             self._core.abandon(time.monotonic())
             self._pump()
+        self._close()
+
+    async def hand_over(self, grace: float) -> tuple[list[LineRequest], Handover]:
+        """Give the line up to the one that reopens it (a reload changed its port): send
+        nothing more, finish the transaction on the wire (within ``grace``) while requests
+        keep queuing, then return the queue and the wire's state and close. The caller
+        sets ``successor`` before it next yields to the loop: later requests go there."""
+        core = self._core
+        core.pause(time.monotonic())
+        self._pump()
+        if core.wire_busy:
+            self._wire_free.clear()
+            self._watch_wire = True
+            try:
+                await asyncio.wait_for(self._wire_free.wait(), grace)
+            except TimeoutError:
+                core.abandon(time.monotonic())  # its master gets 0x0A, as at a stop
+                self._pump()
+            self._watch_wire = False
+        queued = core.take_queued()
+        handover = core.handover()
+        self._stopping = True
+        if self._reopener is not None:
+            self._reopener.cancel()
+        core.stop(time.monotonic())
+        self._pump()
+        self._close()
+        return queued, handover
+
+    def _close(self) -> None:
         self._clock.disarm()
         if self._link is not None:
             self._link.close()
@@ -164,24 +198,19 @@ class Bus:
         Always ``True``: the core answers at once what cannot be queued (0x0A line
         down or full, 0x06 the master's queue full, 0x0B isolated slave or noisy line).
         """
+        if self.successor is not None:  # reopened by a reload: routes may still name us
+            return self.successor.submit(request)
         self._core.submit(request, time.monotonic())
         self._pump()
         return True
 
     def cancel(self, master: Hashable) -> None:
         """``master`` left: its waiting requests are dropped (unless others joined them)."""
+        if self.successor is not None:
+            self.successor.cancel(master)
+            return
         self._core.cancel(master, time.monotonic())
         self._pump()
-
-    def take_queued(self) -> list[LineRequest]:
-        """Hand over every queued request unanswered: a reload moves them to the reopened line."""
-        requests = self._core.take_queued()
-        self._pump()
-        return requests
-
-    def handover(self) -> Handover:
-        """The wire as this line leaves it (after ``stop``), for the line that replaces it."""
-        return self._core.handover()
 
     def adopt(self, requests: list[LineRequest], handover: Handover | None = None) -> None:
         """Queue requests taken from this line's previous incarnation (0x0A if it cannot),
@@ -279,6 +308,8 @@ class Bus:
         else:
             self._timer_at = deadline
             self._clock.arm(deadline, self._on_timer, ahead=True)
+        if self._watch_wire and not core.wire_busy:
+            self._wire_free.set()
         if core.idle is not self._idle:
             self._idle = not self._idle
             if self._idle:

@@ -7,11 +7,20 @@ using the line" is observed, not assumed.
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import struct
 import time
 from pathlib import Path
 
-from conftest import GatewayOnSim, RawClient, RunningGateway, wait_until
+from conftest import (
+    DEADLINE_S,
+    GatewayOnSim,
+    LogCollector,
+    RawClient,
+    RunningGateway,
+    wait_until,
+)
 
 from gateway.config import build_config
 from gateway.sim import plc
@@ -259,3 +268,41 @@ def test_a_late_answer_through_a_reopened_port_reaches_no_request(
         sim.faults(1).reply_delay = 0.0
         assert registers(master.request(1, bytes.fromhex("03 0007 0001"))) == [200]
     assert sim.stats().responses == 2  # the late answer did come, through the new port
+
+
+def test_requests_sent_while_a_reopening_line_finishes_its_transaction_wait_for_it(
+    gateway_with: GatewayOnSim,
+) -> None:
+    """A reload that reopens the line lets the transaction on the wire finish first; what
+    masters send meanwhile waits for the reopened line too, rather than being refused."""
+    sim, gw = gateway_with({1: plc(1)}, sim={"baudrate": 4800})
+    with gw.connect() as master:
+        slow = master.send(1, SLOW_READ)  # ~0.6 s on the wire at 4800 baud
+        wait_until(lambda: sim.stats().requests >= 1, "the slow read on the wire")
+        raw = {
+            "server": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1], baudrate=9600)},  # a port setting: reopen
+        }
+        logs = LogCollector()
+        logger = logging.getLogger("gateway")
+        level = logger.level
+        logger.setLevel(logging.INFO)
+        logger.addHandler(logs)
+        try:
+            reload = asyncio.run_coroutine_threadsafe(
+                gw.gateway.reload(build_config(raw, "<reload>")), gw.loop
+            )
+            # Logged as the line stops sending, in the same turn of the loop.
+            wait_until(lambda: any("reopening" in m for m in logs.messages), "the hand-over")
+            meanwhile = [master.send(1, bytes.fromhex(f"03 {2000 + i:04X} 0001")) for i in range(3)]
+            reload.result(DEADLINE_S)
+        finally:
+            logger.removeHandler(logs)
+            logger.setLevel(level)
+        assert gw.gateway.buses["a"].config.baudrate == 9600
+        first = master.receive()
+        assert first.transaction_id == slow and first.pdu[0] == 0x03
+        for index, tid in enumerate(meanwhile):
+            reply = master.receive()
+            assert reply.transaction_id == tid
+            assert registers(reply.pdu) == [2000 + index]

@@ -4,7 +4,8 @@ Hypothesis drives ``LineCore`` with masters submitting reads and writes, time mo
 in steps, slaves that answer at once, late by any amount, garbled, never, or not for
 some function codes, and a babbling transceiver; masters disconnect and come back,
 the port is lost and reopened, the line is reloaded with new timeouts, retries,
-isolation, coalescing and cache, and the gateway stops. The slaves are sequential,
+isolation, coalescing and cache, or reopened by a reload (its queue and the wire's
+state handed to a new core), and the gateway stops. The slaves are sequential,
 like every Modbus serial slave: they answer their requests in the order received.
 
 Checked on every step:
@@ -124,6 +125,7 @@ class LineMachine(RuleBasedStateMachine):
         #: A master that disconnects comes back as a new connection: a new key for the core.
         self.connection = dict.fromkeys(MASTERS, 0)
         self.stopped = False
+        self.paused_at: float | None = None  # a reopening reload began (``begin_reopen``)
 
     def key(self, master: str) -> str:
         """The core's key for ``master``'s current connection."""
@@ -146,6 +148,8 @@ class LineMachine(RuleBasedStateMachine):
             if id(delivery.request) not in broadcasts:
                 self.check_answer(delivery.request, delivery.pdu, delivery.outcome)
         for transmit in transmits:
+            if self.paused_at is not None:
+                self.problems.append(f"frame {transmit.frame.hex()} sent by a paused line")
             self.check_quiet(transmit.frame)
             request = transmit.request
             self.transmissions[id(request)] = self.transmissions.get(id(request), 0) + 1
@@ -525,25 +529,40 @@ class LineMachine(RuleBasedStateMachine):
         self.core.reconfigure(self.config, self.now)
         self.pump()
 
-    @precondition(lambda self: self.core.up and not self.stopped)
+    @precondition(lambda self: self.core.up and not self.stopped and self.paused_at is None)
     @rule()
-    def reopen(self) -> None:
-        """A reload with new port settings, as ``Gateway._apply`` does it: the queue is taken,
-        the old line stops (the attempt on the wire finishes within a grace of 1 s), then a
-        new core takes over the wire as the old one left it (a broadcast's turnaround, the
-        open late-answer windows) and the queue. The slaves and the wire
-        stay: what they still send reaches the new core."""
-        old = self.core
-        taken = old.take_queued()
-        old.stop(self.now)
+    def begin_reopen(self) -> None:
+        """A reload with new port settings, as ``Bus.hand_over`` does it: the line sends
+        nothing more while the attempt on the wire finishes; requests keep queuing (the
+        other rules go on meanwhile)."""
+        self.core.pause(self.now)
         self.pump()
-        grace_end = self.now + 1.0
-        while not old.idle and self.now < grace_end:
+        self.paused_at = self.now
+
+    @precondition(lambda self: self.paused_at is not None)
+    @rule()
+    def finish_reopen(self) -> None:
+        """The attempt on the wire has finished (or the grace of 1 s is over: given up); the
+        queue is taken and the old line stops; a new core takes over the wire as the old
+        one left it (a broadcast's turnaround, the open late-answer windows), then the
+        queue. The slaves and the wire stay: what they still send reaches the new core."""
+        assert self.paused_at is not None
+        old = self.core
+        grace_end = self.paused_at + 1.0
+        while old.wire_busy and self.now < grace_end:
             self.advance_to(min(self.now + 0.01, grace_end))
-        if not old.idle:
+        if old.wire_busy:
             old.abandon(self.now)
             self.pump()
+        taken = old.take_queued()
         handover = old.handover()
+        old.stop(self.now)
+        self.pump()
+        assert old.idle
+        self.paused_at = None
+        if self.stopped:  # the gateway stopped meanwhile: no new line (nothing was left)
+            assert taken == []
+            return
         self.core = self.new_core()
         self.core.port_opened(self.now)
         self.core.take_over(handover, self.now)
@@ -589,6 +608,8 @@ class LineMachine(RuleBasedStateMachine):
                 assert self.transmissions.get(id(request), 0) <= 1, request.pdu.hex()
 
     def teardown(self) -> None:
+        if self.paused_at is not None:
+            self.finish_reopen()
         # Let everything finish: every request is answered exactly once.
         for slave in self.slaves.values():
             slave.delay = 0.001
@@ -849,4 +870,18 @@ def test_a_read_goes_when_the_last_master_that_joined_it_leaves() -> None:
     assert not machine.problems, machine.problems
     read = machine.requests[1]
     assert read.answered and id(read) not in machine.transmissions
+    machine.teardown()
+
+
+def test_a_broadcast_waits_for_a_read_joined_to_one_back_from_the_lane() -> None:
+    """Found by the machine: master a's read joins b's; b's read times out and waits in the
+    isolated slaves' lane; the late answer shows the slave alive, so the read goes back to
+    the queue (with a's follower). a's broadcast must still wait for it."""
+    machine = LineMachine()
+    machine.behave(delay=0.125, garble=False, ignores=frozenset(), noise=False, slave=2)
+    machine.submit(address=0, kind="read", master="b", quantity=1, slave=2)
+    machine.submit(address=0, kind="read", master="a", quantity=1, slave=2)
+    machine.broadcast(master="a")
+    machine.broadcast(master="c")
+    machine.wait(step=0.002)  # b's read goes; its answer will come 0.125 s later
     machine.teardown()
