@@ -308,11 +308,10 @@ class Gateway:
                 # The queue, and what masters send while the transaction on the wire
                 # finishes, wait for the reopened line; so do the wire's turnaround and
                 # late-answer windows.
+                del self.buses[line.name]  # a stop meanwhile leaves it to us
+                clock = self._clocks.pop(line.name)
                 queued, handover = await bus.hand_over(grace=5.0)
-                self.buses.pop(line.name, None)  # (a stop meanwhile may have cleared both)
-                clock = self._clocks.pop(line.name, None)
-                if clock is not None:
-                    clock.close()
+                clock.close()
             else:
                 log.info("reload: line %s added", line.name)
             if self._stopping:  # a stop signal came while the old line finished its transaction
