@@ -604,7 +604,7 @@ class LineCore:
         """Take ``request`` from where it waits (its master's queue or the lane), answered
         ``DROPPED``: every master that waited for it has left."""
         if request.answered:
-            return  # met twice (a joined read back in the lane)
+            return  # already dropped by another of ``cancel``'s sweeps
         if self._lane.get(request.slave) is request:
             self._lane_remove(request)
         else:
@@ -648,12 +648,12 @@ class LineCore:
         self._abandon_attempt(now)
 
     def handover(self) -> Handover:
-        """What the line that replaces this one must know of the wire (after ``stop``: a
-        reload that reopens the line). The port is new, the wire and the slaves are not:
-        a broadcast's turnaround still runs, and the slaves' lost answers may still come
-        (the device under another name, new RS485 settings, a device server's new
-        connection). An MBAP line hands on no late-answer windows: its lost answers went
-        with the old connection."""
+        """What the line that replaces this one must know of the wire (a reload that
+        reopens the line, once the transaction on the wire has ended). The port is new,
+        the wire and the slaves are not: a broadcast's turnaround still runs, and the
+        slaves' lost answers may still come (the device under another name, new RS485
+        settings, a device server's new connection). An MBAP line hands on no late-answer
+        windows: its lost answers went with the old connection."""
         windows: list[LateWindow] = []
         if self.framing.transaction_ids is None:
             windows = [
