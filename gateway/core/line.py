@@ -195,27 +195,6 @@ class LineRequest:
         return not self.cancelled or any(not f.cancelled for f in self.followers)
 
 
-def hand_over(taken: list[LineRequest]) -> list[LineRequest]:
-    """Requests taken from a line, ready for another: in the order they were submitted, each
-    read that joined one of them again a request of its own (the new line joins them again
-    where it may), with no attempts made.
-
-    Nothing may stay hidden behind another request: the taker answers each request it got
-    (0x0A when the reload stops) or submits it, and a read that joins one there must not
-    carry followers of its own."""
-    handed: list[LineRequest] = []
-    for request in taken:
-        handed.append(request)
-        handed.extend(request.followers)
-        request.followers.clear()
-    handed.sort(key=lambda request: request.order)
-    for request in handed:
-        request.attempts = 0
-        request.single = False
-        request.lane_deadline = INFINITY
-    return handed
-
-
 def may_change(request: LineRequest, slave: int) -> bool:
     """True when ``request`` may change what ``slave`` holds: anything but a plain read,
     sent to it or broadcast."""
@@ -569,12 +548,7 @@ class LineCore:
         """``master`` left: drop what nobody still connected waits for. Its requests stay
         when a connected master joined them; a read it had joined goes when it was the
         last to wait for it (the read's own master left before)."""
-        joined = self._leaders()
-        if self._retry is not None:
-            joined.append(self._retry)
-        if self._attempt is not None:
-            joined.append(self._attempt.request)  # not retried if nobody waits any more
-        for leader in joined:
+        for leader in self._carriers():
             for follower in leader.followers:
                 if follower.master == master:
                     follower.cancelled = True
@@ -599,6 +573,16 @@ class LineCore:
         for request in [r for r in self._lane.values() if not r.wanted]:
             self._drop(request)
         self._service(now)
+
+    def _carriers(self) -> list[LineRequest]:
+        """Every request whose answer others that joined it still wait for: the waiting
+        leaders, the retry and the attempt on the wire (not retried once nobody waits)."""
+        carriers = self._leaders()
+        if self._retry is not None:
+            carriers.append(self._retry)
+        if self._attempt is not None:
+            carriers.append(self._attempt.request)
+        return carriers
 
     def _drop(self, request: LineRequest) -> None:
         """Take ``request`` from where it waits (its master's queue or the lane), answered
@@ -710,14 +694,29 @@ class LineCore:
         return self._hand_over(taken)
 
     def _hand_over(self, taken: list[LineRequest]) -> list[LineRequest]:
-        """``hand_over`` the requests taken, but those whose master left: answered
-        ``DROPPED`` here, as ``cancel`` would have (nobody waits for them)."""
+        """Requests taken from this line, ready for another: in the order they were
+        submitted, each read that joined one of them a request of its own again (the new
+        line joins them again where it may), with no attempts made.
+
+        Nothing may stay hidden behind another request: the taker answers each request it
+        got (0x0A when the reload stops) or submits it, and a read that joins one there
+        must not carry followers of its own. Requests whose master left are answered
+        ``DROPPED`` here, as ``cancel`` would have: nobody waits for them."""
+        handed: list[LineRequest] = []
+        for request in taken:
+            handed.append(request)
+            handed.extend(request.followers)
+            request.followers.clear()
+        handed.sort(key=lambda request: request.order)
         kept: list[LineRequest] = []
-        for request in hand_over(taken):
+        for request in handed:
             if request.cancelled:
                 self._deliver(request, b"", Outcome.DROPPED, -1.0)
-            else:
-                kept.append(request)
+                continue
+            request.attempts = 0
+            request.single = False
+            request.lane_deadline = INFINITY
+            kept.append(request)
         return kept
 
     def receive(self, data: bytes, now: float) -> None:

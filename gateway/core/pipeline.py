@@ -183,12 +183,14 @@ class PipelinedLineCore(LineCore):
         for request in self._retries:
             if request.master == master:
                 request.cancelled = True
-        outstanding = [flight.request for flight in self._in_flight.values()]
-        for request in [*self._retries, *outstanding]:
-            for follower in request.followers:
-                if follower.master == master:
-                    follower.cancelled = True  # not retried if nobody waits any more
         super().cancel(master, now)
+
+    def _carriers(self) -> list[LineRequest]:
+        """The serial core's, plus the retries waiting and the attempts outstanding."""
+        carriers = super()._carriers()
+        carriers.extend(self._retries)
+        carriers.extend(flight.request for flight in self._in_flight.values())
+        return carriers
 
     def take_queued(self) -> list[LineRequest]:
         """Remove every waiting request unanswered, retries included."""
