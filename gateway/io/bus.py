@@ -135,11 +135,7 @@ class Bus:
 
     async def stop(self, grace: float) -> None:
         """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
-        self._stopping = True
-        if self._reopener is not None:
-            self._reopener.cancel()
-        self._core.stop(time.monotonic())
-        self._pump()
+        self._stop_taking()
         try:
             await asyncio.wait_for(self.idle.wait(), grace)
         except TimeoutError:
@@ -168,13 +164,17 @@ class Bus:
             self._watch_wire = False
         queued = core.take_queued()
         handover = core.handover()
+        self._stop_taking()
+        self._close()
+        return queued, handover
+
+    def _stop_taking(self) -> None:
+        """No reopening and no more requests: the core answers what waits 0x0A."""
         self._stopping = True
         if self._reopener is not None:
             self._reopener.cancel()
-        core.stop(time.monotonic())
+        self._core.stop(time.monotonic())
         self._pump()
-        self._close()
-        return queued, handover
 
     def _close(self) -> None:
         self._clock.disarm()
