@@ -479,8 +479,9 @@ class LineMachine(RuleBasedStateMachine):
         connected joined it, and so are reads of masters that left before it that only it
         had joined; what it had on the wire finishes, so its late answer is guarded as ever.
         """
+        leaving = self.key(master)
         self.connection[master] += 1
-        self.core.cancel(f"{master}{self.connection[master] - 1}", self.now)
+        self.core.cancel(leaving, self.now)
         self.pump()
         connected = {self.key(name) for name in MASTERS}
         followers: dict[int, list[LineRequest]] = {}
@@ -813,7 +814,8 @@ class PipelinedLineMachine(LineMachine):
         super().lose_port()
 
     def new_core(self) -> LineCore:
-        self.emissions.clear()  # a new connection: the old one's answers went with it
+        """The reopened line's core; a new connection, so the old one's answers are gone."""
+        self.emissions.clear()
         return new_line_core(self.config, self.now, None, mbap_framing(), self.limit)
 
 
