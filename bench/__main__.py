@@ -37,7 +37,7 @@ from . import (
     tls_scenarios,
     transport_scenarios,
 )
-from .procs import BenchError, environment_summary
+from .procs import BenchError, environment_summary, gateway_build
 from .report import render_checks, render_table
 from .scenarios import Bench, ScenarioResult, Timing
 
@@ -121,6 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     os.chdir(root)
     bench = Bench(Timing.make(args.quick, args.tiny), _progress)
+    _progress(f"gateway build: {gateway_build()}")
     started = time.monotonic()
     results: list[ScenarioResult] = []
     failures: dict[str, str] = {}
@@ -154,7 +155,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "other work runs are pessimistic"
         )
     wrong = bench.gateway_faults
-    print(f"{len(results)} scenario(s) in {elapsed:.0f} s; gateway wrong answers and "
+    print(f"{len(results)} scenario(s) in {elapsed:.0f} s ({gateway_build()} gateway); "
+          "gateway wrong answers and "
           f"read-after-write violations: {wrong}; "
           f"targets met: {sum(c.met for c in checks)}/{len(checks)}")  # fmt: skip
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .loadgen import GATEWAY_BUSY, PATH_UNAVAILABLE, TARGET_FAILED, TIMELINE_BUCKET_S, LoadSpec
-from .procs import PYTHON, Server, SimOptions
+from .procs import PYTHON, Server, SimOptions, gateway_build
 from .scenarios import (
     FAULT_BAUDRATE,
     HEALTHY_UNITS,
@@ -107,8 +107,8 @@ def floor(bench: Bench) -> ScenarioResult:
     """
     masters_list = (1, 10) if bench.timing.tiny else UNPACED_MASTERS
     table = Table(
-        "The floor: gateway vs a bare forwarder (bench/bare_forwarder.py), unpaced pty, "
-        "--frame-gap 0, FC03 x 10 across 4 slaves",
+        f"The floor: gateway ({gateway_build()}) vs a bare forwarder (bench/bare_forwarder.py), "
+        "unpaced pty, --frame-gap 0, FC03 x 10 across 4 slaves",
         ["masters", "server", "tx/s", "p99 ms", "CPU us/tx", "other load", "wrong", "errors"],
     )
     figures: dict[str, Any] = {}

@@ -285,9 +285,19 @@ class Stack:
             self.sim_stats = self.simulator.stop()
 
 
+def gateway_build() -> str:
+    """``compiled`` or ``interpreted``: the gateway the server processes run (this checkout's,
+    as they import it; ``MODBUS_GATEWAY_COMPILE=1 python setup.py build_ext --inplace``
+    compiles it, see the README's "Compiled build")."""
+    from gateway import build  # the servers' own import path: the bench runs from the root
+
+    return build()
+
+
 def environment_summary() -> dict[str, Any]:
     """What machine and code produced the figures."""
     summary: dict[str, Any] = {"python": sys.version.split()[0], "cpus": os.cpu_count()}
+    summary["gateway_build"] = gateway_build()
     try:
         summary["uvloop"] = metadata.version("uvloop")
     except metadata.PackageNotFoundError:

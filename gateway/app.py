@@ -21,6 +21,7 @@ from typing import Any
 
 from prometheus_client import CollectorRegistry
 
+from . import __version__, build
 from .config import (
     ConfigError,
     GatewayConfig,
@@ -34,7 +35,7 @@ from .core.policy import Policy
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
-from .io.rtu_listener import RtuOverTcpServer
+from .io.rtu_listener import rtu_over_tcp_server
 from .io.serial_port import check_device_free
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
@@ -155,6 +156,7 @@ class Gateway:
 
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
+        log.info("modbus-gateway %s (%s)", __version__, build())
         loop = asyncio.get_running_loop()
         listeners = tuple(lst for lst in self.config.listeners if lst.serial is None) or (
             ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
@@ -175,7 +177,7 @@ class Gateway:
         router = self._build_router()
         for listener in listeners:
             built = tls.get(listener.name)
-            kind = RtuOverTcpServer if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
+            kind = rtu_over_tcp_server if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
             server = kind(
                 self.config.server, router, self.metrics, listener,
                 self._policy(self.config, listener), built.context if built else None,

@@ -11,7 +11,7 @@ from collections.abc import Callable, Coroutine, Sequence
 from importlib import resources
 from typing import Any, NoReturn
 
-from . import __version__
+from . import __version__, build
 from .app import Gateway, reloader, run_until_signalled
 from .config import (
     ConfigError,
@@ -84,7 +84,9 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
         "'example-config', 'trace [OPTIONS]' (the same as --trace), 'trace --url "
         "http://HOST:PORT' (attach to a running gateway), 'scan' (find the slaves on a line).",
     )
-    parser.add_argument("--version", action="version", version=f"modbus-gateway {__version__}")
+    parser.add_argument(
+        "--version", action="version", version=f"modbus-gateway {__version__} ({build()})"
+    )
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
     parser.add_argument(
         "--listen",

@@ -41,7 +41,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
-from . import __version__
+from . import __version__, build
 from .core.line import LineStats
 from .core.outcome import Outcome
 from .core.pdu import function_name
@@ -418,8 +418,10 @@ class GatewayMetrics:
         self._line_certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._line_certificates, owner="line"))
         self._denial_children: dict[tuple[str, str, int], Counter] = {}
-        self.info = Info(p + "build", "Version and configured lines.", registry=r)
-        self.info.info({"version": __version__, "lines": ""})
+        self.info = Info(
+            p + "build", "Version, build (compiled or interpreted) and lines.", registry=r
+        )
+        self.info.info({"version": __version__, "build": build(), "lines": ""})
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
@@ -432,7 +434,7 @@ class GatewayMetrics:
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
-        self.info.info({"version": __version__, "lines": ",".join(names)})
+        self.info.info({"version": __version__, "build": build(), "lines": ",".join(names)})
 
     def set_line_kind(self, line: str, kind: str) -> None:
         """Label ``line`` with its kind in ``line_info`` (one series per line)."""

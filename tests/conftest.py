@@ -15,13 +15,17 @@ import asyncio
 import logging
 import os
 import shutil
+import site
 import socket
 import struct
+import subprocess
 import threading
 import time
+import venv
 from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
@@ -430,3 +434,24 @@ def decode_as_the_core_does(decoder: ResponseDecoder, chunks: list[bytes]) -> li
         if rest:
             pending.insert(0, rest)
     return happened
+
+
+def environment_with_our_dependencies(env_dir: Path) -> Path:
+    """A fresh venv that sees this environment's packages (offline), but not this checkout.
+
+    ``venv --system-site-packages`` would inherit the *base* interpreter's packages, which
+    inside a venv are not the ones the tests run with. A ``.pth`` file listing this
+    environment's site directories puts its installed dependencies on the new venv's
+    path, after the venv's own site-packages, so the wheel installed there wins over any
+    copy of the package here; ``.pth`` files in those directories (an editable install
+    of this checkout) are not processed.
+    """
+    venv.create(env_dir, with_pip=False)
+    python = env_dir / "bin" / "python"
+    inner_site = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    outer_sites = [path for path in site.getsitepackages() if Path(path).is_dir()]
+    (Path(inner_site) / "outer-environment.pth").write_text("\n".join(outer_sites) + "\n")
+    return python

@@ -15,12 +15,13 @@ resynchronised with certainty) and is counted in ``protocol_errors_total``.
 from __future__ import annotations
 
 import asyncio
-from dataclasses import replace
+import ssl
 
-from ..config import ServerConfig
-from ..core.policy import IPAddress
+from ..config import ListenerConfig, ServerConfig
+from ..core.policy import IPAddress, Policy
 from ..core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
-from .tcp import MasterConnection, ModbusTcpServer
+from ..metrics import GatewayMetrics
+from .tcp import MasterConnection, ModbusTcpServer, Router
 
 #: Quiet time that ends a request whose length its function code does not tell.
 SILENCE_S = 0.05
@@ -37,9 +38,8 @@ class RtuMasterConnection(MasterConnection):
         accepted: float,
         address: IPAddress | None = None,
     ) -> None:
-        super().__init__(server, peer, source, accepted, address)
         self._rtu = RtuStreamDecoder()
-        self._decoder = self._rtu  # type: ignore[assignment]
+        super().__init__(server, peer, source, accepted, address, self._rtu)
         self._silence_timer: asyncio.TimerHandle | None = None
 
     def buffer_updated(self, nbytes: int) -> None:
@@ -80,16 +80,16 @@ class RtuMasterConnection(MasterConnection):
         super()._release()
 
 
-class RtuOverTcpServer(ModbusTcpServer):
-    """A listener for RTU-over-TCP masters; its server settings keep one request in flight."""
-
-    connection_class = RtuMasterConnection
-
-    @property
-    def config(self) -> ServerConfig:
-        """The ``[server]`` settings, with ``max_pipeline`` 1 and no broadcast replies."""
-        return self._rtu_config
-
-    @config.setter
-    def config(self, value: ServerConfig) -> None:
-        self._rtu_config = replace(value, max_pipeline=1, broadcast_reply=False)
+def rtu_over_tcp_server(
+    config: ServerConfig,
+    router: Router,
+    metrics: GatewayMetrics,
+    listener: ListenerConfig | None = None,
+    policy: Policy | None = None,
+    ssl_context: ssl.SSLContext | None = None,
+) -> ModbusTcpServer:
+    """A listener for RTU-over-TCP masters: one request in flight each, no broadcast replies."""
+    return ModbusTcpServer(
+        config, router, metrics, listener, policy, ssl_context,
+        connection_class=RtuMasterConnection, one_at_a_time=True,
+    )  # fmt: skip

@@ -43,8 +43,8 @@ import socket
 import ssl
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Final, cast
+from dataclasses import dataclass, replace
+from typing import Final, Protocol, cast
 
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
@@ -122,6 +122,17 @@ def _peer_text(address: object) -> tuple[str, str]:
     return str(address), str(address)
 
 
+class RequestSplitter(Protocol):
+    """Splits a master's byte stream into requests: MBAP here, RTU frames for RTU over TCP."""
+
+    @property
+    def buffered(self) -> int: ...
+
+    def feed(self, data: bytes | bytearray | memoryview) -> None: ...
+
+    def next_frame(self) -> MbapFrame | None: ...
+
+
 class MasterConnection(asyncio.BufferedProtocol):
     """One TCP master; ``peer`` and ``source`` come from ``accept()``, never from the socket."""
 
@@ -132,13 +143,14 @@ class MasterConnection(asyncio.BufferedProtocol):
         source: str,
         accepted: float,
         address: IPAddress | None = None,
+        splitter: RequestSplitter | None = None,
     ) -> None:
         self._server = server
         self.peer = peer
         self.source = source
         self.principal = Principal(address)  #: the source, and the TLS role once known
         self.role_text: str | None = None  #: the role as the trace shows it (TLS only)
-        self._decoder = MbapDecoder()
+        self._decoder: RequestSplitter = MbapDecoder() if splitter is None else splitter
         self._buffer = memoryview(bytearray(READ_CHUNK))
         self._transport: asyncio.Transport | None = None
         self._pending: set[Request] = set()
@@ -492,9 +504,6 @@ class MasterConnection(asyncio.BufferedProtocol):
 class ModbusTcpServer:
     """One listener: accepts masters (allow lists, admission, eviction) and keeps the books."""
 
-    #: What serves one accepted master (``rtu_listener`` gives RTU framing its own).
-    connection_class: type[MasterConnection] = MasterConnection
-
     def __init__(
         self,
         config: ServerConfig,
@@ -503,7 +512,16 @@ class ModbusTcpServer:
         listener: ListenerConfig | None = None,
         policy: Policy | None = None,
         ssl_context: ssl.SSLContext | None = None,
+        *,
+        connection_class: type[MasterConnection] = MasterConnection,
+        one_at_a_time: bool = False,
     ) -> None:
+        #: What serves one accepted master (``rtu_listener`` gives RTU framing its own).
+        self.connection_class = connection_class
+        #: Masters whose frames carry no transaction id (RTU over TCP): one request in
+        #: flight each, and a broadcast is never answered, whatever ``[server]`` says.
+        self.one_at_a_time = one_at_a_time
+        self._config = config
         self.config = config
         self.router = router
         self.metrics = metrics
@@ -526,6 +544,17 @@ class ModbusTcpServer:
         self.events = EventSummary(
             log, loop, "connections", LOG_INTERVAL_S, extra=lambda: f"{self.connections} open"
         )
+
+    @property
+    def config(self) -> ServerConfig:
+        """The ``[server]`` settings as this listener applies them (see ``one_at_a_time``)."""
+        return self._config
+
+    @config.setter
+    def config(self, value: ServerConfig) -> None:
+        if self.one_at_a_time:
+            value = replace(value, max_pipeline=1, broadcast_reply=False)
+        self._config = value
 
     @property
     def connections(self) -> int:

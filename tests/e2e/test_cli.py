@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from conftest import DEADLINE_S, RawClient, Reply, SimFactory
 
-from gateway import __version__
+from gateway import __version__, build
 from gateway.core.ascii import encode_ascii
 from gateway.sim import open_pty_pair, plc, zl69x
 from gateway.sim.device import pack_registers
@@ -247,7 +247,7 @@ def test_version() -> None:
         gateway_command("--version"), capture_output=True, text=True, timeout=30, check=False
     )
     assert done.returncode == 0
-    assert done.stdout.strip() == f"modbus-gateway {__version__}"
+    assert done.stdout.strip() == f"modbus-gateway {__version__} ({build()})"
 
 
 @pytest.mark.parametrize(

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import site
 import subprocess
 import sys
-import venv
 import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import environment_with_our_dependencies
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -36,31 +35,10 @@ def test_the_wheel_carries_the_example_configuration(wheel: Path) -> None:
     assert not any(name.startswith(("tests/", "bench/")) for name in names)
 
 
-def _environment_with_our_dependencies(env_dir: Path) -> Path:
-    """A fresh venv that sees this environment's packages (offline), but not this checkout.
-
-    ``venv --system-site-packages`` would inherit the *base* interpreter's packages, which
-    inside a venv are not the ones the tests run with. A ``.pth`` file listing this
-    environment's site directories puts its installed dependencies on the new venv's
-    path, after the venv's own site-packages, so the wheel installed there wins over any
-    copy of the package here; ``.pth`` files in those directories (an editable install
-    of this checkout) are not processed.
-    """
-    venv.create(env_dir, with_pip=False)
-    python = env_dir / "bin" / "python"
-    inner_site = subprocess.run(
-        [python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-        capture_output=True, text=True, check=True,
-    ).stdout.strip()  # fmt: skip
-    outer_sites = [path for path in site.getsitepackages() if Path(path).is_dir()]
-    (Path(inner_site) / "outer-environment.pth").write_text("\n".join(outer_sites) + "\n")
-    return python
-
-
 def test_the_installed_command(wheel: Path, tmp_path: Path) -> None:
     """Installed into a fresh environment (dependencies from this one), the command runs."""
     env_dir = tmp_path / "venv"
-    python = _environment_with_our_dependencies(env_dir)
+    python = environment_with_our_dependencies(env_dir)
     subprocess.run(
         [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
          "--no-index", "-q", str(wheel)],

@@ -22,7 +22,7 @@ from metrics_harness import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from gateway import __version__
+from gateway import __version__, build
 from gateway.sim import plc
 
 #: The families a fault may touch; each test pins down which of them change, and by how much.
@@ -237,7 +237,8 @@ def test_health_readiness_and_line_state(
     assert found[series("modbus_gateway_line_up", line="b")] == 0
     assert found[series("modbus_gateway_line_info", line="a", kind="rtu")] == 1
     assert found[series("modbus_gateway_line_info", line="b", kind="rtu")] == 1
-    assert found[series("modbus_gateway_build_info", lines="a,b", version=__version__)] == 1
+    info = series("modbus_gateway_build_info", lines="a,b", version=__version__, build=build())
+    assert found[info] == 1
     with gw.connect() as master:
         assert master.request(7, READ_10) == bytes((0x83, 0x0A))
     # Unit 7 has never answered: its requests count under unit="other" (bounded labels).

@@ -1,0 +1,164 @@
+"""The compiled build (``MODBUS_GATEWAY_COMPILE=1``, see setup.py): built from this checkout,
+it says it is compiled, every module of the list is an extension, and it passes the line's
+own tests and real exchanges with independent masters.
+
+mypyc compiles the same source, but a compiled class is stricter than a Python one (a
+subclass defined in interpreted code, an attribute of another type than declared): what
+differs shows here, not in the field.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+from typing import NamedTuple
+
+import pytest
+from conftest import environment_with_our_dependencies
+
+ROOT = Path(__file__).resolve().parents[2]
+
+#: Run again on the compiled build: the core with literal times and its state machines,
+#: every framing's codec, and the Modbus TCP, RTU-over-TCP and serial paths end to end
+#: with pymodbus, mbpoll and libmodbus as the masters.
+AGAIN = [
+    "tests/unit",
+    "tests/property",
+    "tests/integration/test_gateway.py",
+    "tests/integration/test_independent_peers.py",
+    "tests/integration/test_line_policies.py",
+    "tests/integration/test_rtu_over_tcp_listener.py",
+    "tests/integration/test_tcp_pipelining.py",
+]
+
+
+def compiled_modules() -> list[str]:
+    """``COMPILED_MODULES`` from setup.py, as module names."""
+    tree = ast.parse((ROOT / "setup.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(
+            isinstance(target, ast.Name) and target.id == "COMPILED_MODULES"
+            for target in node.targets
+        ):
+            paths: list[str] = ast.literal_eval(node.value)
+            return [path.removesuffix(".py").replace("/", ".") for path in paths]
+    raise AssertionError("setup.py has no COMPILED_MODULES")
+
+
+def why_it_cannot_build() -> str | None:
+    """What this machine lacks to build the compiled gateway, or None."""
+    compiler = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(compiler) is None:
+        return f"no C compiler ({compiler})"
+    if not (Path(sysconfig.get_paths()["include"]) / "Python.h").is_file():
+        return "no Python headers (apt-get install python3-dev)"
+    if importlib.util.find_spec("mypyc") is None:
+        return "mypy (mypyc) is not installed"
+    return None
+
+
+class CompiledInstall(NamedTuple):
+    """A fresh venv with the compiled wheel installed, and a copy of the tests to run."""
+
+    python: Path
+    env_dir: Path
+    tests_tree: Path
+
+
+@pytest.fixture(scope="module")
+def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
+    """The README's compiled install, from a copy of this checkout, in a fresh venv."""
+    missing = why_it_cannot_build()
+    if missing is not None:
+        if os.environ.get("CI"):
+            pytest.fail(f"CI must test the compiled build: {missing}")
+        pytest.skip(missing)
+    skip = shutil.ignore_patterns("__pycache__", "*.so", ".hypothesis", "build")
+    source = tmp_path_factory.mktemp("source")
+    shutil.copytree(ROOT / "gateway", source / "gateway", ignore=skip)
+    for name in ("setup.py", "pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
+    out = tmp_path_factory.mktemp("wheel")
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+         "-w", str(out), str(source)],
+        env={**os.environ, "MODBUS_GATEWAY_COMPILE": "1"},
+        capture_output=True, text=True, timeout=900, check=False,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-4000:]
+    (wheel,) = out.glob("modbus_gateway-*.whl")
+    assert not wheel.name.endswith("-none-any.whl"), f"not a compiled wheel: {wheel.name}"
+    env_dir = tmp_path_factory.mktemp("venv")
+    python = environment_with_our_dependencies(env_dir)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+         "--no-index", "-q", str(wheel)],
+        check=True, timeout=120,
+    )  # fmt: skip
+    # The tests with the sources beside them (the layering test reads them), imported from
+    # nowhere but the venv: PYTHONSAFEPATH keeps the working directory off sys.path.
+    tests_tree = tmp_path_factory.mktemp("tree")
+    for name in ("tests", "conf", "gateway"):
+        shutil.copytree(ROOT / name, tests_tree / name, ignore=skip)
+    shutil.copytree(ROOT / "bench", tests_tree / BENCH_PATH / "bench", ignore=skip)
+    shutil.copy(ROOT / "pyproject.toml", tests_tree / "pyproject.toml")
+    return CompiledInstall(python, env_dir, tests_tree)
+
+
+#: Where the copy of ``bench`` goes (on PYTHONPATH, alone: ``gateway`` must come from the venv).
+BENCH_PATH = "importable"
+
+
+def from_the_venv(install: CompiledInstall) -> dict[str, str]:
+    """An environment in which ``gateway`` is the venv's, in subprocesses too."""
+    paths = str(install.tests_tree / BENCH_PATH)
+    return {**os.environ, "PYTHONSAFEPATH": "1", "PYTHONPATH": paths}
+
+
+def test_every_listed_module_is_compiled_and_says_so(compiled: CompiledInstall) -> None:
+    modules = compiled_modules()
+    assert "gateway.core.line" in modules and "gateway.io.tcp" in modules
+    probe = (
+        "import importlib, sys, gateway\n"
+        "for name in sys.argv[1:]:\n"
+        "    print(name, importlib.import_module(name).__file__)\n"
+        "print('build', gateway.build())\n"
+    )
+    found = subprocess.run(
+        [compiled.python, "-c", probe, *modules],
+        cwd=compiled.tests_tree, env=from_the_venv(compiled),
+        capture_output=True, text=True, timeout=60, check=True,
+    ).stdout.splitlines()  # fmt: skip
+    files = dict(line.split(" ", 1) for line in found)
+    assert files.pop("build") == "compiled"
+    for name, file in files.items():
+        assert Path(file).is_relative_to(compiled.env_dir), (name, file)
+        assert file.endswith(".so"), f"{name} is interpreted: {file}"
+    command = compiled.env_dir / "bin" / "modbus-gateway"
+    version = subprocess.run(
+        [command, "--version"], cwd=compiled.tests_tree, env=from_the_venv(compiled),
+        capture_output=True, text=True, timeout=60, check=True,
+    ).stdout.strip()  # fmt: skip
+    assert version.endswith("(compiled)"), version
+
+
+def test_the_compiled_build_passes_the_line_tests(compiled: CompiledInstall) -> None:
+    """The same tests, on the compiled modules (the gateways they start included)."""
+    run_them = (
+        "import sys, gateway, pytest\n"
+        "assert gateway.build() == 'compiled', gateway.__file__\n"
+        "sys.exit(pytest.main(sys.argv[1:]))\n"
+    )
+    done = subprocess.run(
+        [compiled.python, "-c", run_them, "-q", "-p", "no:cacheprovider", "-x", *AGAIN],
+        cwd=compiled.tests_tree, env=from_the_venv(compiled), capture_output=True, text=True,
+        timeout=900, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
+    assert " passed" in done.stdout.splitlines()[-1], done.stdout[-2000:]
