@@ -50,7 +50,7 @@ from typing import Final
 
 from . import pdu as fc
 from .errors import ExceptionCode, FramingError, ResponseError
-from .framing import RTU, Framing
+from .framing import RTU, Framing, ResponseDecoder
 from .line import (
     INFINITY,
     LineCore,
@@ -76,13 +76,30 @@ _LOST_TIDS_KEPT: Final = 4096
 _ESTIMATE_WEIGHT: Final = 0.125
 
 
-@dataclass(slots=True, eq=False)
+@dataclass(slots=True, eq=False, init=False)
 class _Flight(_Attempt):
     """One outstanding attempt: its TID, the slave's write epoch when sent, its charge."""
 
-    tid: int = 0
-    epoch: int = 0
-    charged: float = 0.0
+    tid: int
+    epoch: int
+    charged: float
+
+    def __init__(
+        self,
+        request: LineRequest,
+        decoder: ResponseDecoder,
+        sent_at: float,
+        deadline: float,
+        from_credit: bool,
+        tid: int,
+        epoch: int,
+        charged: float,
+    ) -> None:
+        # Not super(): a slots dataclass is a new class, the one super() would not find.
+        _Attempt.__init__(self, request, decoder, sent_at, deadline, from_credit)
+        self.tid = tid
+        self.epoch = epoch
+        self.charged = charged
 
 
 def new_line_core(
