@@ -19,6 +19,7 @@ import site
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 import venv
@@ -436,8 +437,9 @@ def decode_as_the_core_does(decoder: ResponseDecoder, chunks: list[bytes]) -> li
     return happened
 
 
-def environment_with_our_dependencies(env_dir: Path) -> Path:
-    """A fresh venv that sees this environment's packages (offline), but not this checkout.
+def environment_with_our_dependencies(env_dir: Path, wheel: Path) -> Path:
+    """A fresh venv with ``wheel`` installed that sees this environment's packages (offline),
+    but not this checkout; its python.
 
     ``venv --system-site-packages`` would inherit the *base* interpreter's packages, which
     inside a venv are not the ones the tests run with. A ``.pth`` file listing this
@@ -454,4 +456,9 @@ def environment_with_our_dependencies(env_dir: Path) -> Path:
     ).stdout.strip()  # fmt: skip
     outer_sites = [path for path in site.getsitepackages() if Path(path).is_dir()]
     (Path(inner_site) / "outer-environment.pth").write_text("\n".join(outer_sites) + "\n")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+         "--no-index", "-q", str(wheel)],
+        check=True, timeout=120,
+    )  # fmt: skip
     return python

@@ -95,12 +95,7 @@ def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
     (wheel,) = out.glob("modbus_gateway-*.whl")
     assert not wheel.name.endswith("-none-any.whl"), f"not a compiled wheel: {wheel.name}"
     env_dir = tmp_path_factory.mktemp("venv")
-    python = environment_with_our_dependencies(env_dir)
-    subprocess.run(
-        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
-         "--no-index", "-q", str(wheel)],
-        check=True, timeout=120,
-    )  # fmt: skip
+    python = environment_with_our_dependencies(env_dir, wheel)
     # The tests with the sources beside them (the layering test reads them), imported from
     # nowhere but the venv: PYTHONSAFEPATH keeps the working directory off sys.path.
     tests_tree = tmp_path_factory.mktemp("tree")

@@ -38,12 +38,7 @@ def test_the_wheel_carries_the_example_configuration(wheel: Path) -> None:
 def test_the_installed_command(wheel: Path, tmp_path: Path) -> None:
     """Installed into a fresh environment (dependencies from this one), the command runs."""
     env_dir = tmp_path / "venv"
-    python = environment_with_our_dependencies(env_dir)
-    subprocess.run(
-        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
-         "--no-index", "-q", str(wheel)],
-        check=True, timeout=120,
-    )  # fmt: skip
+    python = environment_with_our_dependencies(env_dir, wheel)
     imported = subprocess.run(
         [python, "-c", "import gateway; print(gateway.__file__)"],
         capture_output=True, text=True, check=True, cwd=tmp_path,
