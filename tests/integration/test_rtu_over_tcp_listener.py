@@ -16,6 +16,7 @@ import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory
 from test_sim import FUNCTION_VECTORS
 
+from gateway.config import build_config
 from gateway.core.crc import append_crc, check_crc
 from gateway.sim import plc, zl69x
 from gateway.sim.device import pack_registers
@@ -140,6 +141,33 @@ def test_requests_cut_anywhere_and_sent_back_to_back_are_answered_in_order(
             reply = client.receive(3 + 2 + 2 * quantity)
             table = sim.device(unit).holding.read(address, quantity)
             assert reply == bytes((unit, 3, 2 * quantity)) + pack_registers(table)
+    finally:
+        client.close()
+
+
+def test_one_request_at_a_time_also_after_a_reload_asks_for_pipelining(start: Start) -> None:
+    """RTU has no transaction id: the answers must come in the order of the requests. A
+    request answered locally (no route) behind one that waits for the line would overtake
+    it if the connection read both at once; ``[server] max_pipeline`` never applies here,
+    not even after a reload sets it."""
+    sim, gateway = start()
+
+    def in_order(client: RtuClient) -> None:
+        stream = append_crc(h("01 03 0000 0002")) + append_crc(h("09 03 0000 0001"))
+        client.sock.sendall(stream)  # back to back, in one segment
+        assert client.receive(3 + 2 + 4) == h("01 03 04") + pack_registers([0, 2])
+        assert client.receive(3 + 2) == h("09 83 0A")
+
+    client = RtuClient(listener_address(gateway))
+    try:
+        in_order(client)
+        tables = {
+            "server": {"max_pipeline": 16},
+            "lines": {"a": sim.line_table([1, 2])},
+            "listeners": [{"name": "rtu", "protocol": "rtu-over-tcp", "listen": "127.0.0.1:0"}],
+        }
+        gateway.run(gateway.gateway.reload(build_config(tables, "<reload>")))
+        in_order(client)
     finally:
         client.close()
 
