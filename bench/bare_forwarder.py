@@ -6,6 +6,10 @@ transaction on the line at a time. Nothing else: no validation, no metrics, no
 fairness, no retries, no frame gap; a timeout answers 0x0B so a lost answer
 cannot stall it. The gateway's CPU per transaction is printed as a ratio to this.
 
+With ``--spin-gap S`` it keeps S seconds of silence after each answer by spinning on
+the clock, which no timer beats, whatever it costs in CPU: on a paced line that is the
+utilisation ceiling a forwarder can reach on this machine, through the same pty hops.
+
     python -m bench.bare_forwarder --serial /dev/pts/5 --listen 127.0.0.1:5020
 """
 
@@ -17,6 +21,8 @@ import contextlib
 import os
 import struct
 import sys
+import termios
+import time
 import tty
 from collections import deque
 from collections.abc import Sequence
@@ -53,9 +59,11 @@ def response_length(buffer: bytearray) -> int | None:
 class Line:
     """The serial side: one FIFO, one transaction at a time."""
 
-    def __init__(self, fd: int, timeout: float) -> None:
+    def __init__(self, fd: int, timeout: float, spin_gap: float) -> None:
         self.fd = fd
         self.timeout = timeout
+        self.spin_gap = spin_gap
+        self.quiet_at = 0.0  # the last answer's arrival (with ``spin_gap``)
         self.loop = asyncio.get_running_loop()
         self.queue: deque[tuple[Master, bytes, bytes]] = deque()
         self.current: tuple[Master, bytes, bytes] | None = None
@@ -76,6 +84,8 @@ class Line:
             crc = crc16(adu)
             self.current = (master, header, adu)
             self.buffer.clear()
+            while time.monotonic() < self.quiet_at:
+                pass
             os.write(self.fd, adu + bytes((crc & 0xFF, crc >> 8)))
             self.timer = self.loop.call_later(self.timeout, self.timed_out)
             return
@@ -86,6 +96,8 @@ class Line:
             self.buffer += os.read(self.fd, 512)
         except BlockingIOError:
             return
+        if self.spin_gap:
+            self.quiet_at = time.monotonic() + self.spin_gap
         length = response_length(self.buffer)
         if self.current is None or length is None or len(self.buffer) < length:
             return
@@ -103,9 +115,14 @@ class Line:
         if self.timer is not None:
             self.timer.cancel()
         self.current = None
-        self.send_next()  # the line first: it is the bottleneck
         tid, protocol, _, unit = _HEADER.unpack(header)
-        master.transport.write(_HEADER.pack(tid, protocol, len(pdu) + 1, unit) + pdu)
+        answer = _HEADER.pack(tid, protocol, len(pdu) + 1, unit) + pdu
+        if self.spin_gap:  # the master first: the line waits out the gap anyway
+            master.transport.write(answer)
+            self.send_next()
+        else:
+            self.send_next()  # the line first: it is the bottleneck
+            master.transport.write(answer)
 
 
 class Master(asyncio.Protocol):
@@ -130,11 +147,18 @@ class Master(asyncio.Protocol):
             self.line.submit(self, frame[:7], frame[6:])  # ADU = unit + PDU
 
 
-async def serve(device: str, host: str, port: int, timeout: float) -> None:
+async def serve(
+    device: str, host: str, port: int, timeout: float, spin_gap: float, baudrate: int | None
+) -> None:
     """Open the line, listen, serve until cancelled."""
     fd = os.open(device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     tty.setraw(fd)
-    line = Line(fd, timeout)
+    if baudrate:  # a paced simulator answers only a master at its own speed
+        speed = getattr(termios, f"B{baudrate}")
+        attributes = termios.tcgetattr(fd)
+        attributes[4] = attributes[5] = speed
+        termios.tcsetattr(fd, termios.TCSANOW, attributes)
+    line = Line(fd, timeout, spin_gap)
     server = await line.loop.create_server(lambda: Master(line), host, port)
     print(f"bare forwarder listening on {host}:{port}", file=sys.stderr, flush=True)
     async with server:
@@ -147,12 +171,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--serial", required=True)
     parser.add_argument("--listen", default="127.0.0.1:5020")
     parser.add_argument("--timeout", type=float, default=1.0)
+    parser.add_argument("--spin-gap", type=float, default=0.0)
+    parser.add_argument("--baudrate", type=int)
     args = parser.parse_args(argv)
     host, _, port = args.listen.rpartition(":")
     import uvloop
 
     with contextlib.suppress(KeyboardInterrupt):
-        uvloop.run(serve(args.serial, host, int(port), args.timeout))
+        uvloop.run(serve(args.serial, host, int(port), args.timeout, args.spin_gap, args.baudrate))
     return 0
 
 

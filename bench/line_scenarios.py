@@ -11,11 +11,10 @@ CPU per transaction with a bare forwarder (``bench.bare_forwarder``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 from .loadgen import GATEWAY_BUSY, PATH_UNAVAILABLE, TARGET_FAILED, TIMELINE_BUCKET_S, LoadSpec
-from .procs import PYTHON, Server, SimOptions, gateway_build
+from .procs import SimOptions, gateway_build
 from .scenarios import (
     FAULT_BAUDRATE,
     HEALTHY_UNITS,
@@ -26,10 +25,10 @@ from .scenarios import (
     Check,
     Run,
     ScenarioResult,
-    ServerFactory,
     Table,
     _errors_text,
     _fmt,
+    bare_server,
     forwarder_server,
     gateway_server,
     paced_sim,
@@ -52,17 +51,6 @@ ABSENT_UNITS = list(range(100, 248))  #: never on the line; each needs 3 timeout
 #: at once would be a busy loop between the load generator and the gateway on 2 shared cores.
 REFUSED_PAUSE_S = 0.1
 LONG_WAIT_S = 120.0  #: no answer counts as lost before this (queues here hold answers for long)
-
-
-def bare_server() -> ServerFactory:
-    """A factory for the bare forwarder (uvloop, no frame gap)."""
-
-    def make(workdir: Path, link: str, port: int) -> Server:
-        command = [PYTHON, "-m", "bench.bare_forwarder", "--serial", link]
-        command += ["--listen", f"127.0.0.1:{port}"]
-        return Server(command, workdir, "server")
-
-    return make
 
 
 def _spec(

@@ -4,8 +4,9 @@
 19200 baud, 5 % bad CRCs), the gateway and the load generator as separate
 processes, exactly as the full benchmark does, and must finish with zero wrong
 answers. The line scenarios (late answers, a slave dying, greedy masters, absent
-units, the bare-forwarder floor) run in their tiny configuration: each must run
-to its figures with its faults really injected, and the gateway must give no
+units, the bare-forwarder floor, the paced lines' ceiling) run in their tiny
+configuration: each must run to its figures with its faults really injected, and the
+gateway must give no
 wrong answer (the line without its late-answer protection gave one or two even in
 these 2-second runs); whether it meets the throughput and share targets is the
 benchmark's report, not this test's. Two broken servers show that
@@ -186,6 +187,21 @@ def test_tiny_fairness_and_floor_scenarios_report_their_figures(tmp_path: Path) 
         assert floor["bare_runs"][0]["load"]["wrong_answers"] == 0  # the floor is a real one
     assert "gateway / mean bare" in done.stdout
     assert results["wrong_answers"] == 0, done.stdout
+    assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
+
+
+def test_tiny_paced_scenario_measures_the_ceiling_beside_the_gateway(tmp_path: Path) -> None:
+    started = time.monotonic()
+    done, results = _bench(tmp_path, "--tiny", "paced")
+    elapsed = time.monotonic() - started
+    for baudrate in ("9600", "115200"):
+        paced = results["scenarios"]["paced"][baudrate]
+        ceiling = paced["ceiling_run"]
+        assert ceiling["load"]["ok"] > 0, done.stdout  # the simulator answered it: right speed
+        assert ceiling["load"]["wrong_answers"] == 0
+        assert paced["ceiling_early_requests"] == 0  # it keeps t3.5: a ceiling, not a shortcut
+        assert 0 < paced["ceiling_utilisation"] <= 1.0
+    assert "of ceiling" in done.stdout
     assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
 
 
