@@ -38,7 +38,9 @@ COMPILED_MODULES = [
     "gateway/core/rtu.py",
     "gateway/core/timing.py",
     "gateway/io/bus.py",
+    "gateway/io/clock.py",
     "gateway/io/rtu_listener.py",
+    "gateway/io/serial_port.py",
     "gateway/io/tcp.py",
     "gateway/metrics.py",
 ]

@@ -413,6 +413,13 @@ class LineCore:
         self._share = policy.probe_share
         self._credit_cap = self._share  # at most one second's share banked
         self._echo = policy.echo
+        self._timeouts: dict[int, float] = {}  # ``policy.timeout_for``, asked once per slave
+
+    def _timeout_for(self, slave: int) -> float:
+        timeout = self._timeouts.get(slave)
+        if timeout is None:
+            timeout = self._timeouts[slave] = self.policy.timeout_for(slave)
+        return timeout
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
@@ -1056,7 +1063,7 @@ class LineCore:
             request,
             self._new_decoder(slave, request.pdu),
             now,
-            now + transmit_time + self.policy.timeout_for(slave),
+            now + transmit_time + self._timeout_for(slave),
             from_credit,
         )
         self._quiet_since = now + transmit_time
@@ -1173,7 +1180,7 @@ class LineCore:
             self._open_guard(slave, record, request, now)
         before = record.state
         if error is None:
-            timeout = self.policy.timeout_for(slave)
+            timeout = self._timeout_for(slave)
             self.notes.append(Note(LineEvent.TIMEOUT, slave, f"no answer within {timeout:g} s"))
             self._count_timeout(slave, record, function, now)
         elif error.kind != "crc":  # a CRC error was noted when it arrived
@@ -1319,7 +1326,7 @@ class LineCore:
     def _lane_put(self, request: LineRequest, now: float) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
         request.single = True
-        request.lane_deadline = now + self.policy.timeout_for(request.slave)
+        request.lane_deadline = now + self._timeout_for(request.slave)
         self._lane[request.slave] = request
         if request.master not in self._masters:
             self._masters[request.master] = _Master(request.master)

@@ -420,7 +420,7 @@ class PipelinedLineCore(LineCore):
             request,
             self._new_decoder(slave, pdu),
             now,
-            now + transmit_time + self.policy.timeout_for(slave),
+            now + transmit_time + self._timeout_for(slave),
             from_credit,
             tid=tid,
             epoch=epoch,

@@ -230,15 +230,15 @@ class Policy:
     read_only: bool = False
     tls: bool = False
     roles: frozenset[str] = field(init=False)
+    #: True when only FC 8/4 can be refused: callers may skip ``decide`` for other codes.
+    #: Worked out once, not per request: every request's path reads it.
+    open: bool = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         roles = frozenset(rule.role for rule in self.rules or () if rule.role is not None)
         object.__setattr__(self, "roles", roles)
-
-    @property
-    def open(self) -> bool:
-        """True when only FC 8/4 can be refused: callers may skip ``decide`` for other codes."""
-        return self.rules is None and not self.read_only and not self.tls
+        is_open = self.rules is None and not self.read_only and not self.tls
+        object.__setattr__(self, "open", is_open)
 
     def decide(self, principal: Principal, unit: int, pdu: bytes) -> Decision:
         """Serve or deny one request (see the module docstring for the order of checks)."""

@@ -85,9 +85,10 @@ class Bus:
         self.successor: Bus | None = None
         self._watch_wire = False  # ``hand_over`` waits for ``_wire_free``
         self._wire_free = asyncio.Event()
-        self.idle = asyncio.Event()
-        self.idle.set()
-        self._idle = True  # mirrors ``idle``: the pump compares a bool, not a method call
+        # The core had nothing to do at the last pump. A bool, and futures made only while
+        # ``stop`` waits, not an ``asyncio.Event``: the pump flips it twice per transaction.
+        self._idle = True
+        self._idle_waiters: list[asyncio.Future[None]] = []
         #: The line's request latency series, for the masters' side to observe.
         self.request_duration = metrics.request_duration_for(self.name)
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
@@ -136,13 +137,19 @@ class Bus:
     async def stop(self, grace: float) -> None:
         """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
         self._stop_taking()
-        try:
-            await asyncio.wait_for(self.idle.wait(), grace)
-        except TimeoutError:
-            # Grace over: give up the transaction on the wire so its master still gets
-            # an answer (0x0A, as for a lost line) rather than a closed connection.
-            self._core.abandon(time.monotonic())
-            self._pump()
+        if not self._idle:
+            waiter: asyncio.Future[None] = self._loop.create_future()
+            self._idle_waiters.append(waiter)
+            try:
+                await asyncio.wait_for(waiter, grace)
+            except TimeoutError:
+                # Grace over: give up the transaction on the wire so its master still gets
+                # an answer (0x0A, as for a lost line) rather than a closed connection.
+                self._core.abandon(time.monotonic())
+                self._pump()
+            finally:
+                if waiter in self._idle_waiters:
+                    self._idle_waiters.remove(waiter)
         self._close()
 
     async def hand_over(self, grace: float) -> tuple[list[LineRequest], Handover]:
@@ -311,11 +318,12 @@ class Bus:
         if self._watch_wire and not core.wire_busy:
             self._wire_free.set()
         if core.idle is not self._idle:
-            self._idle = not self._idle
-            if self._idle:
-                self.idle.set()
-            else:
-                self.idle.clear()
+            self._idle = idle = not self._idle
+            if idle and self._idle_waiters:
+                waiters, self._idle_waiters = self._idle_waiters, []
+                for waiter in waiters:
+                    if not waiter.done():
+                        waiter.set_result(None)
 
     def _transmit(self, transmits: list[Transmit]) -> None:
         for transmit in transmits:

@@ -13,41 +13,16 @@ missing we fall back to ``call_at`` about 1.5 ms early, then the same spin.
 from __future__ import annotations
 
 import asyncio
-import ctypes
-import ctypes.util
 import os
-import sys
 import time
 from collections.abc import Callable
+
+from . import timerfd
 
 SPIN_MARGIN = 0.00025
 #: Deadlines further away than this wait on the loop's timer before the precise one.
 COARSE_LIMIT = 0.02
 _FALLBACK_MARGIN = 0.0015
-_CLOCK_MONOTONIC = 1
-_TFD_NONBLOCK = 0o4000
-_TFD_CLOEXEC = 0o2000000
-_TFD_TIMER_ABSTIME = 1
-_PR_SET_TIMERSLACK = 29
-
-
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
-class _Itimerspec(ctypes.Structure):
-    _fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
-
-
-def _load_libc() -> ctypes.CDLL | None:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        libc.timerfd_create  # noqa: B018 - probe that the symbol exists
-    except (OSError, AttributeError):
-        return None
-    return libc
 
 
 class PreciseClock:
@@ -60,13 +35,7 @@ class PreciseClock:
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
-        self._libc = _load_libc()
-        self._fd = -1
-        if self._libc is not None:
-            # A 1 us timer slack instead of the default 50 us for this thread.
-            self._libc.prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0)
-            fd = self._libc.timerfd_create(_CLOCK_MONOTONIC, _TFD_NONBLOCK | _TFD_CLOEXEC)
-            self._fd = fd if fd >= 0 else -1
+        self._fd = timerfd.create()
         if self._fd >= 0:
             loop.add_reader(self._fd, self._on_timerfd)
         self._deadline = 0.0  # 0: not armed
@@ -145,17 +114,12 @@ class PreciseClock:
         self._disarm_timerfd()
 
     def _arm_timerfd(self, deadline: float) -> None:
-        assert self._libc is not None
-        when = max(deadline - SPIN_MARGIN, 1e-6)  # 0 would disarm the timerfd
-        seconds = int(when)
-        spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
-        self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
+        timerfd.arm_at(self._fd, max(deadline - SPIN_MARGIN, 1e-6))  # 0 would disarm it
         self._fd_armed = True
 
     def _disarm_timerfd(self) -> None:
-        if self._fd_armed and self._libc is not None:
-            spec = _Itimerspec(_Timespec(0, 0), _Timespec(0, 0))
-            self._libc.timerfd_settime(self._fd, 0, ctypes.byref(spec), None)
+        if self._fd_armed:
+            timerfd.disarm(self._fd)
             self._fd_armed = False
 
     def _on_timerfd(self) -> None:

@@ -48,6 +48,16 @@ class LinkError(OSError):
     """A line's link failed or is closed; the line is down until it is reopened."""
 
 
+# The serial port's errors live here, not in ``serial_port``: that module compiles in the
+# compiled build, and mypyc compiles no subclass of a built-in exception such as OSError.
+class SerialPortError(LinkError):
+    """A serial line that cannot be opened or configured, with the setting to blame."""
+
+
+class DeviceBusyError(SerialPortError):
+    """The device is held by another program (or another line of this gateway)."""
+
+
 class Link(Protocol):
     """What ``Bus`` needs from whatever carries a line's bytes."""
 

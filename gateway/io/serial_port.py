@@ -32,7 +32,7 @@ import serial
 import serial.rs485
 
 from ..config import LineConfig
-from .link import LinkError
+from .link import DeviceBusyError, SerialPortError
 
 _PARITIES = {"N": serial.PARITY_NONE, "E": serial.PARITY_EVEN, "O": serial.PARITY_ODD}
 _STOP_BITS = {
@@ -42,13 +42,14 @@ _STOP_BITS = {
 }
 _READ_CHUNK = 4096
 
-
-class SerialPortError(LinkError):
-    """A serial line that cannot be opened or configured, with the setting to blame."""
-
-
-class DeviceBusyError(SerialPortError):
-    """The device is held by another program (or another line of this gateway)."""
+__all__ = [
+    "DeviceBusyError",
+    "SerialLink",
+    "SerialPortError",
+    "check_device_free",
+    "describe_holder",
+    "open_serial",
+]
 
 
 # -------------------------------------------------------------------------- device ownership

@@ -30,10 +30,12 @@ ROOT = Path(__file__).resolve().parents[2]
 AGAIN = [
     "tests/unit",
     "tests/property",
+    "tests/integration/test_clock.py",
     "tests/integration/test_gateway.py",
     "tests/integration/test_independent_peers.py",
     "tests/integration/test_line_policies.py",
     "tests/integration/test_rtu_over_tcp_listener.py",
+    "tests/integration/test_serial_port.py",
     "tests/integration/test_tcp_pipelining.py",
 ]
 

@@ -28,6 +28,7 @@ from conftest import (
     RunningGateway,
     SimBus,
     mbap,
+    wait_until,
 )
 
 from gateway.config import build_config
@@ -729,6 +730,27 @@ def test_a_master_leaving_mid_queue_loses_its_queued_requests(gateway_with: Gate
         assert 2 <= requests <= 5, f"{requests - 1} of A's 16 requests reached the line"
         assert b.request(1, read_pdu(3, 2002, 1)) == registers_reply(3, [2002])
     assert sim.stats().requests == requests + 1
+
+
+def test_a_stop_finishes_the_transaction_on_the_wire_and_answers_the_queue_0x0a(
+    gateway_with: GatewayOnSim,
+) -> None:
+    """A stop waits, within its grace, for the answer on the wire and passes it on; what
+    still waits gets 0x0A. The slave takes 1 s, so the stop comes while it works."""
+    sim, gw = gateway_with({1: plc(1)}, line={"timeout": 3.0})
+    sim.faults(1).reply_delay = 1.0
+    grace = 5.0
+    with gw.connect() as a, gw.connect() as b:
+        on_the_wire = a.send(1, read_pdu(3, 1000, 2))
+        wait_until(lambda: sim.stats().requests == 1, "the first read on the wire")
+        waiting = b.send(1, read_pdu(3, 2000, 2))
+        began = time.monotonic()
+        gw.stop(grace)
+        took = time.monotonic() - began
+        assert a.receive() == Reply(on_the_wire, 1, registers_reply(3, [1000, 1001]))
+        assert b.receive() == Reply(waiting, 1, exception(3, 0x0A))
+    assert took < grace, f"the stop took {took:.2f} s: it waited out its grace"
+    assert sim.stats().requests == 1
 
 
 MALFORMED_HEADERS = {
