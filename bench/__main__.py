@@ -29,6 +29,7 @@ from typing import Any
 from . import (
     hostile,
     inflight_scenarios,
+    instruction_scenarios,
     kind_scenarios,
     line_scenarios,
     reverse_scenarios,
@@ -48,6 +49,7 @@ DEFAULT_OUTPUT = BENCH_DIR / "results.json"
 SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **scenarios.SCENARIOS,
     **line_scenarios.SCENARIOS,
+    **instruction_scenarios.SCENARIOS,
     **tls_scenarios.SCENARIOS,
     **transport_scenarios.SCENARIOS,
     **hostile.SCENARIOS,

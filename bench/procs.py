@@ -65,13 +65,13 @@ def _tail(path: Path) -> str:
         return ""
 
 
-def _stop(process: subprocess.Popen[Any]) -> None:
+def _stop(process: subprocess.Popen[Any], grace: float = STOP_TIMEOUT_S) -> None:
     """SIGTERM, then SIGKILL after the grace; returns once it is gone."""
     if process.poll() is not None:
         return
     process.send_signal(signal.SIGTERM)
     try:
-        process.wait(STOP_TIMEOUT_S)
+        process.wait(grace)
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
@@ -194,6 +194,8 @@ class Server:
         self.name = name
         self.log = workdir / f"{name}.log"
         self._process: subprocess.Popen[bytes] | None = None
+        self.ready_timeout = READY_TIMEOUT_S  #: longer under valgrind (instruction counts)
+        self.stop_timeout = STOP_TIMEOUT_S
 
     @property
     def pid(self) -> int:
@@ -207,14 +209,14 @@ class Server:
             self._process = subprocess.Popen(
                 self.command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
             )
-        deadline = time.monotonic() + READY_TIMEOUT_S
+        deadline = time.monotonic() + self.ready_timeout
         while time.monotonic() < deadline:
             if ready_text in _tail(self.log) or ready_text in self.log.read_text(errors="replace"):
                 return
             if self._process.poll() is not None:
                 raise BenchError(f"{self.name} exited at start: {_tail(self.log)}")
             time.sleep(_POLL_S)
-        raise BenchError(f"{self.name} not ready in {READY_TIMEOUT_S} s: {_tail(self.log)}")
+        raise BenchError(f"{self.name} not ready in {self.ready_timeout} s: {_tail(self.log)}")
 
     def memory_kib(self) -> dict[str, int | None]:
         """Current and peak resident set (KiB)."""
@@ -229,7 +231,7 @@ class Server:
         if process is None:
             return None
         self._process = None
-        _stop(process)
+        _stop(process, self.stop_timeout)
         return process.returncode
 
     def log_tail(self) -> str:

@@ -29,9 +29,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import require_tool
 
 from bench.__main__ import select
+from bench.instruction_scenarios import count
 from bench.loadgen import LoadSpec, run
+from bench.scenarios import Bench, Timing, bare_server
 from bench.values import register_block
 
 REPO = Path(__file__).resolve().parents[2]
@@ -203,6 +206,20 @@ def test_tiny_paced_scenario_measures_the_ceiling_beside_the_gateway(tmp_path: P
         assert 0 < paced["ceiling_utilisation"] <= 1.0
     assert "of ceiling" in done.stdout
     assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
+
+
+def test_callgrind_counts_a_servers_instructions_per_transaction() -> None:
+    """The ``instructions`` scenario's measurement, on the bare forwarder (it starts fast
+    under valgrind; the gateway takes ~20 s): two windows, two counts, one cost."""
+    require_tool("valgrind")
+    bench = Bench(Timing.make(quick=True, tiny=True), lambda _line: None)
+    counted = count(bench, "bare forwarder", bare_server(), (0.5, 1.5))
+    assert counted.transactions[1] > counted.transactions[0] > 0
+    assert counted.instructions[1] > counted.instructions[0] > 10**7  # a Python process
+    # Measured here: ~63,000 per transaction. A start-up that did not cancel out, or a
+    # count of another process, lands far outside this range.
+    assert 20_000 < counted.per_transaction < 400_000, counted
+    assert all(run.load.wrong_answers == 0 for run in counted.runs)
 
 
 def test_scenario_names_select_by_prefix() -> None:
