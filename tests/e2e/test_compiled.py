@@ -154,8 +154,8 @@ def test_the_compiled_build_passes_the_line_tests(compiled: CompiledInstall) -> 
     )
     done = subprocess.run(
         [compiled.python, "-c", run_them, "-q", "-p", "no:cacheprovider", "-x", *AGAIN],
-        cwd=compiled.tests_tree, env=from_the_venv(compiled), capture_output=True, text=True,
-        timeout=900, check=False,
+        cwd=compiled.tests_tree, env={**from_the_venv(compiled), "LINE_MACHINE_EXAMPLES": "50"},
+        capture_output=True, text=True, timeout=900, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
     assert " passed" in done.stdout.splitlines()[-1], done.stdout[-2000:]

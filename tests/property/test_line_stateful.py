@@ -26,6 +26,7 @@ and on a Modbus TCP line with ``max_in_flight`` 3 whose slaves answer in any ord
 
 from __future__ import annotations
 
+import os
 import struct
 from dataclasses import dataclass, field, replace
 
@@ -622,7 +623,10 @@ class LineMachine(RuleBasedStateMachine):
 
 
 LineMachine.TestCase.settings = settings(
-    max_examples=200,
+    # 200 examples here; the compiled build's run of these machines (tests/e2e/
+    # test_compiled.py) looks for differences between the builds, not for new sequences,
+    # and takes fewer: the suite's time is kept under ten minutes.
+    max_examples=int(os.environ.get("LINE_MACHINE_EXAMPLES", "200")),
     stateful_step_count=60,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
