@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import wait_until
 
 from gateway.config import build_config
 from gateway.io.serial_port import SerialLink, SerialPortError, open_serial
@@ -471,6 +472,11 @@ def test_stop_signal_drains_and_exits_0(lab: Lab, signum: int) -> None:
     masters = [lab.master(gateway, 1, window=6) for _ in range(3)]
     for master in masters:
         master.wait_answers(2)
+    # A transaction on the wire when the signal comes: the slave takes 0.5 s over the
+    # next one. The second request served from now on was surely served after the change.
+    sim.faults(1).reply_delay = 0.5
+    served = sim.stats().requests
+    wait_until(lambda: sim.stats().requests >= served + 2, "a slow answer on the wire")
 
     signalled_at = gateway.signal(signum)
     code, exited_at = gateway.wait_exit(grace + DEADLINE_S)
