@@ -421,7 +421,7 @@ class GatewayMetrics:
         self.info = Info(
             p + "build", "Version, build (compiled or interpreted) and lines.", registry=r
         )
-        self.info.info({"version": __version__, "build": build(), "lines": ""})
+        self.describe_lines([])
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))

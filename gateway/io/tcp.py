@@ -521,8 +521,7 @@ class ModbusTcpServer:
         #: Masters whose frames carry no transaction id (RTU over TCP): one request in
         #: flight each, and a broadcast is never answered, whatever ``[server]`` says.
         self.one_at_a_time = one_at_a_time
-        self._config = config
-        self.config = config
+        self.config = config  # through the setter: it shapes the settings
         self.router = router
         self.metrics = metrics
         self.listener = listener or ListenerConfig("tcp", host=config.host, port=config.port)
