@@ -46,10 +46,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Final, Protocol, cast
 
+from cryptography import x509
+
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
+from ..core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
 from ..core.errors import ExceptionCode, FramingError, ModbusError
+from ..core.line import no_reply
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
+from ..core.outcome import Outcome
 from ..core.policy import Decision, IPAddress, Policy, Principal
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
@@ -57,7 +62,14 @@ from ..status import MasterStatus
 from ..trace import FrameTracer
 from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
-from .tls import HandshakeFailure, handshake_failure_reason, role_of
+from .tls import (
+    HandshakeFailure,
+    ServerTls,
+    certificate_facts,
+    handshake_failure_reason,
+    peer_chain,
+    role_of,
+)
 
 log = logging.getLogger("gateway.tcp")
 
@@ -165,6 +177,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         self.idle_since = accepted
         self._idle_timer: asyncio.TimerHandle | None = None
         self._stall_timer: asyncio.TimerHandle | None = None
+        self.chain: tuple[bytes, ...] = ()  #: the client's verified chain (DER), TLS only
+        self.epoch = server.epoch  #: the server's reload count when it was accepted
 
     # -- asyncio.BufferedProtocol ------------------------------------------------------
 
@@ -178,6 +192,9 @@ class MasterConnection(asyncio.BufferedProtocol):
         if tls:
             self.principal = Principal(self.principal.source, role)
             self.role_text = "NULL" if role is None else role
+            self.chain = peer_chain(transport)
+        if self.epoch != self._server.epoch and self._server.refuses_late(self):
+            return  # a reload came during its handshake, and its door is now shut to it
         sock = transport.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -431,22 +448,56 @@ class MasterConnection(asyncio.BufferedProtocol):
 
     # -- closing -----------------------------------------------------------------------
 
+    @property
+    def established(self) -> bool:
+        """True once connected (after the TLS handshake on a tls listener), until closed."""
+        return self._transport is not None and not self._closed
+
     def close(self, reason: CloseReason) -> None:
         """Close this connection, recording why.
 
         A master the gateway turns away is aborted (its unsent replies dropped,
         its descriptor freed at once); at shutdown the replies already written
-        (0x0A for what was queued) are flushed first.
+        (0x0A for what was queued) are flushed first. One a reload no longer
+        admits is closed as at a stop: what it had queued is answered 0x0A first.
         """
         if self._closed:
             return
+        if reason == CloseReason.NO_LONGER_ADMITTED:
+            self._answer_queued()
         self._release()
         self._server.forget(self, reason)
         if self._transport is not None:
-            if reason == CloseReason.SHUTDOWN:
+            if reason in (CloseReason.SHUTDOWN, CloseReason.NO_LONGER_ADMITTED):
                 self._transport.close()
             else:
                 self._transport.abort()
+
+    def _answer_queued(self) -> None:
+        """Answer 0x0A, as a stop does, each request of this master no line has sent yet.
+
+        Their callbacks are taken from the requests first, so the lines, which drop
+        them once told the master left (``_release``), answer nothing more; the one
+        on a wire is not answered, and its late answer goes nowhere. The replies go
+        out in one write, and no further request is read meanwhile (a batch is open).
+        """
+        queued = [r for r in self._pending if not r.sent and not r.broadcast]
+        callbacks = [(request.pdu[0], request.reply) for request in queued]
+        for request in queued:
+            request.reply = no_reply
+        batch: list[bytes] = []
+        outer, self._batch = self._batch, batch
+        try:
+            for function, reply in callbacks:
+                reply(fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
+                      Outcome.NO_ROUTE)  # fmt: skip
+        finally:
+            self._batch = outer
+        if batch and self._transport is not None:
+            if outer is not None:
+                outer.extend(batch)
+            else:
+                self._transport.write(b"".join(batch))
 
     def _release(self) -> None:
         self._closed = True
@@ -529,6 +580,10 @@ class ModbusTcpServer:
         self.policy = policy or Policy()  #: replaced as a whole on reload
         self.ssl_context = ssl_context  #: replaced on reload; new connections use the new one
         self.screen = SourceScreen(self.name, (config.allow, self.listener.allow), metrics)
+        self.epoch = 0  #: reloads seen: a connection accepted before one is judged again
+        #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
+        #: then: the handshake's verdict on the chain stands.
+        self._authorities: tuple[x509.Certificate, ...] | None = None
         self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
@@ -638,7 +693,8 @@ class ModbusTcpServer:
     def _accepted(self, sock: socket.socket, address: object) -> None:
         peer, source = _peer_text(address)
         ip = peer_address_of(address)
-        if not self.screen.allows(ip):  # counted and logged (rate-limited) by the screen
+        door = self.screen.door(self.listener.tls)  # the source only: no byte read yet
+        if admit(door, ConnectionFacts(ip), time.time()) is not None:  # counted and logged
             self.screen.refuse(ip)
             sock.close()
             return
@@ -742,6 +798,57 @@ class ModbusTcpServer:
             self.metrics.connections_open.set(len(self._connections))
             self.events.note("closed", source)
             log.debug("master %s disconnected (%s)", connection.peer, reason)
+
+    # -- reload: every open connection judged again --------------------------------------
+
+    def reevaluate(self, tls: ServerTls | None, now: float) -> int:
+        """Close every connection this listener would no longer admit; return how many.
+
+        Called at a reload once the listener's new settings (allow lists, listener)
+        are in place; ``tls`` carries the CAs read again, ``now`` is the wall-clock
+        time (seconds since the epoch). A connection still in its handshake is
+        judged on its source now, and on its certificate once the handshake is done.
+        """
+        self.epoch += 1
+        if tls is not None:
+            self._authorities = tls.authorities
+        seen: dict[tuple[bytes, ...], CertificateFacts | None] = {}
+        closed = 0
+        for connection in list(self._connections):
+            reason = self._judge(connection, now, seen)
+            if reason is not None:
+                self._close_unadmitted(connection, reason)
+                closed += 1
+        return closed
+
+    def refuses_late(self, connection: MasterConnection) -> bool:
+        """Judge a connection set up across a reload; close it (``True``) if refused."""
+        reason = self._judge(connection, time.time(), {})
+        if reason is not None:
+            self._close_unadmitted(connection, reason)
+        return reason is not None
+
+    def _judge(
+        self,
+        connection: MasterConnection,
+        now: float,
+        seen: dict[tuple[bytes, ...], CertificateFacts | None],
+    ) -> NotAdmitted | None:
+        """Core's decision for one connection, its chain's facts worked out once per chain."""
+        established = connection.established
+        certificate = None
+        if established and self.listener.tls:
+            chain = connection.chain
+            if chain not in seen:
+                seen[chain] = certificate_facts(chain, self._authorities)
+            certificate = seen[chain]
+        facts = ConnectionFacts(connection.principal.source, established, certificate)
+        return admit(self.screen.door(self.listener.tls), facts, now)
+
+    def _close_unadmitted(self, connection: MasterConnection, reason: NotAdmitted) -> None:
+        self.screen.closed_at_reload(connection.peer, reason)
+        self.events.note("closed at reload", connection.source)
+        connection.close(CloseReason.NO_LONGER_ADMITTED)
 
     # -- stopping ----------------------------------------------------------------------
 
