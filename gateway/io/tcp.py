@@ -32,6 +32,11 @@ which closes the master idle longest (at least ``evict_min_idle``, nothing in
 flight) or refuses. Only a complete request makes a master active again.
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
+
+A reload judges every open connection again (``reevaluate``) with the same
+decision as at accept (``core.connection_admission``), now with what the
+handshake showed: one no longer admitted is closed as at a stop, alone (its
+queued requests answered 0x0A, none sent), counted as ``no_longer_admitted``.
 """
 
 from __future__ import annotations
@@ -456,10 +461,9 @@ class MasterConnection(asyncio.BufferedProtocol):
     def close(self, reason: CloseReason) -> None:
         """Close this connection, recording why.
 
-        A master the gateway turns away is aborted (its unsent replies dropped,
-        its descriptor freed at once); at shutdown the replies already written
-        (0x0A for what was queued) are flushed first. One a reload no longer
-        admits is closed as at a stop: what it had queued is answered 0x0A first.
+        A master the gateway turns away is aborted (its unsent replies dropped, its
+        descriptor freed at once); at shutdown, and for one a reload no longer admits,
+        the replies already written (0x0A for what was queued) are flushed first.
         """
         if self._closed:
             return
@@ -474,30 +478,25 @@ class MasterConnection(asyncio.BufferedProtocol):
                 self._transport.abort()
 
     def _answer_queued(self) -> None:
-        """Answer 0x0A, as a stop does, each request of this master no line has sent yet.
+        """Answer 0x0A, as a stop does, what this master has queued (no line sent it yet).
 
-        Their callbacks are taken from the requests first, so the lines, which drop
-        them once told the master left (``_release``), answer nothing more; the one
-        on a wire is not answered, and its late answer goes nowhere. The replies go
-        out in one write, and no further request is read meanwhile (a batch is open).
+        Told the master left (``_release``), the lines then drop those requests and answer
+        nothing more; one on a wire is not answered (its answer goes nowhere). The replies
+        go out in one write; no further request is read meanwhile (a batch is open).
         """
-        queued = [r for r in self._pending if not r.sent and not r.broadcast]
-        callbacks = [(request.pdu[0], request.reply) for request in queued]
-        for request in queued:
-            request.reply = no_reply
-        batch: list[bytes] = []
-        outer, self._batch = self._batch, batch
+        outer = self._batch
+        batch = self._batch = [] if outer is None else outer
         try:
-            for function, reply in callbacks:
-                reply(fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
-                      Outcome.NO_ROUTE)  # fmt: skip
+            for request in [r for r in self._pending if not r.sent and not r.broadcast]:
+                reply, request.reply = request.reply, no_reply
+                unavailable = fc.exception_pdu(
+                    request.pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE
+                )
+                reply(unavailable, Outcome.NO_ROUTE)
         finally:
             self._batch = outer
-        if batch and self._transport is not None:
-            if outer is not None:
-                outer.extend(batch)
-            else:
-                self._transport.write(b"".join(batch))
+        if outer is None and batch and self._transport is not None:
+            self._transport.write(b"".join(batch))
 
     def _release(self) -> None:
         self._closed = True

@@ -7,7 +7,10 @@ specification requires); an expired or not-yet-valid server certificate, a key
 that does not match it, or an unreadable file is a ``TlsSetupError`` naming the
 listener's key and the fix. It is built again on every SIGHUP, so renewed
 certificates are picked up without a restart; connections already open keep
-the session they negotiated.
+the session they negotiated, but ``ssl`` cannot verify it again: each keeps
+the chain its handshake verified (``peer_chain``), and a reload judges that
+chain against the CAs read again (``certificate_facts``, with ``cryptography``)
+through ``core.connection_admission``.
 
 The TCP server (``gateway.io.tcp``) accepts on a ``tls`` listener itself: it
 screens the source address (allow list) and admits the connection before a

@@ -176,7 +176,7 @@ def in_flight(gw: RunningGateway) -> int:
     return sum(master.in_flight for master in gw.gateway.server.masters())
 
 
-def kept_has_more(master: Master) -> bool:
+def kept_has_more(master: RawClient) -> bool:
     """True when bytes arrive unasked within a short while (a stray answer)."""
     master.sock.settimeout(0.3)
     try:
@@ -373,3 +373,47 @@ def test_certificate_facts_of_real_chains(pki: Pki) -> None:
     assert expired is not None and expired.not_after < dt.datetime.now(dt.UTC).timestamp()
     assert certificate_facts((), [root]) is None
     assert certificate_facts((b"not a certificate",), [root]) is None
+
+
+def test_a_handshake_under_way_at_the_reload_is_judged_when_it_ends(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> None:
+    """Accepted before the reload, its handshake runs with the old CAs: it is closed as soon
+    as it is done, since the new CAs no longer admit it."""
+    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
+    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
+    only_b.write_bytes(pem(pki.other_root.certificate))
+    sim = make_sim({1: plc(1)})
+    listener: dict[str, Any] = {
+        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
+        "key": str(pki.server_key), "ca": str(both),
+    }  # fmt: skip
+    tables: dict[str, Any] = {
+        "server": {"listen": "127.0.0.1:0"},
+        "metrics": {"listen": "off"},
+        "lines": {"a": sim.line_table([1])},
+        "listeners": [listener],
+    }
+    gw = make_gateway(tables)
+    server = next(s for s in gw.gateway.servers if s.name == "tls")
+    with socket.create_connection(address_of(gw, "tls"), DEADLINE_S) as raw:
+        wait_until(lambda: gw.call(lambda: server.connections) == 1, "accepted, no hello yet")
+        listener["ca"] = str(only_b)
+        reload(gw, tables)
+        assert gw.call(lambda: server.connections) == 1  # its certificate is not known yet
+        tls = client_context(pki, "operator").wrap_socket(raw, server_hostname="localhost")
+        assert closed_by_peer(tls)  # the handshake succeeded (old CAs); then the door shut
+    assert closed_at_reload(gw) == 1
+
+
+def closed_by_peer(sock: socket.socket) -> bool:
+    """True when the gateway ends the connection within the deadline, sending nothing."""
+    sock.settimeout(DEADLINE_S)
+    try:
+        data = sock.recv(1)
+    except (ConnectionResetError, ssl.SSLEOFError, ssl.SSLZeroReturnError):
+        return True
+    except TimeoutError:
+        return False
+    assert not data, data.hex()
+    return True
