@@ -15,7 +15,7 @@ import ipaddress
 import logging
 from collections.abc import Sequence
 
-from ..core.connection_admission import Door, NotAdmitted, source_allowed
+from ..core.connection_admission import Door, NotAdmitted
 from ..core.policy import IPAddress, IPNetwork
 from ..logs import RateLimitedLogger
 from ..metrics import GatewayMetrics
@@ -66,10 +66,6 @@ class SourceScreen:
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Bind the rate-limited log to the running loop."""
         self._log = RateLimitedLogger(log, loop)
-
-    def allows(self, source: IPAddress | None) -> bool:
-        """True when ``source`` lies in every allow list (no list: any source)."""
-        return source_allowed(self.allow_lists, source)
 
     def door(self, tls: bool) -> Door:
         """The listener's door as it stands now, for ``core.connection_admission.admit``."""

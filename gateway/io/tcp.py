@@ -26,10 +26,10 @@ Every connection's resources are bounded, whatever the master does:
 
 Admission happens at accept, with the peer's address from ``accept()``
 itself, before a byte is read (so before a TLS handshake): the allow lists
-(``SourceScreen``), then (``ModbusTcpServer._admit``) a per-source limit, then
-the listener's cap,
-which closes the master idle longest (at least ``evict_min_idle``, nothing in
-flight) or refuses. Only a complete request makes a master active again.
+(core's ``connection_admission.admit``; ``SourceScreen`` counts and logs), then
+(``ModbusTcpServer._admit``) a per-source limit, then the listener's cap, which
+closes the master idle longest (at least ``evict_min_idle``, nothing in flight) or
+refuses. Only a complete request makes a master active again.
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
 
