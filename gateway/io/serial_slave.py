@@ -31,6 +31,10 @@ RTU and ASCII carry no transaction id.
 Requests go through the same validation, policy (no source address here: only
 rules without ``source`` or ``role`` grant), read-only switch, routing, queues
 and metrics as a TCP master's.
+
+A reload gives it the new routes and policy (from the next request on). There is
+no connection to judge again as on a TCP listener: no source address for an
+allow list, no certificate; changes to its serial line need a restart.
 """
 
 from __future__ import annotations
