@@ -123,9 +123,9 @@ class Flag:
         return self.name.lstrip("-").replace("-", "_")
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Key:
-    """One configuration key, declared once."""
+    """One configuration key, declared once (its identity is its equality)."""
 
     table: Table
     name: str
