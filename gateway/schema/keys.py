@@ -226,13 +226,12 @@ LINES = (
     *_serial_format(_L, "", Reload.REOPENS, flags=True),
     Key(table=_L, name="timeout", type=Type.SECONDS, default="auto", low=0.001, high=60.0,
         auto="the longest answer (256 bytes; 513 characters on ASCII) at the line's settings "
-        "+ 0.1 s: 0.367 s at 9600 8N1; + 0.1 s more on a network line",
-        help="Seconds from the end of the request to the end of the slave's answer. \"auto\": "
-        "the longest answer at this line's settings plus 0.1 s for the slave to start "
-        "answering (0.367 s at 9600 8N1, 0.247 s at 19200 8E1), so that with one retry a "
-        "silent slave's 0x0B reaches the master before its own timeout (1 s in most masters) "
-        "at 9600 baud and faster. Slower slaves: raise it here or per slave in "
-        "slave_timeouts.",
+        "plus 0.1 s for the slave to start answering: 0.367 s at 9600 8N1, 0.247 s at 19200 "
+        "8E1; 0.1 s more on a network line",
+        help="Seconds from the end of the request to the end of the slave's answer. With one "
+        "retry, \"auto\" lets a silent slave's 0x0B reach the master before its own timeout "
+        "(1 s in most masters) at 9600 baud and faster. Slower slaves: raise it here or per "
+        "slave in slave_timeouts.",
         flag=Flag(name="--timeout", metavar="SECONDS", scope=Scope.EVERY_LINE,
                   help="response timeout of every line (default auto: 0.367 at 9600 8N1)")),
     Key(table=_L, name="retries", type=Type.INTEGER, default=1, low=0, high=10,
@@ -420,7 +419,7 @@ RULES = (
         "that slave whatever unit id reaches it."),
     Key(table=_R, name="line", type=Type.TEXT, show=Show.BLOCK, auto="any",
         help="A line's name: the rule covers the slaves on that line."),
-    Key(table=_R, name="slave", type=Type.RANGES, low=1, high=247, show=Show.BLOCK,
+    Key(table=_R, name="slave", type=Type.INTEGER, low=1, high=247, show=Show.BLOCK,
         auto="any", help="A slave address on that line (with line)."),
     Key(table=_R, name="functions", type=Type.FUNCTIONS, show=Show.BLOCK, auto="any",
         help='Function codes (3, "0x10"), names ("read_holding_registers") and FC 8 '
