@@ -64,8 +64,9 @@ parity = "N"
 data_bits = 8
 stop_bits = 1
 units = [1, "10-20"]
-framing = "rtu"          # or "ascii": ':' to CR LF with LRC, 7E1 unless data_bits/parity
-inter_char_timeout = 1.0 # ascii only: a frame whose characters stop this long is dropped
+framing = "rtu"          # or "ascii": ':' to CR LF with LRC, 7E1 unless data_bits/parity;
+                         # then inter_char_timeout = 1.0 drops a frame whose characters
+                         # stop this long
 echo = false             # true: the adapter hears its own answers; they are dropped
 """,
     ),
