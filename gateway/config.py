@@ -3,7 +3,10 @@
 Theory of operation: ``read_config_file`` parses the file, the CLI merges
 its flags into the raw tables, and ``build_config`` validates
 everything at once, so that one ``ConfigError`` lists every fault with its
-file, key and fix instead of stopping at the first. Nothing here opens a port.
+file, key and fix instead of stopping at the first. Which keys each table takes, their
+defaults, ranges, choices and former names come from the schema (``gateway.schema``); the
+builders here add what the schema cannot say (a key one line kind takes, cross-checks).
+Nothing here opens a port.
 """
 
 from __future__ import annotations
@@ -362,9 +365,11 @@ class _Checker:
     def __init__(self) -> None:
         self.problems: list[str] = []
         self.renamed: list[str] = []
+        #: A key's full name -> the former name it was written under (messages name that).
+        self.written_as: dict[str, str] = {}
 
     def fail(self, key: str, message: str) -> None:
-        self.problems.append(f"{key}: {message}")
+        self.problems.append(f"{self.written_as.get(key, key)}: {message}")
 
     def unknown_keys(
         self,
@@ -398,6 +403,7 @@ class _Checker:
                               f"keep only {declared.name}")  # fmt: skip
                     continue
                 entry[declared.name] = value
+                self.written_as[f"{prefix}{declared.name}"] = f"{prefix}{alias}"
                 self.renamed.append(f"{prefix}{alias}: the former name of {declared.name}, "
                                     f"still accepted; rename it to {declared.name}")  # fmt: skip
         return entry

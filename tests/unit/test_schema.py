@@ -156,6 +156,12 @@ def test_a_former_name_beside_the_new_one_is_an_error() -> None:
     ]
 
 
+def test_a_fault_in_a_key_written_under_its_former_name_names_what_was_written() -> None:
+    with pytest.raises(ConfigError) as caught:
+        build_config({"lines": {"a": {**LINE, "retry_writes": "yes"}}})
+    assert caught.value.problems == ["lines.a.retry_writes: 'yes' is not true or false"]
+
+
 def test_a_typo_is_never_pointed_at_a_former_name() -> None:
     with pytest.raises(ConfigError) as caught:
         build_config({"lines": {"a": {**LINE, "retry_writs": True}}})
