@@ -534,6 +534,13 @@ _LINE_SPECIAL = frozenset({"kind", "device", "address", "baudrate", "data_bits",
                            *_TLS_LINE_KEYS})  # fmt: skip
 #: Line keys stored in a field of another name.
 _LINE_FIELDS = {"silence": "silence_setting"}
+#: ``LineConfig`` fields whose change makes a reload reopen the line (the schema's
+#: ``Reload.REOPENS``; ``address`` shows in ``device``).
+LINE_PORT_SETTINGS = tuple(
+    "device" if k.name == "address" else _LINE_FIELDS.get(k.name, k.name)
+    for k in _LINE_KEYS_BY_NAME.values()
+    if k.reload is schema.Reload.REOPENS
+)
 
 
 def _scalars(
