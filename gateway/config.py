@@ -523,8 +523,6 @@ class _Checker:
         return value
 
 
-_SERVER_KEYS = schema.known_names(Table.SERVER)
-_LINE_KEYS = schema.known_names(Table.LINES)
 #: Keys only a ``kind = "tls"`` line takes.
 _TLS_LINE_KEYS = tuple(k.name for k in _LINE_KEYS_BY_NAME.values() if k.only == 'kind = "tls"')
 #: Line keys with a parser of their own (the rest are read as the schema declares them).
@@ -1170,7 +1168,6 @@ _LISTENER_TABLE = schema.keys_of(Table.LISTENERS)
 _SERIAL_SLAVE_KEYS = frozenset(
     k.name for k in _LISTENER_TABLE.values() if k.only.startswith('protocol = "serial-slave"')
 )
-_LISTENER_KEYS = frozenset(_LISTENER_TABLE) - _SERIAL_SLAVE_KEYS
 #: What a tls listener's files hold, for the message when one is missing.
 _LISTENER_FILES = {
     "cert": "the server's certificate chain (PEM)",

@@ -141,17 +141,22 @@ def _cell(text: str) -> str:
 
 
 def _default_cell(key: Key) -> str:
-    if key.default is None:
-        return key.auto or "(none)"
-    shown = f"`{toml_value(key.default)}`"
-    return f"{shown}: {key.auto}" if key.auto else shown
+    if key.default == "auto":
+        return f'`"auto"`: {key.auto}'
+    if key.auto:
+        return key.auto
+    return "(none)" if key.default is None else f"`{toml_value(key.default)}`"
+
+
+def _number(value: float) -> str:
+    return f"{int(value):,}" if float(value).is_integer() else f"{value:g}"
 
 
 def _allowed_cell(key: Key) -> str:
     if key.choices:
         return ", ".join(f"`{toml_value(choice)}`" for choice in key.choices)
     if key.low is not None and key.high is not None:
-        return f"{key.low:g} to {key.high:g}"
+        return f"{_number(key.low)} to {_number(key.high)}"
     return ""
 
 
