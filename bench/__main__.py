@@ -27,6 +27,7 @@ from types import FrameType
 from typing import Any
 
 from . import (
+    fairness,
     hostile,
     inflight_scenarios,
     instruction_scenarios,
@@ -57,6 +58,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **slave_kind_scenarios.SCENARIOS,
     **reverse_scenarios.SCENARIOS,
     **inflight_scenarios.SCENARIOS,
+    **fairness.SCENARIOS,
 }
 
 

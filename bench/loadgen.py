@@ -62,7 +62,8 @@ from .values import END_REGISTER, FIRST_REGISTER, identify_block, register_block
 READ_HOLDING = 3
 WRITE_SINGLE = 6
 FIRST_SELF_CHECKING = FIRST_REGISTER
-MAX_QUANTITY = 11
+MAX_QUANTITY = 125  #: FC03's limit
+_MAX_STRIDE = 10  #: registers between the starts of two polled blocks of a unit, at most
 TIMELINE_BUCKET_S = 0.1
 GATEWAY_BUSY = 0x06
 PATH_UNAVAILABLE = 0x0A
@@ -204,6 +205,7 @@ class GroupSpec:
     pipeline: int = 1
     period: float = 1.0  #: slow mode: seconds between one master's requests
     tolerate: list[int] = field(default_factory=list)
+    quantity: int | None = None  #: registers per read (None: ``LoadSpec.quantity``)
 
 
 class Group:
@@ -223,6 +225,7 @@ class Group:
         self.wrong = 0  #: whole run
         self.lost = 0  #: whole run
         self.latencies: list[float] = []
+        self.ok_by_master: Counter[int] = Counter()  #: inside the window
 
     def summary(self, window: float) -> dict[str, Any]:
         """The group's figures for the result."""
@@ -239,6 +242,7 @@ class Group:
             "tolerated": dict(self.tolerated),
             "wrong": self.wrong,
             "lost": self.lost,
+            "ok_by_master": sorted(self.ok_by_master.values()),
             "latency_ms": {
                 "p50": 1000 * percentile(latencies, 0.50),
                 "p99": 1000 * percentile(latencies, 0.99),
@@ -355,9 +359,10 @@ class Master(asyncio.Protocol):
         self.group = group
         spec = recorder.spec
         self.units = group.spec.units
-        if not 1 <= spec.quantity <= MAX_QUANTITY:
-            raise ValueError(f"quantity {spec.quantity} outside 1..{MAX_QUANTITY}")
-        self.quantity = spec.quantity
+        quantity = group.spec.quantity or spec.quantity
+        if not 1 <= quantity <= MAX_QUANTITY:
+            raise ValueError(f"quantity {quantity} outside 1..{MAX_QUANTITY}")
+        self.quantity = quantity
         self.transport: asyncio.Transport | None = None
         self.buffer = bytearray()
         # tid -> (sent_at, unit, expected pdu or None (checked by the caller), lower bound)
@@ -427,7 +432,7 @@ class Master(asyncio.Protocol):
         elif unit in self.recorder.dead_units:
             expected = b"\x83\x0b"
         else:
-            expected = self.shared.expected_reply(unit, address)
+            expected = self.shared.expected_reply(unit, address, self.quantity)
         self.outstanding[tid] = (time.perf_counter(), unit, expected, lower)
         self.transport.write(_HEADER.pack(tid, 0, len(pdu) + 1, unit) + pdu)
         self.recorder.requests_sent += 1
@@ -501,6 +506,8 @@ class Master(asyncio.Protocol):
         else:
             recorder.wrong("payload", _payload_detail(unit, expected, pdu, recorder), group)
         recorder.answered(now, sent_at, unit, ok, read, group)
+        if ok and recorder.measuring:
+            group.ok_by_master[self.index] += 1
         self.after_answer(lower, pdu, ok)
 
     def after_answer(self, lower: int, pdu: bytes, ok: bool) -> None:
@@ -552,9 +559,13 @@ class SharedState:
     def __init__(self, spec: LoadSpec) -> None:
         self.spec = spec
         self.coalesce_address: int | None = FIRST_SELF_CHECKING if spec.mode == "coalesce" else None
-        self._expected: dict[tuple[int, int], bytes] = {}
+        self._expected: dict[tuple[int, int, int], bytes] = {}
         self._next_slot: Counter[int] = Counter()
-        self._slots = (END_REGISTER - FIRST_REGISTER) // spec.quantity
+        # Blocks start ``quantity`` registers apart (at most ``_MAX_STRIDE``: long reads
+        # overlap, and still differ), and the longest read of any group fits after the last.
+        longest = max([spec.quantity, *(extra.get("quantity") or 0 for extra in spec.groups)])
+        self._stride = min(spec.quantity, _MAX_STRIDE)
+        self._slots = (END_REGISTER - FIRST_REGISTER - longest) // self._stride + 1
         self.writer: Master | None = None
         self.block_unit = spec.units[0]
         self.block = register_block(self.block_unit, FIRST_SELF_CHECKING, spec.quantity)
@@ -569,17 +580,16 @@ class SharedState:
         """The unit's next block: a counter per unit, shared by every master."""
         slot = self._next_slot[unit]
         self._next_slot[unit] = slot + 1
-        return FIRST_REGISTER + (slot % self._slots) * self.spec.quantity
+        return FIRST_REGISTER + (slot % self._slots) * self._stride
 
     def role(self, master: Master) -> str:
         return "writer" if master is self.writer else "reader"
 
-    def expected_reply(self, unit: int, address: int) -> bytes:
-        """The FC03 answer PDU for ``address`` of ``unit`` (cached)."""
-        key = (unit, address)
+    def expected_reply(self, unit: int, address: int, quantity: int) -> bytes:
+        """The FC03 answer PDU for ``quantity`` registers from ``address`` of ``unit`` (cached)."""
+        key = (unit, address, quantity)
         reply = self._expected.get(key)
         if reply is None:
-            quantity = self.spec.quantity
             reply = bytes((READ_HOLDING, 2 * quantity)) + register_block(unit, address, quantity)
             self._expected[key] = reply
         return reply

@@ -38,7 +38,10 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   change still to run.
 * **Fair share.** Masters are served in start-time fair order, charged with the
   wire time their transactions actually took (timeouts included), so a master
-  provoking timeouts spends its own share. Each master has its own queue bound
+  provoking timeouts spends its own share. A master with nothing waiting or on the
+  wire goes next after the transaction on the wire (behind others that came so
+  before it), unless its account is ahead of every waiting master's: it cannot
+  become the heaviest user that way. Each master has its own queue bound
   (0x06 beyond it); the line-wide bound pushes out the longest queue's newest
   request before refusing a master with a shorter queue.
 * **Isolation.** A timeout counts against a slave only for a function it has
@@ -366,9 +369,11 @@ class LineCore:
         self.deliveries: list[Delivery] = []
         self.notes: list[Note] = []
         self._masters: dict[Hashable, _Master] = {}
-        self._heap: list[tuple[float, int, _Master]] = []
+        #: Masters by (start time, 0 for the head of the line or 1, sequence): see ``_enqueue``.
+        self._heap: list[tuple[float, int, int, _Master]] = []
         self._seq = 0
         self._vclock = 0.0
+        self._vmax = 0.0  # the furthest account of a master that waited (``_push_master``)
         self._slaves: dict[int, _Slave] = {}
         self._lane: dict[int, LineRequest] = {}
         self._guards: dict[int, _Slave] = {}  # slaves in their late-answer window
@@ -913,17 +918,20 @@ class LineCore:
             if request is not None:
                 return request, None, True
         heap = self._heap
-        skipped: list[_Master] = []
+        skipped: list[tuple[_Master, bool]] = []
         chosen: tuple[LineRequest, _Master | None, bool] | None = None
         while heap:
-            vtime, seq, master = heapq.heappop(heap)
+            vtime, rank, seq, master = heapq.heappop(heap)
             if master.heap_seq != seq:
                 continue  # stale entry
+            if rank == 0 and len(master.queue) > 1:
+                self._push_master(master)  # no longer a single request: its fair turn
+                continue
             master.heap_seq = -1
             request = self._first_eligible(master, now)
             if request is None:
                 if master.queue:
-                    skipped.append(master)
+                    skipped.append((master, rank == 0))
                 continue
             master.queue.remove(request)
             master.queued -= 1  # ``_dequeued``
@@ -933,8 +941,8 @@ class LineCore:
                 self._vclock = vtime
             chosen = request, master, False
             break
-        for master in skipped:
-            self._push_master(master)
+        for master, head in skipped:
+            self._push_master(master, head)
         if chosen is None and lane:
             request = self._lane_candidate(now)
             if request is not None:
@@ -1269,6 +1277,15 @@ class LineCore:
     # -- bookkeeping ---------------------------------------------------------------------
 
     def _enqueue(self, master: _Master, request: LineRequest) -> None:
+        """Queue ``request``; a master that had nothing waiting or on the wire goes to the
+        head of the fair order unless its account is ahead of every waiting master's.
+
+        Start times alone would put it behind every master whose start time equals the line's
+        virtual time (a whole round of deep queues), and, once served, behind the rest of that
+        round: the virtual time moves one transaction per round. Its account is still charged,
+        so it takes no more than the heaviest user: past that it waits its turn.
+        """
+        idle = master.queued == 0 and not self._on_wire_for(master.key)
         master.queue.append(request)
         master.queued += 1
         self._queued += 1
@@ -1276,7 +1293,7 @@ class LineCore:
         if master.heap_seq < 0:
             if master.vtime < self._vclock:
                 master.vtime = self._vclock
-            self._push_master(master)
+            self._push_master(master, idle and master.vtime <= self._vmax)
 
     def _queue_at_front(self, request: LineRequest) -> None:
         master = self._masters.get(request.master)
@@ -1304,10 +1321,18 @@ class LineCore:
         self._queued += delta
         self.stats.queue_depth = self._queued
 
-    def _push_master(self, master: _Master) -> None:
+    def _push_master(self, master: _Master, head: bool = False) -> None:
+        """Into the fair order at its account, or (``head``) before every master at the
+        line's virtual time, in arrival order."""
         self._seq += 1
         master.heap_seq = self._seq
-        heapq.heappush(self._heap, (master.vtime, self._seq, master))
+        if head:
+            heapq.heappush(self._heap, (self._vclock, 0, self._seq, master))
+            return
+        vtime = master.vtime
+        if vtime > self._vmax:
+            self._vmax = vtime
+        heapq.heappush(self._heap, (vtime, 1, self._seq, master))
 
     def _reschedule(self, master: _Master) -> None:
         """Put ``master`` back in the fair order after its transaction (or forget it)."""
