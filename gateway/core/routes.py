@@ -54,11 +54,3 @@ class RouteTable:
     def lookup(self, unit: int) -> Target | None:
         """The target of ``unit``, ``None`` when no route serves it."""
         return self.routes.get(unit)
-
-    def aliases(self) -> dict[Target, tuple[int, ...]]:
-        """Targets reached by more than one unit id, with those unit ids (sorted)."""
-        by_target: dict[Target, list[int]] = {}
-        for unit, target in self.routes.items():
-            by_target.setdefault(target, []).append(unit)
-        return {target: tuple(sorted(units)) for target, units in by_target.items()
-                if len(units) > 1}  # fmt: skip

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from gateway.config import ConfigError, build_config, policy_warnings
 from gateway.core.policy import (
     Access,
     DenyReason,
@@ -359,3 +360,32 @@ def test_lint_says_when_a_rule_names_only_some_unit_ids_of_a_slave() -> None:
     assert "p.rules[1] (listener 'l'): adds nothing to p.rules[0]" in text
     assert "p.rules[2] (listener 'l'): no route reaches its line and slave" in text
     assert not [w for w in warnings if w.startswith("p.rules[3]")]
+
+
+def _configured(rules: list[dict[str, object]]) -> dict[str, object]:
+    return {
+        "lines": {"a": {"device": "/dev/ttyA", "units": [1, 2]},
+                  "b": {"device": "/dev/ttyB", "units": [3]}},
+        "routes": [{"unit": 12, "line": "a", "slave": 2}],
+        "server": {"policy": "p"},
+        "policies": {"p": {"rules": rules}},
+    }  # fmt: skip
+
+
+def test_rules_name_line_and_slave_in_the_configuration() -> None:
+    built = build_config(_configured([{"line": "a", "slave": [1, "2-3"]}, {"line": ["a", "b"]}]))
+    first, second = built.policies["p"]
+    assert (first.lines, first.slaves) == (frozenset({"a"}), frozenset({1, 2, 3}))
+    assert (second.lines, second.slaves) == (frozenset({"a", "b"}), None)
+    with pytest.raises(ConfigError) as raised:
+        build_config(_configured([{"line": 7, "slave": [0]}]))
+    text = str(raised.value)
+    assert "policies.p.rules[0].line: write a line name or a list of them" in text
+    assert "policies.p.rules[0].slave: 0 outside 1..247" in text
+
+
+def test_check_config_names_the_rules_an_alias_widens() -> None:
+    built = build_config(_configured([{"units": [12], "access": "read"}, {"line": "c"}]))
+    text = "\n".join(policy_warnings(built))
+    assert "line 'a' slave 2 is reached by units 2, 12, and the rule names only unit 12" in text
+    assert "policies.p.rules[1] (listener 'tcp'): no route reaches its line and slave" in text
