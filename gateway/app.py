@@ -15,6 +15,7 @@ import logging
 import resource
 import signal
 import ssl
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -367,6 +368,8 @@ class Gateway:
             )
             if server.name in tls:
                 server.ssl_context = tls[server.name].context
+        for server in self.servers:  # open connections: the new allow lists, CAs and dates
+            server.reevaluate(tls.get(server.name), time.time())
         for slave in self.serial_slaves:
             slave.router = router
             listener = by_name.get(slave.name)

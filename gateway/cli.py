@@ -11,10 +11,11 @@ from collections.abc import Callable, Coroutine, Sequence
 from importlib import resources
 from typing import Any, NoReturn
 
-from . import __version__, build
+from . import __version__, build, schema
 from .app import Gateway, reloader, run_until_signalled
 from .config import (
     ConfigError,
+    GatewayConfig,
     build_config,
     config_warnings,
     parse_host_port,
@@ -24,6 +25,7 @@ from .config import (
 from .core.framing import is_mbap
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
+from .schema import Key, Scope, Type
 from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
 
@@ -88,15 +90,33 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
         "--version", action="version", version=f"modbus-gateway {__version__} ({build()})"
     )
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
-    parser.add_argument(
-        "--listen",
-        metavar="HOST:PORT",
-        type=_host_port,
-        help="Modbus TCP address (default 0.0.0.0:502; 127.0.0.1:5020 with --demo)",
+    _add_source_flags(parser)
+    overrides = parser.add_argument_group(
+        "configuration overrides", "each sets a key of the file (docs/configuration.md)"
     )
-    parser.add_argument("--tls-listen", metavar="HOST:PORT", type=_host_port,
-                        help="Modbus/TCP Security (TLS) address, listener 'tls' (802 is the "
-                        "standard port); needs --tls-cert, --tls-key, --tls-ca")  # fmt: skip
+    for key in schema.flagged():
+        assert key.flag is not None
+        overrides.add_argument(key.flag.name, **_flag_arguments(key))
+    _add_run_flags(parser)
+    return parser
+
+
+def _add_source_flags(parser: argparse.ArgumentParser) -> None:
+    """Flags that add a line or a listener rather than set one key."""
+    parser.add_argument("--serial", metavar="DEVICE_OR_URL",
+                        help="serial device or pyserial URL; without --config every unit "
+                        "1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--rtu-over-tcp", metavar="HOST:PORT", type=_host_port,
+                        help="RTU over TCP to a serial device server (raw socket mode) "
+                        "instead of --serial; without --config every unit 1..247 is "
+                        "routed to it")  # fmt: skip
+    parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
+                        help="a Modbus TCP slave (or another gateway) instead of --serial; "
+                        "without --config every unit 1..247 is routed to it")  # fmt: skip
+    parser.add_argument("--modbus-tls", metavar="HOST[:PORT]",
+                        help="a Modbus/TCP Security slave (port 802 unless given) instead of "
+                        "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
+                        "without --config every unit 1..247 is routed to it")  # fmt: skip
     parser.add_argument("--rtu-over-tcp-listen", metavar="HOST:PORT", type=_host_port,
                         help="also accept masters sending RTU frames over TCP here, listener "
                         "'rtu-over-tcp'")  # fmt: skip
@@ -109,120 +129,92 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
                         help="what the masters on the --serial-slave line speak: rtu "
                         "(default; that of --framing when given) or ascii (7E1 unless "
                         "--data-bits/--parity)")  # fmt: skip
-    parser.add_argument("--tls-cert", metavar="FILE",
-                        help="the server's certificate chain, PEM (leaf first)")  # fmt: skip
-    parser.add_argument("--tls-key", metavar="FILE", help="the server's private key, PEM")
-    parser.add_argument(
-        "--tls-ca", metavar="FILE", help="CA certificates client certificates must chain to, PEM"
-    )
-    parser.add_argument("--allow", metavar="CIDR", action="append",
-                        help="accept masters only from this address or network, on every "
-                        "listener (repeatable); others are closed at accept")  # fmt: skip
-    parser.add_argument(
-        "--read-only", action="store_true", help="every listener refuses anything but reads (0x01)"
-    )
-    parser.add_argument("--serial", metavar="DEVICE_OR_URL",
-                        help="serial device or pyserial URL; without --config every unit "
-                        "1..247 is routed to it")  # fmt: skip
-    parser.add_argument(
-        "--framing",
-        choices=["rtu", "ascii"],
-        help="what every serial line speaks: rtu (default) or ascii (7E1 unless --parity)",
-    )
-    parser.add_argument("--rtu-over-tcp", metavar="HOST:PORT", type=_host_port,
-                        help="RTU over TCP to a serial device server (raw socket mode) "
-                        "instead of --serial; without --config every unit 1..247 is "
-                        "routed to it")  # fmt: skip
-    parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
-                        help="a Modbus TCP slave (or another gateway) instead of --serial; "
-                        "without --config every unit 1..247 is routed to it")  # fmt: skip
-    parser.add_argument("--max-in-flight", type=int, metavar="N",
-                        help="requests outstanding at once on the connection of a tcp or tls "
-                        "line (1..64; default 1: many devices take one at a time)")  # fmt: skip
-    parser.add_argument("--modbus-tls", metavar="HOST[:PORT]",
-                        help="a Modbus/TCP Security slave (port 802 unless given) instead of "
-                        "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
-                        "without --config every unit 1..247 is routed to it")  # fmt: skip
-    parser.add_argument("--modbus-tls-cert", metavar="FILE",
-                        help="the gateway's client certificate chain for tls lines, PEM "
-                        "(leaf first)")  # fmt: skip
-    parser.add_argument("--modbus-tls-key", metavar="FILE",
-                        help="the private key of --modbus-tls-cert, PEM")  # fmt: skip
-    parser.add_argument("--modbus-tls-ca", metavar="FILE",
-                        help="CA certificates the tls slave's certificate must chain "
-                        "to, PEM")  # fmt: skip
-    parser.add_argument("--modbus-tls-server-name", metavar="NAME",
-                        help="the name the tls slave's certificate must carry (default: the "
-                        "host of --modbus-tls)")  # fmt: skip
-    parser.add_argument("--baudrate", type=int, metavar="N", help="baud rate of every line")
-    parser.add_argument(
-        "--data-bits", type=int, choices=[7, 8], help="data bits of every line (8; ascii: 7)"
-    )
-    parser.add_argument("--parity", choices=["N", "E", "O"], help="parity of every line")
-    parser.add_argument("--stopbits", type=int, choices=[1, 2], help="stop bits of every line")
-    parser.add_argument(
-        "--timeout",
-        type=float,
-        metavar="SECONDS",
-        help="response timeout of every line (default auto: 0.367 at 9600 8N1)",
-    )
-    parser.add_argument(
-        "--retries", type=int, metavar="N", help="retries after a timeout or bad CRC (default 1)"
-    )
-    parser.add_argument(
-        "--frame-gap",
-        type=float,
-        metavar="SECONDS",
-        help="silence before every request (default t3.5; 0 for serial servers)",
-    )
-    parser.add_argument("--metrics", metavar="HOST:PORT|off", type=_metrics_address,
-                        help="HTTP endpoint for /metrics, /healthz, /readyz "
-                        "(default 127.0.0.1:9502)")  # fmt: skip
-    parser.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
-    parser.add_argument("--log-format", choices=["text", "json"])
-    parser.add_argument(
-        "--grace",
-        type=float,
-        default=5.0,
-        metavar="SECONDS",
-        help="how long a stop waits for the transactions on the wire (default 5)",
-    )
-    parser.add_argument(
-        "--demo",
-        action="store_true",
-        help="serve built-in simulated RTU, ASCII and Modbus TCP slaves (no hardware needed)",
-    )
-    parser.add_argument(
-        "--trace",
-        action="store_true",
-        help="log every request and reply, decoded, on the gateway.trace logger",
-    )
-    parser.add_argument(
-        "--trace-unit",
-        type=int,
-        action="append",
-        metavar="N",
-        help="trace only unit N (repeatable; implies --trace)",
-    )
+
+
+#: The argparse type of a flag, by the type of the key it sets.
+_ARGUMENT_TYPES: dict[Type, Callable[[str], Any]] = {
+    Type.INTEGER: int,
+    Type.SECONDS: float,
+    Type.NUMBER: float,
+    Type.ADDRESS: _host_port,
+    Type.ADDRESS_OR_OFF: _metrics_address,
+}
+
+
+def _flag_arguments(key: Key) -> dict[str, Any]:
+    """``add_argument`` keywords for the flag of ``key``, from the schema."""
+    flag = key.flag
+    assert flag is not None
+    arguments: dict[str, Any] = {"dest": flag.dest, "help": flag.help}
+    if key.type is Type.BOOLEAN:
+        return arguments | {"action": "store_true"}
+    if flag.repeat:
+        arguments["action"] = "append"
+    if flag.metavar:
+        arguments["metavar"] = flag.metavar
+    if flag.choices:
+        arguments["choices"] = list(flag.choices)
+        numeric = all(isinstance(choice, int) for choice in flag.choices)
+        arguments["type"] = int if numeric else str
+    else:
+        arguments["type"] = _ARGUMENT_TYPES.get(key.type, str)
+    return arguments
+
+
+def _add_run_flags(parser: argparse.ArgumentParser) -> None:
+    """How this run behaves: the stop's grace, the demo, the trace."""
+    parser.add_argument("--grace", type=float, default=5.0, metavar="SECONDS",
+                        help="how long a stop waits for the transactions on the wire "
+                        "(default 5)")  # fmt: skip
+    parser.add_argument("--demo", action="store_true",
+                        help="serve built-in simulated RTU, ASCII and Modbus TCP slaves (no "
+                        "hardware needed)")  # fmt: skip
+    parser.add_argument("--trace", action="store_true",
+                        help="log every request and reply, decoded, on the gateway.trace "
+                        "logger")  # fmt: skip
+    parser.add_argument("--trace-unit", type=int, action="append", metavar="N",
+                        help="trace only unit N (repeatable; implies --trace)")  # fmt: skip
     parser.add_argument("--trace-function", type=_function_code, action="append", metavar="FC",
                         help="trace only function FC: 3, 0x10 or read_holding_registers "
                         "(repeatable; implies --trace)")  # fmt: skip
     parser.add_argument("--no-uvloop", action="store_true", help=argparse.SUPPRESS)
-    return parser
+
+
+def _given(args: argparse.Namespace, scope: Scope) -> dict[Key, Any]:
+    """The keys of ``scope`` whose flag was given, with the flag's value."""
+    given: dict[Key, Any] = {}
+    for key in schema.flagged():
+        assert key.flag is not None
+        value = getattr(args, key.flag.dest)
+        if key.flag.scope is scope and value is not None and value is not False:
+            given[key] = list(value) if key.flag.repeat else value
+    return given
 
 
 def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     """Merge command-line flags into the raw configuration tables (the file is not changed)."""
     raw = copy.deepcopy(raw)
-    if args.listen:
-        raw.setdefault("server", {})["listen"] = args.listen
-    if args.metrics:
-        raw.setdefault("metrics", {})["listen"] = args.metrics
-    if args.allow:
-        raw.setdefault("server", {})["allow"] = list(args.allow)
-    if args.read_only:
-        raw.setdefault("server", {})["read_only"] = True
-    _apply_tls_flags(raw, args)
+    for key, value in _given(args, Scope.TABLE).items():
+        raw.setdefault(key.table.value, {})[key.name] = value
+    _apply_listener_flags(raw, args)
+    lines = raw.setdefault("lines", {})
+    _apply_line_sources(lines, args)
+    _apply_line_tls_flags(lines, args)
+    if args.max_in_flight is not None:
+        _apply_max_in_flight(lines, args.max_in_flight)
+    every_line = {key.name: value for key, value in _given(args, Scope.EVERY_LINE).items()}
+    for table in lines.values():
+        if isinstance(table, dict):
+            table.update(every_line)
+    return raw
+
+
+def _apply_listener_flags(raw: dict[str, Any], args: argparse.Namespace) -> None:
+    """``--tls-*``, ``--rtu-over-tcp-listen`` and ``--serial-slave``: each sets the listener
+    named after its protocol (added when the file has none)."""
+    tls = {key.name: value for key, value in _given(args, Scope.TLS_LISTENER).items()}
+    if tls:
+        _set_listener(raw, "tls", tls)
     if args.rtu_over_tcp_listen:
         _set_listener(raw, "rtu-over-tcp", {"listen": args.rtu_over_tcp_listen})
     if args.serial_slave_framing and not args.serial_slave:
@@ -237,11 +229,10 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
         }  # fmt: skip
         serial.update({key: value for key, value in formats.items() if value is not None})
         _set_listener(raw, "serial-slave", serial)
-    if args.log_level:
-        raw.setdefault("logging", {})["level"] = args.log_level
-    if args.log_format:
-        raw.setdefault("logging", {})["format"] = args.log_format
-    lines = raw.setdefault("lines", {})
+
+
+def _apply_line_sources(lines: dict[str, Any], args: argparse.Namespace) -> None:
+    """``--serial``, ``--rtu-over-tcp``, ``--modbus-tcp``, ``--modbus-tls``: the one line."""
     if args.serial:
         if not lines:
             lines["default"] = {"device": args.serial, "units": ["1-247"]}
@@ -263,23 +254,6 @@ def apply_overrides(raw: dict[str, Any], args: argparse.Namespace) -> dict[str, 
             raise ConfigError("--modbus-tls", ["give one of --rtu-over-tcp, --modbus-tcp and "
                                                "--modbus-tls"])  # fmt: skip
         _apply_network_line(lines, "tls", args.modbus_tls, "--modbus-tls", args)
-    _apply_line_tls_flags(lines, args)
-    if args.max_in_flight is not None:
-        _apply_max_in_flight(lines, args.max_in_flight)
-    per_line = {
-        "kind": args.framing,
-        "baudrate": args.baudrate,
-        "data_bits": args.data_bits,
-        "parity": args.parity,
-        "stop_bits": args.stopbits,
-        "timeout": args.timeout,
-        "retries": args.retries,
-        "frame_gap": args.frame_gap,
-    }
-    for table in lines.values():
-        if isinstance(table, dict):
-            table.update({key: value for key, value in per_line.items() if value is not None})
-    return raw
 
 
 def _apply_max_in_flight(lines: dict[str, Any], limit: int) -> None:
@@ -313,18 +287,17 @@ def _apply_network_line(
 
 def _apply_line_tls_flags(lines: dict[str, Any], args: argparse.Namespace) -> None:
     """``--modbus-tls-*`` set the files and server name of every ``kind = "tls"`` line."""
-    flags = {"cert": args.modbus_tls_cert, "key": args.modbus_tls_key, "ca": args.modbus_tls_ca,
-             "server_name": args.modbus_tls_server_name}  # fmt: skip
-    given = {key: value for key, value in flags.items() if value}
+    given = {key: value for key, value in _given(args, Scope.TLS_LINES).items() if value}
     if not given:
         return
     tls_lines = [t for t in lines.values() if isinstance(t, dict) and t.get("kind") == "tls"]
     if not tls_lines:
-        flag = "--modbus-tls-" + next(iter(given)).replace("_", "-")
-        raise ConfigError(flag, ['no line is kind = "tls": give --modbus-tls HOST:PORT, or set '
-                                 "the files under the tls line in the file"])  # fmt: skip
+        flag = next(iter(given)).flag
+        assert flag is not None
+        problem = 'no line is kind = "tls": give --modbus-tls HOST:PORT, or set the files'
+        raise ConfigError(flag.name, [problem + " under the tls line in the file"])
     for table in tls_lines:
-        table.update(given)
+        table.update({key.name: value for key, value in given.items()})
 
 
 def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, Any]) -> None:
@@ -340,24 +313,6 @@ def _set_listener(raw: dict[str, Any], protocol: str, values: dict[str, Any]) ->
         entry = {"name": protocol, "protocol": protocol}
         listeners.append(entry)
     entry.update(values)
-
-
-def _apply_tls_flags(raw: dict[str, Any], args: argparse.Namespace) -> None:
-    """``--tls-*`` set the listener named ``tls`` (added when the file has none)."""
-    flags = {"listen": args.tls_listen, "cert": args.tls_cert, "key": args.tls_key,
-             "ca": args.tls_ca}  # fmt: skip
-    if not any(flags.values()):
-        return
-    listeners = raw.setdefault("listeners", [])
-    if not isinstance(listeners, list):
-        return  # build_config reports the type
-    entry = next(
-        (item for item in listeners if isinstance(item, dict) and item.get("name") == "tls"), None
-    )
-    if entry is None:
-        entry = {"name": "tls", "protocol": "tls"}
-        listeners.append(entry)
-    entry.update({key: value for key, value in flags.items() if value})
 
 
 def example_config() -> str:
@@ -423,9 +378,8 @@ def _file_log_format(raw: dict[str, Any]) -> object:
     return table.get("format") if isinstance(table, dict) else None
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``modbus-gateway`` command."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+def _subcommand(argv: list[str]) -> int | None:
+    """Run ``check-config``, ``scan``, ``example-config`` or ``trace --url``; None: none."""
     if argv and argv[0] == "check-config":
         return _check_config(argv[1:])
     if argv and argv[0] == "scan":
@@ -435,18 +389,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv == ["example-config"]:
         sys.stdout.write(example_config())
         return 0
-    if argv and argv[0] == "trace":
-        if any(arg == "--url" or arg.startswith("--url=") for arg in argv[1:]):
-            from .trace_client import main as trace_client
+    if (
+        argv
+        and argv[0] == "trace"
+        and any(arg == "--url" or arg.startswith("--url=") for arg in argv[1:])
+    ):
+        from .trace_client import main as trace_client
 
-            return trace_client(argv[1:])
-        argv = ["--trace", *argv[1:]]
-    # Startup errors follow --log-format (or the file's logging.format) too: a JSON log
-    # reader (journald, Docker) must not meet a plain-text line when the start fails.
-    json_log = _requested_log_format(argv) == "json"
-    if json_log:
-        setup_logging("info", "json")
-    args = build_parser(log_errors=json_log).parse_args(argv)
+        return trace_client(argv[1:])
+    return None
+
+
+def _configure(
+    args: argparse.Namespace, json_log: bool
+) -> tuple[GatewayConfig, DemoLine | None] | int:
+    """The configuration of this run (and the demo's simulated lines), or the exit code."""
     raw: dict[str, Any] = {}
     demo: DemoLine | None = None
     try:
@@ -458,7 +415,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.demo:
             demo = DemoLine()
             raw = demo.configure(raw, listen=args.listen or DEMO_LISTEN)
-        config = build_config(apply_overrides(raw, args), args.config or "<command line>")
+        return build_config(apply_overrides(raw, args), args.config or "<command line>"), demo
     except ConfigError as error:
         if json_log:
             log.error("%s", error, extra={"source": error.source, "problems": error.problems})
@@ -467,17 +424,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         if demo is not None:
             demo.stop()
         return 2
-    setup_logging(config.logging.level, config.logging.format)
-    if demo is None:
-        for warning in config_warnings(config) + policy_warnings(config):
-            log.warning("%s: %s", config.source, warning)
-    reload_source: Callable[[], Any] | None = None
-    if args.config and not args.demo:
-        reload_source = reloader(args.config, lambda raw: apply_overrides(raw, args))
-    elif not args.demo:  # flags only: SIGHUP still re-reads the TLS files they name
 
-        def reload_source() -> Any:
-            return build_config(apply_overrides({}, args), "<command line>")
+
+def _reload_source(args: argparse.Namespace) -> Callable[[], Any] | None:
+    """What SIGHUP reads: the file with the flags over it, or the flags alone (the TLS
+    files they name are read again); the demo does not reload."""
+    if args.demo:
+        return None
+    if args.config:
+        return reloader(args.config, lambda raw: apply_overrides(raw, args))
+
+    def from_flags() -> Any:
+        return build_config(apply_overrides({}, args), "<command line>")
+
+    return from_flags
+
+
+def _serve(args: argparse.Namespace, config: GatewayConfig, demo: DemoLine | None) -> int:
+    """Run the gateway until a stop signal; the exit code."""
+    reload_source = _reload_source(args)
 
     async def serve() -> None:
         tracer = None
@@ -490,7 +455,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.info("demo: simulated units %s on %s", DEMO_UNITS, demo.pty.path)
         log.info("demo: ASCII units %s on %s", DEMO_ASCII_UNITS, demo.ascii_pty.path)
         log.info("demo: Modbus TCP units %s at %s", DEMO_TCP_UNITS, demo.tcp_slave.host_port)
-
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)
     except (OSError, TlsSetupError) as error:
@@ -503,6 +467,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         if demo is not None:
             demo.stop()
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``modbus-gateway`` command."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    code = _subcommand(argv)
+    if code is not None:
+        return code
+    if argv and argv[0] == "trace":
+        argv = ["--trace", *argv[1:]]
+    # Startup errors follow --log-format (or the file's logging.format) too: a JSON log
+    # reader (journald, Docker) must not meet a plain-text line when the start fails.
+    json_log = _requested_log_format(argv) == "json"
+    if json_log:
+        setup_logging("info", "json")
+    args = build_parser(log_errors=json_log).parse_args(argv)
+    configured = _configure(args, json_log)
+    if isinstance(configured, int):
+        return configured
+    config, demo = configured
+    setup_logging(config.logging.level, config.logging.format)
+    if demo is None:
+        for warning in config_warnings(config) + policy_warnings(config):
+            log.warning("%s: %s", config.source, warning)
+    return _serve(args, config, demo)
 
 
 if __name__ == "__main__":

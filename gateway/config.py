@@ -3,7 +3,10 @@
 Theory of operation: ``read_config_file`` parses the file, the CLI merges
 its flags into the raw tables, and ``build_config`` validates
 everything at once, so that one ``ConfigError`` lists every fault with its
-file, key and fix instead of stopping at the first. Nothing here opens a port.
+file, key and fix instead of stopping at the first. Which keys each table takes, their
+defaults, ranges, choices and former names come from the schema (``gateway.schema``); the
+builders here add what the schema cannot say (a key one line kind takes, cross-checks).
+Nothing here opens a port.
 """
 
 from __future__ import annotations
@@ -18,27 +21,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from . import schema
 from .core import pdu as fc
 from .core.framing import is_mbap
-from .core.pipeline import MAX_IN_FLIGHT
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
 from .core.timing import character_time, t35, transmission_time
+from .schema import Key, Table, Type
 
-DEFAULT_LISTEN = "0.0.0.0:502"
-DEFAULT_METRICS = "127.0.0.1:9502"
-VALID_PARITIES = ("N", "E", "O")
+_LINE_KEYS_BY_NAME = schema.keys_of(Table.LINES)
+DEFAULT_LISTEN = str(schema.key(Table.SERVER, "listen").default)
+DEFAULT_METRICS = str(schema.key(Table.METRICS, "listen").default)
+VALID_PARITIES = tuple(map(str, _LINE_KEYS_BY_NAME["parity"].choices))
 #: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
 #: ``rtu-over-tcp``: RTU frames over a TCP connection to a serial device server (raw socket).
 #: ``tcp``: a Modbus TCP slave (MBAP under the gateway's own transaction ids).
 #: ``tls``: a Modbus/TCP Security slave (the same MBAP framing, over TLS 1.2 or newer).
-VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
-VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
-VALID_LOG_FORMATS = ("text", "json")
-VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
-VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
+VALID_LINE_KINDS = tuple(map(str, _LINE_KEYS_BY_NAME["kind"].choices))
+VALID_WHEN_FULL = tuple(map(str, schema.key(Table.SERVER, "when_full").choices))
+VALID_LOG_FORMATS = tuple(map(str, schema.key(Table.LOGGING, "format").choices))
+VALID_LOG_LEVELS = tuple(map(str, schema.key(Table.LOGGING, "level").choices))
+VALID_PROTOCOLS = tuple(map(str, schema.key(Table.LISTENERS, "protocol").choices))
 #: What the masters on a ``serial-slave`` listener's line speak (its ``framing``); the first
 #: is the default. Named like ``--framing``: on a listener, ``kind`` would read as ``protocol``.
-VALID_SLAVE_FRAMINGS = ("rtu", "ascii")
+VALID_SLAVE_FRAMINGS = tuple(map(str, schema.key(Table.LISTENERS, "framing").choices))
 #: Line kinds reached over the network rather than through a device node.
 NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp", "tls"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
@@ -295,6 +300,8 @@ class GatewayConfig:
     listeners: tuple[ListenerConfig, ...] = ()
     #: Named rule lists (``[[policies.NAME.rules]]``), in the order written.
     policies: Mapping[str, tuple[Rule, ...]] = field(default_factory=dict)
+    #: Keys written under a former name: one warning each, naming the new key.
+    renamed: tuple[str, ...] = ()
 
     def line(self, name: str) -> LineConfig:
         """The line called ``name``."""
@@ -357,19 +364,83 @@ class _Checker:
 
     def __init__(self) -> None:
         self.problems: list[str] = []
+        self.renamed: list[str] = []
+        #: A key's full name -> the former name it was written under (messages name that).
+        self.written_as: dict[str, str] = {}
 
     def fail(self, key: str, message: str) -> None:
-        self.problems.append(f"{key}: {message}")
+        self.problems.append(f"{self.written_as.get(key, key)}: {message}")
 
-    def unknown_keys(self, table: Mapping[str, Any], known: set[str], prefix: str) -> None:
+    def unknown_keys(
+        self,
+        table: Mapping[str, Any],
+        known: set[str] | frozenset[str],
+        prefix: str,
+        suggest: Iterable[str] | None = None,
+    ) -> None:
+        """Every key not in ``known``, with the closest of ``suggest`` (default: ``known``)."""
+        names = sorted(known if suggest is None else suggest)
         for key in table:
             if key not in known:
-                close = difflib.get_close_matches(str(key), sorted(known), n=1, cutoff=0.6)
+                close = difflib.get_close_matches(str(key), names, n=1, cutoff=0.6)
                 if close:
                     self.fail(f"{prefix}{key}", f"unknown key; did you mean {close[0]!r}?")
                     continue
-                choices = ", ".join(sorted(known))
+                choices = ", ".join(names)
                 self.fail(f"{prefix}{key}", f"unknown key; known keys here are: {choices}")
+
+    def entry(self, where: Table, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+        """``table`` checked against the schema's keys of ``where``, former names renamed."""
+        self.unknown_keys(table, schema.known_names(where), prefix, schema.keys_of(where))
+        entry = dict(table)
+        for declared in schema.keys_of(where).values():
+            for alias in declared.aliases:
+                if alias not in entry:
+                    continue
+                value = entry.pop(alias)
+                if declared.name in entry:
+                    self.fail(f"{prefix}{alias}", f"is the former name of {declared.name}; "
+                              f"keep only {declared.name}")  # fmt: skip
+                    continue
+                entry[declared.name] = value
+                self.written_as[f"{prefix}{declared.name}"] = f"{prefix}{alias}"
+                self.renamed.append(f"{prefix}{alias}: the former name of {declared.name}, "
+                                    f"still accepted; rename it to {declared.name}")  # fmt: skip
+        return entry
+
+    def read(self, key: Key, table: Mapping[str, Any], prefix: str, default: Any = None) -> Any:
+        """The value of a scalar ``key``, checked against its type and range or choices."""
+        fallback: Any = key.default if default is None else default
+        if key.type is Type.INTEGER:
+            return self.integer(table, key.name, prefix, fallback, *key.int_range())
+        if key.type in (Type.SECONDS, Type.NUMBER):
+            return self.number(table, key.name, prefix, fallback, *key.float_range())
+        if key.type is Type.BOOLEAN:
+            return self.boolean(table, key.name, prefix, fallback)
+        if key.type is Type.CHOICE:
+            choices = tuple(map(str, key.choices))
+            upper = all(choice.isupper() for choice in choices)
+            return self.choice(table, key.name, prefix, fallback, choices, upper=upper)
+        if key.type is Type.ONE_OF:
+            return self.one_of(table, key, prefix)
+        if key.type in (Type.ADDRESS, Type.ADDRESS_OR_OFF):
+            return self.address(table, key.name, prefix, fallback)
+        raise TypeError(f"{key.path}: a {key.type.value} is read by its own parser")
+
+    def optional(self, key: Key, table: Mapping[str, Any], prefix: str) -> float | None:
+        """A number of seconds, or ``None`` (the default derived from others) when "auto"."""
+        if key.name not in table or table[key.name] == "auto":
+            return None
+        return self.number(table, key.name, prefix, 0.0, *key.float_range())
+
+    def one_of(self, table: Mapping[str, Any], key: Key, prefix: str) -> float:
+        """One of the numbers ``key.choices`` (stop bits)."""
+        value = table.get(key.name, key.default)
+        if value not in key.choices or isinstance(value, bool):
+            *most, last = (f"{choice:g}" for choice in map(float, key.choices))
+            self.fail(f"{prefix}{key.name}", f"{value!r} is not {', '.join(most)} or {last}")
+            return float(str(key.default))
+        return float(value)
 
     def integer(
         self, table: Mapping[str, Any], key: str, prefix: str, default: int, low: int, high: int
@@ -452,121 +523,73 @@ class _Checker:
         return value
 
 
-_SERVER_KEYS = {
-    "listen",
-    "max_connections",
-    "when_full",
-    "idle_timeout",
-    "max_pipeline",
-    "backlog",
-    "broadcast_reply",
-    "refuse_functions",
-    "allow",
-    "read_only",
-    "policy",
-    "max_connections_per_source",
-    "evict_min_idle",
-    "send_timeout",
-    "tls_handshake_timeout",
-}
-_LINE_KEYS = {
-    "device",
-    "baudrate",
-    "data_bits",
-    "parity",
-    "stop_bits",
-    "timeout",
-    "retries",
-    "retry_unsafe",
-    "retry_writes",
-    "max_queue_per_master",
-    "late_answer_window",
-    "noisy_after",
-    "probe_share",
-    "frame_gap",
-    "broadcast",
-    "broadcast_turnaround",
-    "max_queue",
-    "rs485",
-    "rs485_rts_level_for_tx",
-    "rs485_rts_level_for_rx",
-    "rs485_delay_before_tx",
-    "rs485_delay_after_tx",
-    "units",
-    "dead_after",
-    "probe_interval",
-    "probe_max_interval",
-    "slave_timeouts",
-    "coalesce",
-    "cache",
-    "kind",
-    "inter_char_timeout",
-    "echo",
-    "address",
-    "connect_delay",
-    "connect_timeout",
-    "silence",
-    "cert",
-    "key",
-    "ca",
-    "server_name",
-    "check_server_name",
-    "tls_handshake_timeout",
-    "max_in_flight",
-}
 #: Keys only a ``kind = "tls"`` line takes.
-_TLS_LINE_KEYS = ("cert", "key", "ca", "server_name", "check_server_name", "tls_handshake_timeout")
+_TLS_LINE_KEYS = tuple(k.name for k in _LINE_KEYS_BY_NAME.values() if k.only == 'kind = "tls"')
+#: Line keys with a parser of their own (the rest are read as the schema declares them).
+_LINE_SPECIAL = frozenset({"kind", "device", "address", "baudrate", "data_bits", "parity",
+                           "stop_bits",
+                           "timeout", "units", "slave_timeouts", "cache", "max_in_flight",
+                           *_TLS_LINE_KEYS})  # fmt: skip
+#: Line keys stored in a field of another name.
+_LINE_FIELDS = {"silence": "silence_setting"}
+#: ``LineConfig`` fields whose change makes a reload reopen the line (the schema's
+#: ``Reload.REOPENS``; ``address`` shows in ``device``).
+LINE_PORT_SETTINGS = tuple(
+    "device" if k.name == "address" else _LINE_FIELDS.get(k.name, k.name)
+    for k in _LINE_KEYS_BY_NAME.values()
+    if k.reload is schema.Reload.REOPENS
+)
+
+
+def _scalars(
+    check: _Checker, where: Table, table: Mapping[str, Any], prefix: str, skip: Iterable[str]
+) -> dict[str, Any]:
+    """Every key of ``where`` not in ``skip``, read as the schema declares it."""
+    values: dict[str, Any] = {}
+    for declared in schema.keys_of(where).values():
+        if declared.name in skip:
+            continue
+        if declared.default == "auto":
+            values[declared.name] = check.optional(declared, table, prefix)
+        else:
+            values[declared.name] = check.read(declared, table, prefix)
+    return values
+
+
+def _function_codes(
+    check: _Checker, table: Mapping[str, Any], key: Key, prefix: str
+) -> frozenset[int]:
+    """A list of function codes (``refuse_functions``)."""
+    raw = table.get(key.name, key.default)
+    low, high = key.int_range()
+    if not isinstance(raw, list) or not all(
+        isinstance(code, int) and not isinstance(code, bool) and low <= code <= high for code in raw
+    ):
+        check.fail(f"{prefix}{key.name}",
+                   f"write a list of function codes {low}..{high}, like [8, 17]")  # fmt: skip
+        return frozenset()
+    return frozenset(raw)
 
 
 def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
-    table = check.table(raw, "server")
     prefix = "server."
-    check.unknown_keys(table, _SERVER_KEYS, prefix)
-    listen = check.address(table, "listen", prefix, DEFAULT_LISTEN) or parse_host_port(
-        DEFAULT_LISTEN
-    )
-    refuse_raw = table.get("refuse_functions", [])
-    refuse: set[int] = set()
-    if not isinstance(refuse_raw, list) or not all(
-        isinstance(code, int) and not isinstance(code, bool) and 1 <= code <= 127
-        for code in refuse_raw
-    ):
-        check.fail(
-            f"{prefix}refuse_functions", "write a list of function codes 1..127, like [8, 17]"
-        )
-    else:
-        refuse = set(refuse_raw)
+    table = check.entry(Table.SERVER, check.table(raw, "server"), prefix)
+    keys = schema.keys_of(Table.SERVER)
+    listen = check.read(keys["listen"], table, prefix) or parse_host_port(DEFAULT_LISTEN)
     return ServerConfig(
         host=listen[0],
         port=listen[1],
-        max_connections=check.integer(table, "max_connections", prefix, 100, 1, 100_000),
-        when_full=check.choice(table, "when_full", prefix, "close_oldest_idle", VALID_WHEN_FULL),
-        idle_timeout=check.number(table, "idle_timeout", prefix, 300.0, 0.0, 86_400.0),
-        max_pipeline=check.integer(table, "max_pipeline", prefix, 16, 1, 256),
-        backlog=check.integer(table, "backlog", prefix, 1024, 1, 65_535),
-        broadcast_reply=check.boolean(table, "broadcast_reply", prefix, False),
-        refuse_functions=frozenset(refuse),
+        refuse_functions=_function_codes(check, table, keys["refuse_functions"], prefix),
         allow=_networks(check, table, "allow", prefix),
-        read_only=check.boolean(table, "read_only", prefix, False),
         policy=_policy_name(check, table, prefix),
-        max_connections_per_source=check.integer(
-            table, "max_connections_per_source", prefix, 16, 0, 100_000
-        ),
-        evict_min_idle=check.number(table, "evict_min_idle", prefix, 10.0, 0.0, 86_400.0),
-        send_timeout=check.number(table, "send_timeout", prefix, 10.0, 0.0, 3600.0),
-        tls_handshake_timeout=check.number(
-            table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
-        ),
-    )
+        **_scalars(check, Table.SERVER, table, prefix,
+                   ("listen", "refuse_functions", "allow", "policy")),
+    )  # fmt: skip
 
 
-def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineConfig | None:
-    prefix = f"lines.{name}."
-    if not isinstance(table, dict):
-        check.fail(f"lines.{name}", "must be a table ([lines.NAME]) with at least a device")
-        return None
-    check.unknown_keys(table, _LINE_KEYS, prefix)
-    kind = check.choice(table, "kind", prefix, "rtu", VALID_LINE_KINDS)
+def _line_kind(check: _Checker, table: Mapping[str, Any], prefix: str) -> tuple[str, str, str, int]:
+    """The line's kind, its device (or shown address), and a network line's host and port."""
+    kind: str = check.read(_LINE_KEYS_BY_NAME["kind"], table, prefix)
     host, port = "", 0
     device = table.get("device")
     if kind in NETWORK_LINE_KINDS:
@@ -580,73 +603,66 @@ def _build_line(check: _Checker, name: str, table: Mapping[str, Any]) -> LineCon
             'missing; set the serial device or URL, like "/dev/ttyUSB0" '
             'or "socket://10.0.0.5:4001"',
         )
-    if not isinstance(device, str):
-        device = ""
-    stop_bits_raw = table.get("stop_bits", 1)
-    if stop_bits_raw not in (1, 1.5, 2) or isinstance(stop_bits_raw, bool):
-        check.fail(f"{prefix}stop_bits", f"{stop_bits_raw!r} is not 1, 1.5 or 2")
-        stop_bits_raw = 1
-    frame_gap_raw = table.get("frame_gap")
-    frame_gap: float | None = None
-    if frame_gap_raw is not None and frame_gap_raw != "auto":
-        frame_gap = check.number(table, "frame_gap", prefix, 0.0, 0.0, 1.0)
+    return kind, device if isinstance(device, str) else "", host, port
+
+
+def _serial_format(
+    check: _Checker, where: Table, table: Mapping[str, Any], prefix: str, ascii_line: bool
+) -> dict[str, Any]:
+    """Baud rate, data bits, parity and stop bits (7E1 by default on an ASCII line:
+    Modbus over Serial Line 2.5.2.1)."""
+    keys = schema.keys_of(where)
+    return {
+        "baudrate": check.read(keys["baudrate"], table, prefix),
+        "data_bits": check.read(keys["data_bits"], table, prefix, 7 if ascii_line else 8),
+        "parity": check.read(keys["parity"], table, prefix, "E" if ascii_line else "N"),
+        "stop_bits": check.read(keys["stop_bits"], table, prefix),
+    }
+
+
+def _line_timeout(
+    check: _Checker, table: Mapping[str, Any], prefix: str, kind: str, form: Mapping[str, Any]
+) -> float:
+    """``timeout``: the seconds written, or "auto" (see ``auto_timeout``)."""
+    longest = MAX_ASCII_FRAME if kind == "ascii" else MAX_RTU_FRAME
+    timeout = auto_timeout(
+        form["baudrate"], form["data_bits"], form["parity"], form["stop_bits"], longest
+    )
+    if kind in NETWORK_LINE_KINDS:
+        timeout = round(timeout + NETWORK_ALLOWANCE_S, 3)
+    if table.get("timeout", "auto") != "auto":
+        timeout = check.read(_LINE_KEYS_BY_NAME["timeout"], table, prefix, timeout)
+    return timeout
+
+
+def _build_line(check: _Checker, name: str, raw: Mapping[str, Any]) -> LineConfig | None:
+    prefix = f"lines.{name}."
+    if not isinstance(raw, dict):
+        check.fail(f"lines.{name}", "must be a table ([lines.NAME]) with at least a device")
+        return None
+    table = check.entry(Table.LINES, raw, prefix)
+    kind, device, host, port = _line_kind(check, table, prefix)
+    form = _serial_format(check, Table.LINES, table, prefix, kind == "ascii")
     units: tuple[int, ...] = ()
     if "units" in table:
         try:
             units = tuple(parse_units(table["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
-    ascii_line = kind == "ascii"  # 7E1 by default (Modbus over Serial Line 2.5.2.1)
-    baudrate = check.integer(table, "baudrate", prefix, 9600, 50, 4_000_000)
-    data_bits = check.integer(table, "data_bits", prefix, 7 if ascii_line else 8, 7, 8)
-    default_parity = "E" if ascii_line else "N"
-    parity = check.choice(table, "parity", prefix, default_parity, VALID_PARITIES, upper=True)
-    stop_bits = float(stop_bits_raw)
-    longest = MAX_ASCII_FRAME if ascii_line else MAX_RTU_FRAME
-    timeout = auto_timeout(baudrate, data_bits, parity, stop_bits, longest)
-    if kind in NETWORK_LINE_KINDS:
-        timeout = round(timeout + NETWORK_ALLOWANCE_S, 3)
-    if table.get("timeout", "auto") != "auto":
-        timeout = check.number(table, "timeout", prefix, timeout, 0.001, 60.0)
+    scalars = _scalars(check, Table.LINES, table, prefix, _LINE_SPECIAL)
     return LineConfig(
-        dead_after=check.integer(table, "dead_after", prefix, 3, 0, 1000),
-        probe_interval=check.number(table, "probe_interval", prefix, 1.0, 0.01, 3600.0),
-        probe_max_interval=check.number(table, "probe_max_interval", prefix, 30.0, 0.01, 86_400.0),
-        slave_timeouts=_slave_timeouts(check, table, prefix),
-        coalesce=check.boolean(table, "coalesce", prefix, True),
-        cache=_cache_rules(check, table, prefix),
         name=name,
         device=device,
-        baudrate=baudrate,
-        data_bits=data_bits,
-        parity=parity,
-        stop_bits=stop_bits,
-        timeout=timeout,
-        retries=check.integer(table, "retries", prefix, 1, 0, 10),
-        retry_unsafe=_retry_unsafe(check, table, prefix),
-        frame_gap=frame_gap,
-        broadcast=check.boolean(table, "broadcast", prefix, True),
-        broadcast_turnaround=check.number(table, "broadcast_turnaround", prefix, 0.1, 0.0, 10.0),
-        max_queue=check.integer(table, "max_queue", prefix, 256, 1, 100_000),
-        max_queue_per_master=check.integer(table, "max_queue_per_master", prefix, 32, 1, 10_000),
-        late_answer_window=_optional_number(check, table, "late_answer_window", prefix, 60.0),
-        noisy_after=_optional_number(check, table, "noisy_after", prefix, 3600.0),
-        probe_share=check.number(table, "probe_share", prefix, 0.05, 0.0, 1.0),
-        rs485=check.boolean(table, "rs485", prefix, False),
-        rs485_rts_level_for_tx=check.boolean(table, "rs485_rts_level_for_tx", prefix, True),
-        rs485_rts_level_for_rx=check.boolean(table, "rs485_rts_level_for_rx", prefix, False),
-        rs485_delay_before_tx=check.number(table, "rs485_delay_before_tx", prefix, 0.0, 0.0, 1.0),
-        rs485_delay_after_tx=check.number(table, "rs485_delay_after_tx", prefix, 0.0, 0.0, 1.0),
-        units=units,
         kind=kind,
-        inter_char_timeout=check.number(table, "inter_char_timeout", prefix, 1.0, 0.001, 60.0),
-        echo=check.boolean(table, "echo", prefix, False),
         host=host,
         port=port,
-        connect_delay=check.number(table, "connect_delay", prefix, 0.0, 0.0, 60.0),
-        connect_timeout=check.number(table, "connect_timeout", prefix, 3.0, 0.01, 600.0),
-        silence_setting=_optional_number(check, table, "silence", prefix, 10.0),
+        units=units,
+        timeout=_line_timeout(check, table, prefix, kind, form),
+        slave_timeouts=_slave_timeouts(check, table, prefix),
+        cache=_cache_rules(check, table, prefix),
         max_in_flight=_max_in_flight(check, table, prefix, kind),
+        **form,
+        **{_LINE_FIELDS.get(key, key): value for key, value in scalars.items()},
         **_tls_line(check, table, prefix, kind, host),
     )
 
@@ -704,9 +720,9 @@ def _tls_line(
     return {
         **files,
         "server_name": server_name,
-        "check_server_name": check.boolean(table, "check_server_name", prefix, True),
-        "tls_handshake_timeout": check.number(
-            table, "tls_handshake_timeout", prefix, 10.0, 0.1, 600.0
+        "check_server_name": check.read(_LINE_KEYS_BY_NAME["check_server_name"], table, prefix),
+        "tls_handshake_timeout": check.read(
+            _LINE_KEYS_BY_NAME["tls_handshake_timeout"], table, prefix
         ),
     }
 
@@ -722,7 +738,7 @@ def _max_in_flight(check: _Checker, table: Mapping[str, Any], prefix: str, kind:
             "answers carry no transaction id, so it has one request on the wire; remove the key",
         )
         return 1
-    return check.integer(table, "max_in_flight", prefix, 1, 1, MAX_IN_FLIGHT)
+    return int(check.read(_LINE_KEYS_BY_NAME["max_in_flight"], table, prefix))
 
 
 def _network_address(
@@ -780,26 +796,6 @@ def auto_timeout(
     return round(SLAVE_TURNAROUND_S + longest, 3)
 
 
-def _retry_unsafe(check: _Checker, table: Mapping[str, Any], prefix: str) -> bool:
-    """``retry_unsafe``, or its former name ``retry_writes`` (it now covers more than writes)."""
-    if "retry_unsafe" in table and "retry_writes" in table:
-        check.fail(
-            f"{prefix}retry_writes",
-            "is the former name of retry_unsafe; keep only retry_unsafe",
-        )
-    key = "retry_writes" if "retry_writes" in table else "retry_unsafe"
-    return check.boolean(table, key, prefix, False)
-
-
-def _optional_number(
-    check: _Checker, table: Mapping[str, Any], key: str, prefix: str, high: float
-) -> float | None:
-    """A number of seconds, or ``None`` (the default derived from the timeouts) when absent."""
-    if key not in table or table[key] == "auto":
-        return None
-    return check.number(table, key, prefix, 0.0, 0.0, high)
-
-
 def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[int, float]:
     raw = table.get("slave_timeouts", {})
     key = f"{prefix}slave_timeouts"
@@ -811,7 +807,8 @@ def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> d
         if not slave_text.isdigit() or not 1 <= int(slave_text) <= 247:
             check.fail(f"{key}.{slave_text}", "the key must be a slave address 1..247, quoted")
             continue
-        timeouts[int(slave_text)] = check.number(raw, slave_text, f"{key}.", 1.0, 0.001, 60.0)
+        low, high = _LINE_KEYS_BY_NAME["timeout"].float_range()
+        timeouts[int(slave_text)] = check.number(raw, slave_text, f"{key}.", 1.0, low, high)
     return timeouts
 
 
@@ -834,27 +831,18 @@ def _cache_rules(check: _Checker, table: Mapping[str, Any], prefix: str) -> tupl
                 f"{key}[{index}]", "must be a table with unit, function, start, count, max_age"
             )
             continue
-        check.unknown_keys(entry, {"unit", "function", "start", "count", "max_age"}, entry_key)
-        function = check.integer(entry, "function", entry_key, 3, 1, 4)
-        if function not in _CACHE_FUNCTIONS:
-            continue
-        rules.append(
-            CacheRule(
-                unit=check.integer(entry, "unit", entry_key, 1, 1, 247),
-                function=function,
-                start=check.integer(entry, "start", entry_key, 0, 0, 65535),
-                count=check.integer(entry, "count", entry_key, 1, 1, 65536),
-                max_age=check.number(entry, "max_age", entry_key, 1.0, 0.0, 3600.0),
-            )
-        )
+        entry = check.entry(Table.CACHE, entry, entry_key)
+        values = _scalars(check, Table.CACHE, entry, entry_key, ())
+        if values["function"] in _CACHE_FUNCTIONS:
+            rules.append(CacheRule(**values))
     return tuple(rules)
 
 
 def _build_routes(
     check: _Checker, raw: Mapping[str, Any], lines: tuple[LineConfig, ...]
 ) -> dict[int, Route]:
+    """Each line's ``units`` (the same slave address), then every ``[[routes]]`` entry."""
     routes: dict[int, Route] = {}
-    names = {line.name for line in lines}
     for line in lines:
         taken: dict[str, list[int]] = {}  # earlier line -> units this line repeats
         for unit in line.units:
@@ -872,30 +860,37 @@ def _build_routes(
     if not isinstance(raw_routes, list):
         check.fail("routes", "write routes as [[routes]] tables with unit, line and slave")
         return routes
+    names = {line.name for line in lines}
     for index, entry in enumerate(raw_routes):
-        key = f"routes[{index}]"
-        if not isinstance(entry, dict):
-            check.fail(key, "must be a table with unit, line and slave")
+        route = _route(check, entry, f"routes[{index}]", names)
+        if route is None:
             continue
-        check.unknown_keys(entry, {"unit", "line", "slave"}, f"{key}.")
-        unit = check.integer(entry, "unit", f"{key}.", -1, 1, 255) if "unit" in entry else -1
-        if "unit" not in entry:
-            check.fail(f"{key}.unit", "missing; the TCP unit id (1..255) this route answers for")
-        line_name = entry.get("line")
-        if not isinstance(line_name, str) or line_name not in names:
-            known = ", ".join(sorted(names)) or "(none defined)"
-            check.fail(f"{key}.line", f"{line_name!r} is not a configured line; lines are: {known}")
+        if route.unit in routes:
+            check.fail(f"routes[{index}].unit", f"unit {route.unit} is already routed to line "
+                       f"{routes[route.unit].line!r}")  # fmt: skip
             continue
-        slave = check.integer(entry, "slave", f"{key}.", unit if 1 <= unit <= 247 else 1, 1, 247)
-        if unit < 1:
-            continue
-        if unit in routes:
-            check.fail(
-                f"{key}.unit", f"unit {unit} is already routed to line {routes[unit].line!r}"
-            )
-            continue
-        routes[unit] = Route(unit, line_name, slave)
+        routes[route.unit] = route
     return routes
+
+
+def _route(check: _Checker, raw: Any, key: str, names: set[str]) -> Route | None:
+    """One ``[[routes]]`` entry (``None`` when it is faulty)."""
+    if not isinstance(raw, dict):
+        check.fail(key, "must be a table with unit, line and slave")
+        return None
+    prefix = f"{key}."
+    entry = check.entry(Table.ROUTES, raw, prefix)
+    keys = schema.keys_of(Table.ROUTES)
+    unit = check.read(keys["unit"], entry, prefix, -1) if "unit" in entry else -1
+    if "unit" not in entry:
+        check.fail(f"{prefix}unit", "missing; the TCP unit id (1..255) this route answers for")
+    line_name = entry.get("line")
+    if not isinstance(line_name, str) or line_name not in names:
+        known = ", ".join(sorted(names)) or "(none defined)"
+        check.fail(f"{prefix}line", f"{line_name!r} is not a configured line; lines are: {known}")
+        return None
+    slave = check.read(keys["slave"], entry, prefix, unit if 1 <= unit <= 247 else 1)
+    return Route(unit, line_name, slave) if unit >= 1 else None
 
 
 def format_units(units: Iterable[int]) -> str:
@@ -967,7 +962,7 @@ def config_warnings(config: GatewayConfig) -> list[str]:
     Warnings, not errors: a USB adapter may be plugged in after the gateway starts, and a
     line may be kept ready for units routed to it later.
     """
-    warnings: list[str] = []
+    warnings = list(config.renamed)
     routed_lines = {route.line for route in config.routes.values()}
     for line in config.lines:
         prefix = f"lines.{line.name}"
@@ -1193,12 +1188,17 @@ def _build_policies(check: _Checker, raw: Mapping[str, Any]) -> dict[str, tuple[
     return policies
 
 
-_LISTENER_KEYS = {"name", "protocol", "listen", "cert", "key", "ca", "allow", "read_only", "policy"}
+_LISTENER_TABLE = schema.keys_of(Table.LISTENERS)
 #: Keys of a ``serial-slave`` listener only: its serial line, and the units it answers for.
-_SERIAL_SLAVE_KEYS = {
-    "device", "baudrate", "data_bits", "parity", "stop_bits", "units",
-    "framing", "echo", "inter_char_timeout",
-}  # fmt: skip
+_SERIAL_SLAVE_KEYS = frozenset(
+    k.name for k in _LISTENER_TABLE.values() if k.only.startswith('protocol = "serial-slave"')
+)
+#: What a tls listener's files hold, for the message when one is missing.
+_LISTENER_FILES = {
+    "cert": "the server's certificate chain (PEM)",
+    "key": "the server's private key (PEM)",
+    "ca": "the CA certificates client certificates must chain to (PEM)",
+}
 
 
 def _serial_slave_line(
@@ -1212,29 +1212,21 @@ def _serial_slave_line(
         device = ""
     if "listen" in entry:
         check.fail(f"{prefix}listen", "a serial-slave listener has a device, not an address")
-    stop_bits = entry.get("stop_bits", 1)
-    if stop_bits not in (1, 1.5, 2) or isinstance(stop_bits, bool):
-        check.fail(f"{prefix}stop_bits", f"{stop_bits!r} is not 1, 1.5 or 2")
-        stop_bits = 1
     units: tuple[int, ...] = ()
     if "units" in entry:
         try:
             units = tuple(parse_units(entry["units"]))
         except ValueError as error:
             check.fail(f"{prefix}units", str(error))
-    framing = check.choice(entry, "framing", prefix, "rtu", VALID_SLAVE_FRAMINGS)
-    ascii_line = framing == "ascii"  # 7E1 by default (Modbus over Serial Line 2.5.2.1)
-    default_parity = "E" if ascii_line else "N"
+    framing: str = check.read(_LISTENER_TABLE["framing"], entry, prefix)
+    ascii_line = framing == "ascii"
     line = LineConfig(
         name=f"listener {name}",
         device=device,
-        baudrate=check.integer(entry, "baudrate", prefix, 9600, 50, 4_000_000),
-        data_bits=check.integer(entry, "data_bits", prefix, 7 if ascii_line else 8, 7, 8),
-        parity=check.choice(entry, "parity", prefix, default_parity, VALID_PARITIES, upper=True),
-        stop_bits=float(stop_bits),
         kind=framing,
-        inter_char_timeout=check.number(entry, "inter_char_timeout", prefix, 1.0, 0.001, 60.0),
-        echo=check.boolean(entry, "echo", prefix, False),
+        inter_char_timeout=check.read(_LISTENER_TABLE["inter_char_timeout"], entry, prefix),
+        echo=check.read(_LISTENER_TABLE["echo"], entry, prefix),
+        **_serial_format(check, Table.LISTENERS, entry, prefix, ascii_line),
     )
     if "inter_char_timeout" in entry and not ascii_line:
         check.fail(f"{prefix}inter_char_timeout", 'only an ASCII line has one (framing = '
@@ -1242,97 +1234,82 @@ def _serial_slave_line(
     return line, units
 
 
-def _build_listeners(
-    check: _Checker,
-    raw: Mapping[str, Any],
-    server: ServerConfig,
-    policies: Mapping[str, tuple[Rule, ...]],
-) -> tuple[ListenerConfig, ...]:
-    """``[server] listen`` (the shorthand tcp listener) and every ``[[listeners]]`` entry.
-
-    The shorthand listener exists when ``[server] listen`` is written (or ``--listen``
-    given), or when no other network listener is configured: as before listeners existed
-    (a ``serial-slave`` listener does not replace it).
-    """
-    server_table = check.table(raw, "server")
-    entries = raw.get("listeners", [])
-    if not isinstance(entries, list):
-        check.fail("listeners", "write listeners as [[listeners]] tables")
-        entries = []
-    listeners: list[ListenerConfig] = []
+def _shorthand_listener(
+    check: _Checker, raw: Mapping[str, Any], server: ServerConfig, entries: list[Any]
+) -> list[ListenerConfig]:
+    """The ``[server] listen`` listener: when written (or ``--listen`` given), or when no
+    other network listener is configured, as before listeners existed (a ``serial-slave``
+    listener does not replace it)."""
     networked = [
         e for e in entries if not (isinstance(e, dict) and e.get("protocol") == "serial-slave")
     ]
-    if "listen" in server_table or not networked:
-        listeners.append(
-            ListenerConfig(
-                name="tcp", protocol="tcp", host=server.host, port=server.port,
-                read_only=server.read_only, policy=server.policy,
-            )
-        )  # fmt: skip
-    for index, entry in enumerate(entries):
-        key = f"listeners[{index}]"
-        if not isinstance(entry, dict):
-            check.fail(key, "must be a table with name, protocol and listen")
-            continue
-        prefix = f"{key}."
-        check.unknown_keys(entry, _LISTENER_KEYS | _SERIAL_SLAVE_KEYS, prefix)
-        protocol = check.choice(entry, "protocol", prefix, "tcp", VALID_PROTOCOLS)
-        name = entry.get("name", protocol)
-        if not isinstance(name, str) or not name.replace("-", "_").isidentifier():
-            check.fail(f"{prefix}name", f"{name!r}: write a short name of letters, digits, - or _")
-            name = f"listener{index}"
-        if protocol == "serial-slave":
-            serial, units = _serial_slave_line(check, entry, prefix, name)
-            for other in ("cert", "key", "ca", "allow"):
-                if other in entry:
-                    check.fail(f"{prefix}{other}", "a serial-slave listener has no network "
-                               "peers: remove it")  # fmt: skip
-            listeners.append(
-                ListenerConfig(
-                    name=name, protocol=protocol, host="", port=0,
-                    read_only=check.boolean(entry, "read_only", prefix, False) or server.read_only,
-                    policy=_policy_name(check, entry, prefix), key_prefix=prefix,
-                    serial=serial, units=units,
-                )
-            )  # fmt: skip
-            continue
-        for serial_key in sorted(_SERIAL_SLAVE_KEYS & set(entry)):
-            check.fail(f"{prefix}{serial_key}", 'only a protocol = "serial-slave" listener '
-                       "takes it")  # fmt: skip
-        default_port = DEFAULT_TLS_PORT if protocol == "tls" else 502
-        address = check.address(entry, "listen", prefix, f"0.0.0.0:{default_port}")
-        if address is None:
-            check.fail(
-                f"{prefix}listen", 'a listener needs an address; write it like "0.0.0.0:802"'
-            )
-            address = ("0.0.0.0", default_port)
-        files: dict[str, str | None] = {}
-        for file_key in ("cert", "key", "ca"):
-            value = entry.get(file_key)
-            if value is not None and (not isinstance(value, str) or not value):
-                check.fail(f"{prefix}{file_key}", "write a file path as a string")
-                value = None
-            if protocol == "tls" and value is None:
-                what = {
-                    "cert": "the server's certificate chain (PEM)",
-                    "key": "the server's private key (PEM)",
-                    "ca": "the CA certificates client certificates must chain to (PEM)",
-                }
-                check.fail(f"{prefix}{file_key}", f"missing; a tls listener needs {what[file_key]}"
-                           f" (or --tls-{file_key} FILE)")  # fmt: skip
-            if protocol != "tls" and value is not None:
-                check.fail(f"{prefix}{file_key}", 'only a protocol = "tls" listener takes it')
-            files[file_key] = value
-        listeners.append(
-            ListenerConfig(
-                name=name, protocol=protocol, host=address[0], port=address[1],
-                cert=files["cert"], key=files["key"], ca=files["ca"],
-                allow=_networks(check, entry, "allow", prefix),
-                read_only=check.boolean(entry, "read_only", prefix, False) or server.read_only,
-                policy=_policy_name(check, entry, prefix), key_prefix=prefix,
-            )
-        )  # fmt: skip
+    if "listen" not in check.table(raw, "server") and networked:
+        return []
+    return [ListenerConfig(name="tcp", protocol="tcp", host=server.host, port=server.port,
+                           read_only=server.read_only, policy=server.policy)]  # fmt: skip
+
+
+def _listener_files(
+    check: _Checker, entry: Mapping[str, Any], prefix: str, protocol: str
+) -> dict[str, Any]:
+    """``cert``, ``key`` and ``ca``: required on a tls listener, refused on any other."""
+    files: dict[str, str | None] = {}
+    for file_key, what in _LISTENER_FILES.items():
+        value = entry.get(file_key)
+        if value is not None and (not isinstance(value, str) or not value):
+            check.fail(f"{prefix}{file_key}", "write a file path as a string")
+            value = None
+        if protocol == "tls" and value is None:
+            check.fail(f"{prefix}{file_key}", f"missing; a tls listener needs {what}"
+                       f" (or --tls-{file_key} FILE)")  # fmt: skip
+        if protocol != "tls" and value is not None:
+            check.fail(f"{prefix}{file_key}", 'only a protocol = "tls" listener takes it')
+        files[file_key] = value
+    return files
+
+
+def _listener(check: _Checker, raw: Any, index: int, server: ServerConfig) -> ListenerConfig | None:
+    """One ``[[listeners]]`` entry (``None`` when it is not even a table)."""
+    key = f"listeners[{index}]"
+    if not isinstance(raw, dict):
+        check.fail(key, "must be a table with name, protocol and listen")
+        return None
+    prefix = f"{key}."
+    entry = check.entry(Table.LISTENERS, raw, prefix)
+    protocol: str = check.read(_LISTENER_TABLE["protocol"], entry, prefix)
+    name = entry.get("name", protocol)
+    if not isinstance(name, str) or not name.replace("-", "_").isidentifier():
+        check.fail(f"{prefix}name", f"{name!r}: write a short name of letters, digits, - or _")
+        name = f"listener{index}"
+    common: dict[str, Any] = {
+        "name": name, "protocol": protocol, "key_prefix": prefix,
+        "read_only": check.read(_LISTENER_TABLE["read_only"], entry, prefix) or server.read_only,
+        "policy": _policy_name(check, entry, prefix),
+    }  # fmt: skip
+    if protocol == "serial-slave":
+        serial, units = _serial_slave_line(check, entry, prefix, name)
+        for other in ("cert", "key", "ca", "allow"):
+            if other in entry:
+                check.fail(f"{prefix}{other}", "a serial-slave listener has no network "
+                           "peers: remove it")  # fmt: skip
+        return ListenerConfig(host="", port=0, serial=serial, units=units, **common)
+    for serial_key in sorted(_SERIAL_SLAVE_KEYS & set(entry)):
+        check.fail(f"{prefix}{serial_key}", 'only a protocol = "serial-slave" listener takes it')
+    default_port = DEFAULT_TLS_PORT if protocol == "tls" else 502
+    address = check.address(entry, "listen", prefix, f"0.0.0.0:{default_port}")
+    if address is None:
+        check.fail(f"{prefix}listen", 'a listener needs an address; write it like "0.0.0.0:802"')
+        address = ("0.0.0.0", default_port)
+    return ListenerConfig(host=address[0], port=address[1],
+                          allow=_networks(check, entry, "allow", prefix),
+                          **_listener_files(check, entry, prefix, protocol),
+                          **common)  # fmt: skip
+
+
+def _check_listeners(
+    check: _Checker, listeners: list[ListenerConfig], policies: Mapping[str, tuple[Rule, ...]]
+) -> None:
+    """Names unique, policies defined, one listener per address."""
     seen: dict[str, ListenerConfig] = {}
     for listener in listeners:
         if listener.name in seen:
@@ -1348,32 +1325,51 @@ def _build_listeners(
         if addresses.count(address) > 1:
             check.fail("listeners", f"two listeners on {address[0]}:{address[1]}; "
                        "give each its own port")  # fmt: skip
+
+
+def _build_listeners(
+    check: _Checker,
+    raw: Mapping[str, Any],
+    server: ServerConfig,
+    policies: Mapping[str, tuple[Rule, ...]],
+) -> tuple[ListenerConfig, ...]:
+    """``[server] listen`` (the shorthand tcp listener) and every ``[[listeners]]`` entry."""
+    entries = raw.get("listeners", [])
+    if not isinstance(entries, list):
+        check.fail("listeners", "write listeners as [[listeners]] tables")
+        entries = []
+    listeners = _shorthand_listener(check, raw, server, entries)
+    for index, entry in enumerate(entries):
+        listener = _listener(check, entry, index, server)
+        if listener is not None:
+            listeners.append(listener)
+    _check_listeners(check, listeners, policies)
     return tuple(listeners)
+
+
+def _build_metrics(check: _Checker, raw: Mapping[str, Any]) -> MetricsConfig:
+    prefix = "metrics."
+    table = check.entry(Table.METRICS, check.table(raw, "metrics"), prefix)
+    values = _scalars(check, Table.METRICS, table, prefix, ("listen",))
+    address = check.read(schema.key(Table.METRICS, "listen"), table, prefix)
+    if address is None:  # "off"
+        return MetricsConfig(False, **values)
+    return MetricsConfig(True, address[0], address[1], **values)
+
+
+def _build_logging(check: _Checker, raw: Mapping[str, Any]) -> LoggingConfig:
+    prefix = "logging."
+    table = check.entry(Table.LOGGING, check.table(raw, "logging"), prefix)
+    return LoggingConfig(**_scalars(check, Table.LOGGING, table, prefix, ()))
 
 
 def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
     """Validate raw tables into a ``GatewayConfig``; raise ``ConfigError`` listing every fault."""
     check = _Checker()
-    check.unknown_keys(
-        raw, {"server", "metrics", "logging", "lines", "routes", "listeners", "policies"}, ""
-    )
+    check.unknown_keys(raw, set(schema.TOP_LEVEL), "")
     server = _build_server(check, raw)
-    metrics_table = check.table(raw, "metrics")
-    check.unknown_keys(metrics_table, {"listen", "max_connections", "header_timeout"}, "metrics.")
-    metrics_address = check.address(metrics_table, "listen", "metrics.", DEFAULT_METRICS)
-    http_cap = check.integer(metrics_table, "max_connections", "metrics.", 32, 1, 1024)
-    header_timeout = check.number(metrics_table, "header_timeout", "metrics.", 5.0, 0.1, 60.0)
-    metrics = (
-        MetricsConfig(True, metrics_address[0], metrics_address[1], http_cap, header_timeout)
-        if metrics_address is not None
-        else MetricsConfig(False, max_connections=http_cap, header_timeout=header_timeout)
-    )
-    logging_table = check.table(raw, "logging")
-    check.unknown_keys(logging_table, {"level", "format"}, "logging.")
-    log = LoggingConfig(
-        level=check.choice(logging_table, "level", "logging.", "info", VALID_LOG_LEVELS),
-        format=check.choice(logging_table, "format", "logging.", "text", VALID_LOG_FORMATS),
-    )
+    metrics = _build_metrics(check, raw)
+    log = _build_logging(check, raw)
     lines_table = check.table(raw, "lines")
     lines = tuple(
         line
@@ -1393,7 +1389,8 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     _check_serial_slave_devices(check, lines, listeners)
     if check.problems:
         raise ConfigError(source, check.problems)
-    return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies)
+    return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies,
+                         tuple(check.renamed))  # fmt: skip
 
 
 def policy_warnings(config: GatewayConfig) -> list[str]:

@@ -63,6 +63,7 @@ class CloseReason(StrEnum):
     EVICTED = "evicted"  # closed to make room for a new master
     STALLED = "stalled"  # left its replies unread for server.send_timeout
     SHUTDOWN = "shutdown"  # the gateway stopped
+    NO_LONGER_ADMITTED = "no_longer_admitted"  # a reload's allow lists, CAs or dates refuse it
 
 
 class RejectReason(StrEnum):

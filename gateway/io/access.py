@@ -3,7 +3,9 @@
 A connection from a source outside an allow list is closed as soon as it is
 accepted, before a byte of it is read (so before any TLS handshake), counted in
 ``connections_denied_total{listener}`` and logged at a bounded rate: one line
-for the first, then one summary a minute however many a scanner sends.
+for the first, then one summary a minute however many a scanner sends. The
+decision is core's (``core.connection_admission``), the same one a reload asks
+for every open connection; a connection closed then is logged once, by name.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import ipaddress
 import logging
 from collections.abc import Sequence
 
+from ..core.connection_admission import Door, NotAdmitted
 from ..core.policy import IPAddress, IPNetwork
 from ..logs import RateLimitedLogger
 from ..metrics import GatewayMetrics
@@ -39,6 +42,15 @@ def peer_address_of(peer: object) -> IPAddress | None:
     return address
 
 
+_REASON_TEXT = {
+    NotAdmitted.SOURCE_NOT_ALLOWED: ": its address is outside the allow list",
+    NotAdmitted.CA_NOT_TRUSTED: ": its certificate chains to no CA in the listener's ca",
+    NotAdmitted.CERTIFICATE_EXPIRED: ": its client certificate has expired",
+    NotAdmitted.CERTIFICATE_NOT_YET_VALID: ": its client certificate is not valid yet",
+    NotAdmitted.NO_CERTIFICATE: ": it showed no client certificate",
+}
+
+
 class SourceScreen:
     """Admits sources inside every configured allow list; counts and logs the rest."""
 
@@ -55,13 +67,16 @@ class SourceScreen:
         """Bind the rate-limited log to the running loop."""
         self._log = RateLimitedLogger(log, loop)
 
-    def allows(self, source: IPAddress | None) -> bool:
-        """True when ``source`` lies in every allow list (no list: any source)."""
-        if not self.allow_lists:
-            return True
-        if source is None:
-            return False
-        return all(any(source in network for network in networks) for networks in self.allow_lists)
+    def door(self, tls: bool) -> Door:
+        """The listener's door as it stands now, for ``core.connection_admission.admit``."""
+        return Door(self.allow_lists, tls)
+
+    def closed_at_reload(self, peer: str, reason: NotAdmitted) -> None:
+        """Log, once per connection, one closed because it is no longer admitted."""
+        log.warning(
+            "listener %s: master %s closed: no longer admitted (%s)%s", self.listener, peer,
+            reason.value, _REASON_TEXT.get(reason, ""),
+        )  # fmt: skip
 
     def refuse(self, source: IPAddress | None) -> None:
         """Count and log a connection closed at accept."""

@@ -33,6 +33,10 @@ routing, policy, with no source address here, so only rules without ``source``
 or ``role`` grant, read-only, ``refuse_functions``, validation), then the same
 queues and metrics. The silences above are how this listener executes
 admission's answer for an unrouted unit and for unit 0, not checks of its own.
+
+A reload gives it the new routes and policy (from the next request on). There is
+no connection to judge again as on a TCP listener: no source address for an
+allow list, no certificate; changes to its serial line need a restart.
 """
 
 from __future__ import annotations

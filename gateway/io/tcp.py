@@ -27,12 +27,17 @@ Every connection's resources are bounded, whatever the master does:
 
 Admission happens at accept, with the peer's address from ``accept()``
 itself, before a byte is read (so before a TLS handshake): the allow lists
-(``SourceScreen``), then (``ModbusTcpServer._admit``) a per-source limit, then
-the listener's cap,
-which closes the master idle longest (at least ``evict_min_idle``, nothing in
-flight) or refuses. Only a complete request makes a master active again.
+(core's ``connection_admission.admit``; ``SourceScreen`` counts and logs), then
+(``ModbusTcpServer._admit``) a per-source limit, then the listener's cap, which
+closes the master idle longest (at least ``evict_min_idle``, nothing in flight) or
+refuses. Only a complete request makes a master active again.
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
+
+A reload judges every open connection again (``reevaluate``) with the same
+decision as at accept (``core.connection_admission``), now with what the
+handshake showed: one no longer admitted is closed as at a stop, alone (its
+queued requests answered 0x0A, none sent), counted as ``no_longer_admitted``.
 """
 
 from __future__ import annotations
@@ -47,10 +52,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Final, Protocol, cast
 
+from cryptography import x509
+
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
 from ..core.admission import Admitter, AnswerLocally, Broadcast, Submit
+from ..core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
 from ..core.errors import ExceptionCode, FramingError
+from ..core.line import no_reply
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
 from ..core.outcome import Outcome
 from ..core.policy import IPAddress, Policy, Principal
@@ -61,7 +70,14 @@ from ..status import MasterStatus
 from ..trace import FrameTracer
 from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
-from .tls import HandshakeFailure, handshake_failure_reason, role_of
+from .tls import (
+    HandshakeFailure,
+    ServerTls,
+    certificate_facts,
+    handshake_failure_reason,
+    peer_chain,
+    role_of,
+)
 
 log = logging.getLogger("gateway.tcp")
 
@@ -193,6 +209,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         self.idle_since = accepted
         self._idle_timer: asyncio.TimerHandle | None = None
         self._stall_timer: asyncio.TimerHandle | None = None
+        self.chain: tuple[bytes, ...] = ()  #: the client's verified chain (DER), TLS only
+        self.epoch = server.epoch  #: the server's reload count when it was accepted
 
     # -- asyncio.BufferedProtocol ------------------------------------------------------
 
@@ -206,6 +224,9 @@ class MasterConnection(asyncio.BufferedProtocol):
         if tls:
             self.principal = Principal(self.principal.source, role)
             self.role_text = "NULL" if role is None else role
+            self.chain = peer_chain(transport)
+        if self.epoch != self._server.epoch and self._server.refuses_late(self):
+            return  # a reload came during its handshake, and its door is now shut to it
         sock = transport.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -439,22 +460,50 @@ class MasterConnection(asyncio.BufferedProtocol):
 
     # -- closing -----------------------------------------------------------------------
 
+    @property
+    def established(self) -> bool:
+        """True once connected (after the TLS handshake on a tls listener), until closed."""
+        return self._transport is not None and not self._closed
+
     def close(self, reason: CloseReason) -> None:
         """Close this connection, recording why.
 
-        A master the gateway turns away is aborted (its unsent replies dropped,
-        its descriptor freed at once); at shutdown the replies already written
-        (0x0A for what was queued) are flushed first.
+        A master the gateway turns away is aborted (its unsent replies dropped, its
+        descriptor freed at once); at shutdown, and for one a reload no longer admits,
+        the replies already written (0x0A for what was queued) are flushed first.
         """
         if self._closed:
             return
+        if reason == CloseReason.NO_LONGER_ADMITTED:
+            self._answer_queued()
         self._release()
         self._server.forget(self, reason)
         if self._transport is not None:
-            if reason == CloseReason.SHUTDOWN:
+            if reason in (CloseReason.SHUTDOWN, CloseReason.NO_LONGER_ADMITTED):
                 self._transport.close()
             else:
                 self._transport.abort()
+
+    def _answer_queued(self) -> None:
+        """Answer 0x0A, as a stop does, what this master has queued (no line sent it yet).
+
+        Told the master left (``_release``), the lines then drop those requests and answer
+        nothing more; one on a wire is not answered (its answer goes nowhere). The replies
+        go out in one write; no further request is read meanwhile (a batch is open).
+        """
+        outer = self._batch
+        batch = self._batch = [] if outer is None else outer
+        try:
+            for request in [r for r in self._pending if not r.sent and not r.broadcast]:
+                reply, request.reply = request.reply, no_reply
+                unavailable = fc.exception_pdu(
+                    request.pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE
+                )
+                reply(unavailable, Outcome.NO_ROUTE)
+        finally:
+            self._batch = outer
+        if outer is None and batch and self._transport is not None:
+            self._transport.write(b"".join(batch))
 
     def _release(self) -> None:
         self._closed = True
@@ -537,6 +586,10 @@ class ModbusTcpServer:
         self.policy = policy or Policy()  #: replaced as a whole on reload
         self.ssl_context = ssl_context  #: replaced on reload; new connections use the new one
         self.screen = SourceScreen(self.name, (config.allow, self.listener.allow), metrics)
+        self.epoch = 0  #: reloads seen: a connection accepted before one is judged again
+        #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
+        #: then: the handshake's verdict on the chain stands.
+        self._authorities: tuple[x509.Certificate, ...] | None = None
         self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
@@ -646,7 +699,8 @@ class ModbusTcpServer:
     def _accepted(self, sock: socket.socket, address: object) -> None:
         peer, source = _peer_text(address)
         ip = peer_address_of(address)
-        if not self.screen.allows(ip):  # counted and logged (rate-limited) by the screen
+        door = self.screen.door(self.listener.tls)  # the source only: no byte read yet
+        if admit(door, ConnectionFacts(ip), time.time()) is not None:  # counted and logged
             self.screen.refuse(ip)
             sock.close()
             return
@@ -750,6 +804,57 @@ class ModbusTcpServer:
             self.metrics.connections_open.set(len(self._connections))
             self.events.note("closed", source)
             log.debug("master %s disconnected (%s)", connection.peer, reason)
+
+    # -- reload: every open connection judged again --------------------------------------
+
+    def reevaluate(self, tls: ServerTls | None, now: float) -> int:
+        """Close every connection this listener would no longer admit; return how many.
+
+        Called at a reload once the listener's new settings (allow lists, listener)
+        are in place; ``tls`` carries the CAs read again, ``now`` is the wall-clock
+        time (seconds since the epoch). A connection still in its handshake is
+        judged on its source now, and on its certificate once the handshake is done.
+        """
+        self.epoch += 1
+        if tls is not None:
+            self._authorities = tls.authorities
+        seen: dict[tuple[bytes, ...], CertificateFacts | None] = {}
+        closed = 0
+        for connection in list(self._connections):
+            reason = self._judge(connection, now, seen)
+            if reason is not None:
+                self._close_unadmitted(connection, reason)
+                closed += 1
+        return closed
+
+    def refuses_late(self, connection: MasterConnection) -> bool:
+        """Judge a connection set up across a reload; close it (``True``) if refused."""
+        reason = self._judge(connection, time.time(), {})
+        if reason is not None:
+            self._close_unadmitted(connection, reason)
+        return reason is not None
+
+    def _judge(
+        self,
+        connection: MasterConnection,
+        now: float,
+        seen: dict[tuple[bytes, ...], CertificateFacts | None],
+    ) -> NotAdmitted | None:
+        """Core's decision for one connection, its chain's facts worked out once per chain."""
+        established = connection.established
+        certificate = None
+        if established and self.listener.tls:
+            chain = connection.chain
+            if chain not in seen:
+                seen[chain] = certificate_facts(chain, self._authorities)
+            certificate = seen[chain]
+        facts = ConnectionFacts(connection.principal.source, established, certificate)
+        return admit(self.screen.door(self.listener.tls), facts, now)
+
+    def _close_unadmitted(self, connection: MasterConnection, reason: NotAdmitted) -> None:
+        self.screen.closed_at_reload(connection.peer, reason)
+        self.events.note("closed at reload", connection.source)
+        connection.close(CloseReason.NO_LONGER_ADMITTED)
 
     # -- stopping ----------------------------------------------------------------------
 

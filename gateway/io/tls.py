@@ -7,7 +7,10 @@ specification requires); an expired or not-yet-valid server certificate, a key
 that does not match it, or an unreadable file is a ``TlsSetupError`` naming the
 listener's key and the fix. It is built again on every SIGHUP, so renewed
 certificates are picked up without a restart; connections already open keep
-the session they negotiated.
+the session they negotiated, but ``ssl`` cannot verify it again: each keeps
+the chain its handshake verified (``peer_chain``), and a reload judges that
+chain against the CAs read again (``certificate_facts``, with ``cryptography``)
+through ``core.connection_admission``.
 
 The TCP server (``gateway.io.tcp``) accepts on a ``tls`` listener itself: it
 screens the source address (allow list) and admits the connection before a
@@ -26,15 +29,17 @@ import enum
 import logging
 import ssl
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
 from cryptography import x509
+from cryptography.exceptions import InvalidSignature
 from cryptography.x509.oid import NameOID
 
 from ..config import LineConfig, ListenerConfig
+from ..core.connection_admission import CertificateFacts
 from ..core.policy import ROLE_OID, decode_role
 
 log = logging.getLogger("gateway.tls")
@@ -135,6 +140,8 @@ class ServerTls:
 
     context: ssl.SSLContext
     certificates: list[CertificateInfo]
+    #: The CAs client certificates must chain to, for judging open connections at a reload.
+    authorities: tuple[x509.Certificate, ...] = ()
 
 
 def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
@@ -194,7 +201,7 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
         context.load_verify_locations(cafile=listener.ca)
     except (ssl.SSLError, OSError) as error:
         raise TlsSetupError(f"{prefix}ca = {listener.ca!r}: cannot be used: {error}") from None
-    return ServerTls(context, infos)
+    return ServerTls(context, infos, tuple(authorities))
 
 
 def role_from_certificate(der: bytes | None) -> str | None:
@@ -228,6 +235,90 @@ def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:
     if ssl_object is None:
         return False, None
     return True, role_from_certificate(ssl_object.getpeercert(binary_form=True))
+
+
+def peer_chain(transport: asyncio.BaseTransport) -> tuple[bytes, ...]:
+    """The client's chain as the handshake verified it (DER, leaf first); ``()`` if not TLS.
+
+    Kept per connection so that a reload can judge it again against new CAs (``ssl``
+    cannot verify an open session again). Python 3.13 names the call
+    ``get_verified_chain``; before, the ``_ssl`` object under the ``SSLObject`` has it.
+    Without either, the leaf alone.
+    """
+    ssl_object: Any = transport.get_extra_info("ssl_object")
+    if ssl_object is None:
+        return ()
+    chain = getattr(ssl_object, "get_verified_chain", None)
+    if chain is None:
+        chain = getattr(getattr(ssl_object, "_sslobj", None), "get_verified_chain", None)
+    if chain is not None:
+        try:
+            return tuple(_der_of(certificate) for certificate in chain())
+        except (ssl.SSLError, ValueError, AttributeError):
+            pass
+    leaf = ssl_object.getpeercert(binary_form=True)
+    return (leaf,) if leaf else ()
+
+
+#: ``_ssl.ENCODING_DER``: the private chain call (before 3.13) gives PEM unless told.
+_ENCODING_DER = 2
+
+
+def _der_of(certificate: Any) -> bytes:
+    if isinstance(certificate, bytes):
+        return certificate  # 3.13's public call gives DER bytes
+    return bytes(certificate.public_bytes(_ENCODING_DER))
+
+
+def _anchor(certificate: x509.Certificate, authorities: Sequence[x509.Certificate]) -> (
+    x509.Certificate | None
+):  # fmt: skip
+    """The CA among ``authorities`` that is ``certificate`` or signed it, if any."""
+    for authority in authorities:
+        if certificate == authority:
+            return authority
+        if certificate.issuer != authority.subject:
+            continue
+        try:
+            certificate.verify_directly_issued_by(authority)
+        except (ValueError, TypeError, InvalidSignature):
+            continue
+        return authority
+    return None
+
+
+def certificate_facts(
+    chain: Sequence[bytes], authorities: Sequence[x509.Certificate] | None
+) -> CertificateFacts | None:
+    """What a verified chain (DER, leaf first) shows against ``authorities``; ``None``: none.
+
+    Trusted when a certificate of the chain is one of the CAs, or is signed by one
+    (a CA renewed with the same key still anchors it). The validity window is the
+    intersection of the windows along the chain up to that CA (the CA included).
+    ``authorities`` ``None`` (not known): the handshake's verdict stands, the whole
+    chain's window counts.
+    """
+    try:
+        certificates = [x509.load_der_x509_certificate(der) for der in chain]
+    except ValueError:
+        return None
+    if not certificates:
+        return None
+    if authorities is None:
+        return _facts(certificates, trusted=True)
+    for index, certificate in enumerate(certificates):
+        anchor = _anchor(certificate, authorities)
+        if anchor is not None:
+            return _facts([*certificates[: index + 1], anchor], trusted=True)
+    return _facts(certificates[:1], trusted=False)  # the leaf's own window, for the record
+
+
+def _facts(path: Sequence[x509.Certificate], *, trusted: bool) -> CertificateFacts:
+    return CertificateFacts(
+        max(c.not_valid_before_utc for c in path).timestamp(),
+        min(c.not_valid_after_utc for c in path).timestamp(),
+        trusted,
+    )
 
 
 def certificates_of(tls: dict[str, ServerTls]) -> Iterator[CertificateInfo]:
