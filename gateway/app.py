@@ -420,7 +420,7 @@ class Gateway:
     def _policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
         rules = config.policies[listener.policy] if listener.policy is not None else None
         read_only = listener.read_only or config.server.read_only
-        return Policy(rules, read_only=read_only, tls=listener.tls)
+        return Policy(rules, read_only, listener.tls, config.routes, config.server.refuse_functions)
 
     def _build_router(self) -> Router:
         routes = {

@@ -1032,7 +1032,7 @@ def _policy_name(check: _Checker, table: Mapping[str, Any], prefix: str) -> str 
 
 
 _ACCESS = {"read": Access.READ, "write": Access.WRITE, "read_write": Access.READ_WRITE}
-_RULE_KEYS = {"role", "source", "units", "functions", "addresses", "access"}
+_RULE_KEYS = {"role", "source", "units", "line", "slave", "functions", "addresses", "access"}
 
 
 def parse_function_key(item: Any) -> tuple[int, int | None]:
@@ -1098,9 +1098,37 @@ def _ranges(value: Any, low: int, high: int) -> list[tuple[int, int]]:
     return spans
 
 
+def _rule_numbers(
+    check: _Checker, entry: Mapping[str, Any], key: str, prefix: str, low: int, high: int,
+    what: str,
+) -> frozenset[int] | None:  # fmt: skip
+    """A rule's ``units`` or ``slave``: numbers and ranges; ``None`` when not written."""
+    if key not in entry:
+        return None
+    try:
+        spans = _ranges(entry[key], low, high)
+    except ValueError as error:
+        check.fail(f"{prefix}{key}", f"{error} ({what})")
+        return None
+    return frozenset(number for first, last in spans for number in range(first, last + 1))
+
+
+def _rule_lines(check: _Checker, entry: Mapping[str, Any], prefix: str) -> frozenset[str] | None:
+    """A rule's ``line``: one line name or a list of them; ``None`` when not written."""
+    if "line" not in entry:
+        return None
+    value = entry["line"]
+    names = [value] if isinstance(value, str) else value
+    if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+        check.fail(f"{prefix}line", 'write a line name or a list of them, like "a" or ["a", "b"]')
+        return None
+    return frozenset(names)
+
+
 def _build_rule(check: _Checker, entry: Any, key: str) -> Rule | None:
     if not isinstance(entry, dict):
-        check.fail(key, "must be a table with role, source, units, functions, addresses, access")
+        check.fail(key, "must be a table with role, source, units, line, slave, functions, "
+                   "addresses, access")  # fmt: skip
         return None
     prefix = f"{key}."
     check.unknown_keys(entry, _RULE_KEYS, prefix)
@@ -1108,13 +1136,8 @@ def _build_rule(check: _Checker, entry: Any, key: str) -> Rule | None:
     if role is not None and (not isinstance(role, str) or not role):
         check.fail(f"{prefix}role", 'write the role as a non-empty string, like "operator"')
         role = None
-    units: frozenset[int] | None = None
-    if "units" in entry:
-        try:
-            units = frozenset(first for a, b in _ranges(entry["units"], 0, 255) for first in
-                              range(a, b + 1))  # fmt: skip
-        except ValueError as error:
-            check.fail(f"{prefix}units", f"{error} (0 is broadcast, 1..255 unit ids)")
+    units = _rule_numbers(check, entry, "units", prefix, 0, 255, "0 is broadcast, 1..255 unit ids")
+    slaves = _rule_numbers(check, entry, "slave", prefix, 1, 247, "slave addresses 1..247")
     functions: frozenset[tuple[int, int | None]] | None = None
     if "functions" in entry:
         raw_functions = entry["functions"]
@@ -1142,6 +1165,8 @@ def _build_rule(check: _Checker, entry: Any, key: str) -> Rule | None:
         functions=functions,
         addresses=addresses,
         access=access,
+        lines=_rule_lines(check, entry, prefix),
+        slaves=slaves,
     )
 
 
@@ -1394,7 +1419,7 @@ def policy_warnings(config: GatewayConfig) -> list[str]:
             tls=listener.tls,
             read_only=listener.read_only or config.server.read_only,
             allow=listener.allow or config.server.allow,
-            routed_units=config.routes,
+            routes=config.routes,
         )
     return warnings
 

@@ -9,6 +9,7 @@ are passed through untouched: the slave is the authority on those.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Final
 
 from .errors import ExceptionCode, ModbusError
@@ -208,55 +209,40 @@ def validate_request(pdu: bytes) -> None:
         return
     if function == 0 or function & EXCEPTION_FLAG:
         raise _fail(ExceptionCode.ILLEGAL_FUNCTION, f"function code {function} is not a request")
-    name = function_name(function)
-    if function == WRITE_SINGLE_COIL:
-        _need_length(pdu, 5, name)
-        value = _u16(pdu, 3)
-        if value not in (0x0000, 0xFF00):
+    length = _FIXED_LENGTHS.get(function)
+    if length is not None:
+        _need_length(pdu, length, function_name(function))
+    validate = _VALIDATORS.get(function)
+    if validate is not None:  # functions without checks pass: the slave is their authority
+        validate(pdu, function_name(function))
+
+
+def _validate_write_single_coil(pdu: bytes, name: str) -> None:
+    value = _u16(pdu, 3)
+    if value not in (0x0000, 0xFF00):
+        raise _fail(
+            ExceptionCode.ILLEGAL_DATA_VALUE,
+            f"coil value 0x{value:04X} is not 0xFF00 or 0x0000",
+        )
+
+
+def _validate_diagnostics(pdu: bytes, name: str) -> None:
+    if len(pdu) < 3:
+        raise _fail(ExceptionCode.ILLEGAL_DATA_VALUE, "diagnostics request lacks a sub-function")
+
+
+def _validate_encapsulated(pdu: bytes, name: str) -> None:
+    if len(pdu) < 2:
+        raise _fail(
+            ExceptionCode.ILLEGAL_DATA_VALUE, "encapsulated interface request lacks MEI type"
+        )
+    if pdu[1] == MEI_READ_DEVICE_ID:
+        _need_length(pdu, 4, "read_device_identification")
+        if pdu[2] not in (1, 2, 3, 4):
             raise _fail(
                 ExceptionCode.ILLEGAL_DATA_VALUE,
-                f"coil value 0x{value:04X} is not 0xFF00 or 0x0000",
+                f"read device id code {pdu[2]} outside 1..4",
             )
-    elif function == WRITE_SINGLE_REGISTER:
-        _need_length(pdu, 5, name)
-    elif function in (
-        READ_EXCEPTION_STATUS,
-        GET_COMM_EVENT_COUNTER,
-        GET_COMM_EVENT_LOG,
-        REPORT_SERVER_ID,
-    ):
-        _need_length(pdu, 1, name)
-    elif function == DIAGNOSTICS:
-        if len(pdu) < 3:
-            raise _fail(
-                ExceptionCode.ILLEGAL_DATA_VALUE, "diagnostics request lacks a sub-function"
-            )
-    elif function == WRITE_MULTIPLE_COILS:
-        _validate_write_multiple(pdu, name, 1968, bits=True)
-    elif function == WRITE_MULTIPLE_REGISTERS:
-        _validate_write_multiple(pdu, name, 123, bits=False)
-    elif function == READ_FILE_RECORD:
-        _validate_file_record(pdu, name, 0x07, 0xF5)
-    elif function == WRITE_FILE_RECORD:
-        _validate_file_record(pdu, name, 0x09, 0xFB)
-    elif function == MASK_WRITE_REGISTER:
-        _need_length(pdu, 7, name)
-    elif function == READ_WRITE_MULTIPLE_REGISTERS:
-        _validate_read_write(pdu, name)
-    elif function == READ_FIFO_QUEUE:
-        _need_length(pdu, 3, name)
-    elif function == ENCAPSULATED_INTERFACE:
-        if len(pdu) < 2:
-            raise _fail(
-                ExceptionCode.ILLEGAL_DATA_VALUE, "encapsulated interface request lacks MEI type"
-            )
-        if pdu[1] == MEI_READ_DEVICE_ID:
-            _need_length(pdu, 4, "read_device_identification")
-            if pdu[2] not in (1, 2, 3, 4):
-                raise _fail(
-                    ExceptionCode.ILLEGAL_DATA_VALUE,
-                    f"read device id code {pdu[2]} outside 1..4",
-                )
 
 
 def _validate_write_multiple(pdu: bytes, name: str, limit: int, *, bits: bool) -> None:
@@ -323,6 +309,33 @@ def _validate_read_write(pdu: bytes, name: str) -> None:
     _check_address(pdu, name)
     if write_address + write_quantity > 0x10000:
         raise _fail(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{name} write range passes 65535")
+
+
+#: Requests whose PDU has one length whatever its content (checked before the rest).
+_FIXED_LENGTHS: Final = {
+    WRITE_SINGLE_COIL: 5,
+    WRITE_SINGLE_REGISTER: 5,
+    READ_EXCEPTION_STATUS: 1,
+    GET_COMM_EVENT_COUNTER: 1,
+    GET_COMM_EVENT_LOG: 1,
+    REPORT_SERVER_ID: 1,
+    MASK_WRITE_REGISTER: 7,
+    READ_FIFO_QUEUE: 3,
+}
+
+#: The further checks of each function that has any (``validate_request`` dispatches here).
+_VALIDATORS: Final[dict[int, Callable[[bytes, str], None]]] = {
+    WRITE_SINGLE_COIL: _validate_write_single_coil,
+    DIAGNOSTICS: _validate_diagnostics,
+    WRITE_MULTIPLE_COILS: lambda pdu, name: _validate_write_multiple(pdu, name, 1968, bits=True),
+    WRITE_MULTIPLE_REGISTERS: lambda pdu, name: _validate_write_multiple(
+        pdu, name, 123, bits=False
+    ),
+    READ_FILE_RECORD: lambda pdu, name: _validate_file_record(pdu, name, 0x07, 0xF5),
+    WRITE_FILE_RECORD: lambda pdu, name: _validate_file_record(pdu, name, 0x09, 0xFB),
+    READ_WRITE_MULTIPLE_REGISTERS: lambda pdu, name: _validate_read_write(pdu, name),
+    ENCAPSULATED_INTERFACE: _validate_encapsulated,
+}
 
 
 #: Writes whose normal response is fixed by the request (see ``write_response``).

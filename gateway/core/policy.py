@@ -19,6 +19,17 @@ listener, the role from its client certificate):
   FC 8 subfunction 4 only by a rule that names ``8:4``.
 - ``read_only`` refuses every write first, whatever the rules say.
 
+**Rules follow the slave, not the unit id.** A policy is built with the routing
+table (``core.routes``), and each rule's ``units`` are resolved through it to
+the targets (line, slave address) they reach. ``decide`` gets the unit id the
+master sent *and* its routed target (``None`` when unrouted, and for
+broadcast), and a rule covers the request when the target is one of the rule's
+targets or the unit sent is listed. So a routed alias (two unit ids, one slave)
+inherits its target's rules whichever unit id names it: no unit id reaches a
+slave with more or fewer rights than another. A rule may also name ``line`` and
+``slave``: it then covers only routed requests whose target is on those lines
+and slave addresses (never an unrouted unit, never a broadcast).
+
 A denied request is answered with exception 0x01 (Illegal Function), as the
 Modbus/TCP Security specification prescribes, and never reaches the line.
 
@@ -29,11 +40,12 @@ and monotone in the rules (more rules never deny more).
 from __future__ import annotations
 
 import ipaddress
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Flag, StrEnum
 
 from . import pdu as fc
+from .routes import RouteLike, Target, targets_of
 
 #: The Modbus/TCP Security role extension (an ASN.1 UTF8String in the client certificate).
 ROLE_OID = "1.3.6.1.4.1.50316.802.1"
@@ -151,6 +163,8 @@ class Rule:
     function key ``(8, None)`` covers every diagnostic subfunction except 4.
     ``addresses`` (merged, inclusive) restricts the rule to requests whose every
     range lies inside it, so it never grants functions without addresses.
+    ``lines`` and ``slaves`` (``line`` and ``slave`` in the configuration) restrict
+    it to routed requests whose target is on one of those lines and slave addresses.
     """
 
     key: str = "rule"  #: where it was written, for messages: ``policies.plant.rules[0]``
@@ -160,6 +174,13 @@ class Rule:
     functions: frozenset[FunctionKey] | None = None
     addresses: tuple[tuple[int, int], ...] | None = None
     access: Access = Access.READ_WRITE
+    lines: frozenset[str] | None = None
+    slaves: frozenset[int] | None = None
+
+    @property
+    def by_target(self) -> bool:
+        """True when the rule names ``line`` or ``slave``: it covers routed requests only."""
+        return self.lines is not None or self.slaves is not None
 
     def matches(self, principal: Principal) -> bool:
         """True when the rule speaks of this master (role and source)."""
@@ -180,10 +201,8 @@ class Rule:
             return True
         return (function, None) in self.functions and not listen_only
 
-    def grants(self, unit: int, operation: Operation) -> bool:
-        """True when the rule allows this request (the principal already matched)."""
-        if unit not in (ALL_UNITS if self.units is None else self.units):
-            return False
+    def grants(self, operation: Operation) -> bool:
+        """True when the rule allows this operation (principal and unit already matched)."""
         if operation.access & ~self.access:
             return False
         if not self.names_function(operation):
@@ -204,6 +223,39 @@ class Principal:
 
     source: IPAddress | None
     role: str | None = None
+
+
+class Reach:
+    """Where one rule applies, its ``units`` resolved through the routes (see the module)."""
+
+    __slots__ = ("by_target", "lines", "slaves", "targets", "units")
+
+    def __init__(self, rule: Rule, routes: Mapping[int, Target]) -> None:
+        self.units = ALL_UNITS if rule.units is None else rule.units
+        self.lines = rule.lines
+        self.slaves = rule.slaves
+        self.by_target = rule.by_target
+        self.targets = frozenset(
+            target for unit, target in routes.items() if unit in self.units and self._on(target)
+        )
+
+    def _on(self, target: Target) -> bool:
+        lines, slaves = self.lines, self.slaves
+        on_line = lines is None or target.line in lines
+        return on_line and (slaves is None or target.slave in slaves)
+
+    def covers(self, unit: int, target: Target | None) -> bool:
+        """True when a request for ``unit`` (routed to ``target``) is within the rule's reach."""
+        if target is not None and target in self.targets:
+            return True
+        if self.by_target:
+            return target is not None and self._on(target) and unit in self.units
+        return unit in self.units
+
+    def keys(self, routes: Mapping[int, Target]) -> frozenset[Target | int]:
+        """Everything the rule reaches: targets, and unrouted unit ids (for the lint)."""
+        unrouted = () if self.by_target else (u for u in self.units if u not in routes)
+        return self.targets | frozenset(unrouted)
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,19 +281,31 @@ class Policy:
     rules: tuple[Rule, ...] | None = None
     read_only: bool = False
     tls: bool = False
+    #: The routing table the rules' ``units`` are resolved through (``config.routes``).
+    routes: Mapping[int, RouteLike] = field(default_factory=dict, repr=False, compare=False)
+    #: Function codes the gateway refuses on this listener (``server.refuse_functions``),
+    #: whatever the rules say: not a grant or a denial, checked by admission after ``decide``.
+    refuse_functions: frozenset[int] = frozenset()
     roles: frozenset[str] = field(init=False)
     #: True when only FC 8/4 can be refused: callers may skip ``decide`` for other codes.
     #: Worked out once, not per request: every request's path reads it.
     open: bool = field(init=False, repr=False, compare=False)
+    #: Each rule with its reach, resolved through ``routes`` once, when the policy is built.
+    reaches: tuple[tuple[Rule, Reach], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         roles = frozenset(rule.role for rule in self.rules or () if rule.role is not None)
         object.__setattr__(self, "roles", roles)
         is_open = self.rules is None and not self.read_only and not self.tls
         object.__setattr__(self, "open", is_open)
+        targets = targets_of(self.routes)
+        reaches = tuple((rule, Reach(rule, targets)) for rule in self.rules or ())
+        object.__setattr__(self, "reaches", reaches)
 
-    def decide(self, principal: Principal, unit: int, pdu: bytes) -> Decision:
-        """Serve or deny one request (see the module docstring for the order of checks)."""
+    def decide(
+        self, principal: Principal, unit: int, pdu: bytes, target: Target | None = None
+    ) -> Decision:
+        """Serve or deny one request for ``unit``, routed to ``target`` (``None``: unrouted)."""
         operation = classify(pdu)
         if self.read_only and operation.access & Access.WRITE:
             return Decision(DenyReason.READ_ONLY)
@@ -251,8 +315,8 @@ class Policy:
             if self.tls and principal.role is None:
                 return Decision(DenyReason.NULL_ROLE)
             return ALLOWED
-        for rule in self.rules:
-            if rule.matches(principal) and rule.grants(unit, operation):
+        for rule, reach in self.reaches:
+            if rule.matches(principal) and reach.covers(unit, target) and rule.grants(operation):
                 return Decision(None, rule)
         if operation.function == fc.DIAGNOSTICS and operation.subfunction == FORCE_LISTEN_ONLY:
             return Decision(DenyReason.LISTEN_ONLY_MODE)
@@ -295,8 +359,12 @@ def decode_role(value: bytes) -> str | None:
 # --------------------------------------------------------------------------- configuration lint
 
 
-def _covers(earlier: Rule, later: Rule) -> bool:
-    """True when every request ``later`` grants, to anyone it matches, ``earlier`` grants too."""
+def _covers(earlier: Rule, later: Rule, reach: Callable[[Rule], frozenset[Target | int]]) -> bool:
+    """True when every request ``later`` grants, to anyone it matches, ``earlier`` grants too.
+
+    Units are compared by ``reach``: the targets and unrouted unit ids a rule covers, so a
+    rule that names an alias of a slave another rule names is compared as the same slave.
+    """
     if earlier.role is not None and earlier.role != later.role:
         return False
     if earlier.sources and not (
@@ -310,7 +378,7 @@ def _covers(earlier: Rule, later: Rule) -> bool:
         )
     ):
         return False
-    if earlier.units is not None and (later.units is None or not later.units <= earlier.units):
+    if not reach(later) <= reach(earlier):
         return False
     if later.access & ~earlier.access:
         return False
@@ -346,51 +414,94 @@ def lint(
     tls: bool,
     read_only: bool,
     allow: Sequence[IPNetwork],
-    routed_units: Iterable[int],
+    routes: Mapping[int, RouteLike],
 ) -> list[str]:
-    """Warnings about rules that can never grant anything on ``listener`` (empty when sound)."""
+    """Warnings about rules that can never grant anything on ``listener`` (empty when sound),
+    or that reach a slave under more unit ids than they name (aliases)."""
+    targets = targets_of(routes)
+    reaches = {id(rule): Reach(rule, targets).keys(targets) for rule in rules}
+
+    def reach(rule: Rule) -> frozenset[Target | int]:
+        return reaches[id(rule)]
+
     warnings: list[str] = []
-    routed = frozenset(routed_units) | {0}
     for index, rule in enumerate(rules):
         where = f"{rule.key} (listener {listener!r})"
-        if rule.role is not None and not tls:
-            warnings.append(
-                f"{where}: role {rule.role!r} never matches on a plain tcp listener (roles come "
-                "only from TLS client certificates); use it on a tls listener or write source ="
-            )
-        if rule.sources and allow:
-            outside = [
-                str(net)
-                for net in rule.sources
-                if not any(net.version == a.version and net.overlaps(a) for a in allow)
-            ]
-            if len(outside) == len(rule.sources):
-                warnings.append(
-                    f"{where}: source {', '.join(outside)} is outside the listener's allow list, "
-                    "whose connections are closed at accept; widen allow or fix source"
-                )
-        if rule.units is not None and not rule.units & routed:
-            warnings.append(
-                f"{where}: none of its units is routed to a line; fix units or add a route"
-            )
-        if read_only and not rule.access & Access.READ:
-            warnings.append(f"{where}: grants only writes, which the read-only listener refuses")
-        if rule.functions is not None:
-            useful = [key for key in rule.functions if _function_access(key) & rule.access]
-            if not useful:
-                warnings.append(
-                    f"{where}: access {rule.access.name!s} covers none of its functions "
-                    "(a read function needs access read, a write needs write); fix access"
-                )
-            if rule.addresses is not None and not any(
-                function in ADDRESSED_FUNCTIONS for function, _ in rule.functions
-            ):
-                warnings.append(
-                    f"{where}: addresses is set but none of its functions has an address, so "
-                    "it never grants anything; remove addresses or name an addressed function"
-                )
+        warnings += [f"{where}: {text}" for text in _rule_warnings(rule, tls, read_only, allow)]
+        warnings += [f"{where}: {text}" for text in _reach_warnings(rule, targets)]
         for earlier in rules[:index]:
-            if _covers(earlier, rule):
+            if _covers(earlier, rule, reach):
                 warnings.append(f"{where}: adds nothing to {earlier.key}, which grants all of it")
                 break
     return warnings
+
+
+def _rule_warnings(rule: Rule, tls: bool, read_only: bool, allow: Sequence[IPNetwork]) -> list[str]:
+    """What makes one rule useless whatever the routes."""
+    warnings: list[str] = []
+    if rule.role is not None and not tls:
+        warnings.append(
+            f"role {rule.role!r} never matches on a plain tcp listener (roles come "
+            "only from TLS client certificates); use it on a tls listener or write source ="
+        )
+    if rule.sources and allow:
+        outside = [
+            str(net)
+            for net in rule.sources
+            if not any(net.version == a.version and net.overlaps(a) for a in allow)
+        ]
+        if len(outside) == len(rule.sources):
+            warnings.append(
+                f"source {', '.join(outside)} is outside the listener's allow list, "
+                "whose connections are closed at accept; widen allow or fix source"
+            )
+    if read_only and not rule.access & Access.READ:
+        warnings.append("grants only writes, which the read-only listener refuses")
+    if rule.functions is not None:
+        useful = [key for key in rule.functions if _function_access(key) & rule.access]
+        if not useful:
+            warnings.append(
+                f"access {rule.access.name!s} covers none of its functions "
+                "(a read function needs access read, a write needs write); fix access"
+            )
+        if rule.addresses is not None and not any(
+            function in ADDRESSED_FUNCTIONS for function, _ in rule.functions
+        ):
+            warnings.append(
+                "addresses is set but none of its functions has an address, so "
+                "it never grants anything; remove addresses or name an addressed function"
+            )
+    return warnings
+
+
+def _reach_warnings(rule: Rule, targets: Mapping[int, Target]) -> list[str]:
+    """Rules whose units or line/slave no route serves, and rules that name an alias."""
+    reach = Reach(rule, targets)
+    if rule.by_target:
+        if not reach.targets:
+            return ["no route reaches its line and slave; fix line/slave (and units) or add "
+                    "a route"]  # fmt: skip
+    elif rule.units is not None and not rule.units & (frozenset(targets) | {0}):
+        return ["none of its units is routed to a line; fix units or add a route"]
+    if rule.units is None:
+        return []
+    warnings = []
+    aliases: dict[Target, list[int]] = {}
+    for unit, target in targets.items():
+        aliases.setdefault(target, []).append(unit)
+    for target in sorted(reach.targets):
+        units = sorted(aliases[target])
+        named = [unit for unit in units if unit in rule.units]
+        if len(named) < len(units):
+            warnings.append(
+                f"line {target.line!r} slave {target.slave} is reached by "
+                f"{_plural('unit', units)}, and the rule names only {_plural('unit', named)}: "
+                "rules follow the slave, so it grants that slave under each of them; list "
+                "them all, or name line and slave"
+            )
+    return warnings
+
+
+def _plural(word: str, numbers: Sequence[int]) -> str:
+    """``unit 2`` or ``units 2, 12``."""
+    return f"{word}{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))}"

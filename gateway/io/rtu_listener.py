@@ -1,7 +1,7 @@
 """The ``rtu-over-tcp`` listener: masters that send RTU frames over TCP (SCADA, HMIs).
 
-Theory of operation: the same server as Modbus TCP (admission, allow lists,
-policies, read-only, routing, metrics, trace), with RTU framing on each
+Theory of operation: the same server as Modbus TCP (allow lists, the same
+request admission from ``core.admission``, metrics, trace), with RTU framing on each
 connection: requests are split by predicted length and CRC
 (``core.rtu_stream.RtuStreamDecoder``), a request of unknown length ends after
 ``SILENCE_S`` of quiet, and replies are RTU frames. RTU has no transaction id,

@@ -28,9 +28,11 @@ The master on the line appears in the status views (peer: the device) once it
 sent a request, and its requests and answers in the trace, numbered in order as
 RTU and ASCII carry no transaction id.
 
-Requests go through the same validation, policy (no source address here: only
-rules without ``source`` or ``role`` grant), read-only switch, routing, queues
-and metrics as a TCP master's.
+Requests go through the same admission as a TCP master's (``core.admission``:
+routing, policy, with no source address here, so only rules without ``source``
+or ``role`` grant, read-only, ``refuse_functions``, validation), then the same
+queues and metrics. The silences above are how this listener executes
+admission's answer for an unrouted unit and for unit 0, not checks of its own.
 
 A reload gives it the new routes and policy (from the next request on). There is
 no connection to judge again as on a TCP listener: no source address for an
@@ -45,10 +47,12 @@ import time
 
 from ..config import ListenerConfig
 from ..core import pdu as fc
+from ..core.admission import AnswerLocally, Broadcast, Submit
 from ..core.ascii import encode_ascii
-from ..core.errors import ExceptionCode, ModbusError
 from ..core.line import no_reply
+from ..core.outcome import Outcome
 from ..core.policy import Policy, Principal
+from ..core.routes import Target as CoreTarget
 from ..core.rtu import MAX_RTU_FRAME
 from ..core.rtu_stream import encode_rtu_reply, heard_request
 from ..core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
@@ -60,7 +64,7 @@ from ..trace import FrameTracer
 from .bus import Request
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
-from .tcp import Router
+from .tcp import Router, count_local_answer
 
 log = logging.getLogger("gateway.serial_slave")
 
@@ -68,6 +72,8 @@ _REOPEN_FIRST_DELAY = 0.05
 _REOPEN_MAX_DELAY = 0.5
 #: Timers of the event loop may fire up to a millisecond early: added to t3.5 to be sure.
 _TIMER_MARGIN_S = 0.001
+#: Who sends on a serial line: no source address, no role (only rules without either grant).
+_NO_ONE = Principal(None)
 
 
 class SerialSlave:
@@ -197,6 +203,12 @@ class SerialSlave:
                 return
             delay = min(delay * 2, _REOPEN_MAX_DELAY)
 
+    @property
+    def _serves(self) -> frozenset[int] | None:
+        """The units this listener answers for (``units``); ``None``: every routed unit."""
+        units = self.listener.units
+        return frozenset(units) if units else None
+
     # -- framing -------------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
@@ -253,6 +265,8 @@ class SerialSlave:
             self._damaged(fault)
 
     def _serve(self, heard: Heard | str) -> None:
+        """Admit one heard request (``core.admission``) and execute the result, keeping the
+        serial line's silences: nothing for an unrouted unit, nothing for unit 0."""
         if isinstance(heard, FrameFault):
             self._damaged(heard)
             return
@@ -265,73 +279,56 @@ class SerialSlave:
         unit, pdu = heard
         # A new request: whatever the master asked before, it no longer waits for.
         self._drop_pending()
-        if unit == 0:
-            self._broadcast(pdu)
+        result = self.router.admitter.admit(_NO_ONE, unit, pdu, self.policy, self._serves)
+        if unit == 0:  # executed or not, a broadcast is never answered
+            if isinstance(result, Broadcast):
+                self._broadcast(pdu, result)
+            else:
+                self.ignored += 1
             return
-        if self.listener.units and unit not in self.listener.units:
-            self.ignored += 1
-            return
-        target = self.router.lookup(unit)
-        if target is None:
+        if isinstance(result, AnswerLocally) and not result.routed:
             self.ignored += 1  # not a slave the gateway stands for: silence
             return
         self.requests += 1
-        function = pdu[0]
         number = self._sequence
         self._sequence = (number + 1) & 0xFFFF
+        if self.tracer is not None:
+            self.tracer.request(self._serial.device, number, unit, pdu, self.name)
+        if isinstance(result, Submit):
+            self._submit(number, unit, pdu, result.target)
+        elif isinstance(result, AnswerLocally):
+            function = pdu[0]
+            self._answer(number, unit, fc.exception_pdu(function, result.code), result.outcome)
+            count_local_answer(self._metrics, self.name, self.policy, None, function, result)
+
+    def _submit(self, number: int, unit: int, pdu: bytes, target: CoreTarget) -> None:
+        """Queue the request on its line; only the latest request of the master is answered."""
         peer = self._serial.device
-        tracer = self.tracer
-        if tracer is not None:
-            tracer.request(peer, number, unit, pdu, self.name)
-        try:
-            fc.validate_request(pdu)
-        except ModbusError as error:
-            self._metrics.protocol_errors.labels("invalid_request").inc()
-            self._answer(number, unit, fc.exception_pdu(function, error.code), "rejected")
-            self._metrics.count_request("none", "other", function, "rejected")
-            return
-        if not self.policy.open:
-            decision = self.policy.decide(Principal(None), unit, pdu)
-            if decision.denied is not None:
-                denial = fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION)
-                self._answer(number, unit, denial, "denied")
-                self._metrics.count_denial(self.name, self.policy.role_label(None), function)
-                self._metrics.count_request("none", "other", function, "denied")
-                return
-        bus = target.bus
-        line, unit_label = bus.name, UNIT_LABELS[target.slave]
+        function = pdu[0]
+        line, unit_label = target.line, UNIT_LABELS[target.slave]
 
         def reply(response: bytes, outcome: str) -> None:
             if self._pending is request:
                 self._pending = None
                 self._answer(number, unit, response, outcome)
             else:
-                outcome = "dropped"  # the master gave up on it: a newer request came
+                outcome = Outcome.DROPPED  # the master gave up on it: a newer request came
                 if self.tracer is not None:
                     self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
 
         request = Request(target.slave, pdu, self, reply)
         self._pending = request
-        bus.submit(request)
+        self.router.bus(line).submit(request)
 
-    def _broadcast(self, pdu: bytes) -> None:
-        """Executed on every line that takes broadcasts; never answered."""
-        if pdu[0] not in fc.BROADCAST_FUNCTIONS:
-            self.ignored += 1
-            return
-        try:
-            fc.validate_request(pdu)
-        except ModbusError:
-            self.ignored += 1
-            return
-        if not self.policy.open and self.policy.decide(Principal(None), 0, pdu).denied:
-            return
+    def _broadcast(self, pdu: bytes, result: Broadcast) -> None:
+        """Executed on every line that takes broadcasts and is up; never answered."""
         if self.tracer is not None:
             number = self._sequence
             self._sequence = (number + 1) & 0xFFFF
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
-        for bus in self.router.broadcast_buses:
+        for line in result.lines:
+            bus = self.router.bus(line)
             if bus.up:
                 bus.submit(Request(0, pdu, self, no_reply, broadcast=True))
 

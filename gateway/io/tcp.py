@@ -1,10 +1,11 @@
 """The Modbus TCP server: many masters, several requests in flight on each.
 
 Theory of operation: each connection owns an incremental ``MbapDecoder``. A
-complete frame is validated by the core (answered locally when no slave
-could accept it), routed by unit id, and handed to its line's ``Bus`` with a
-callback that writes the reply under the request's own transaction id, in
-whatever order replies complete. A framing error closes that connection only.
+complete frame goes to the core's admission (``core.admission``: route,
+authorize, the gateway's refusals, validate), which the connection only
+executes: an answer given locally, a broadcast, or the request handed to its
+line's ``Bus`` with a callback that writes the reply under the request's own
+transaction id, in whatever order replies complete. A framing error closes that connection only.
 When a master leaves, its queued requests are cancelled so nothing is sent on
 its behalf.
 
@@ -55,12 +56,14 @@ from cryptography import x509
 
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
+from ..core.admission import Admitter, AnswerLocally, Broadcast, Submit
 from ..core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
-from ..core.errors import ExceptionCode, FramingError, ModbusError
+from ..core.errors import ExceptionCode, FramingError
 from ..core.line import no_reply
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
 from ..core.outcome import Outcome
-from ..core.policy import Decision, IPAddress, Policy, Principal
+from ..core.policy import IPAddress, Policy, Principal
+from ..core.routes import Target as CoreTarget
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
 from ..status import MasterStatus
@@ -108,26 +111,50 @@ class ReadPause:
 
 @dataclass(frozen=True, slots=True)
 class Target:
-    """Where a TCP unit id goes."""
+    """Where a TCP unit id goes on the running lines: the line's ``Bus`` and the slave."""
 
     bus: Bus
     slave: int
 
 
 class Router:
-    """TCP unit id → (bus, slave); replaced as a whole on reload."""
+    """The core's routing table (``Admitter``) beside the running line of each line name.
+
+    Built from the lines' buses (``Gateway._build_router``) and replaced as a whole on
+    reload; admission reads only the pure table, the listeners execute on the buses.
+    """
 
     def __init__(self, routes: Mapping[int, Target], broadcast_buses: list[Bus]) -> None:
         self.routes = dict(routes)
         self.broadcast_buses = broadcast_buses
-        self.buses = list({id(t.bus): t.bus for t in self.routes.values()}.values())
-        for bus in broadcast_buses:
-            if bus not in self.buses:
-                self.buses.append(bus)
+        by_line = {target.bus.name: target.bus for target in self.routes.values()}
+        by_line.update((bus.name, bus) for bus in broadcast_buses)
+        self.buses = list(by_line.values())
+        self._by_line = by_line
+        self.admitter = Admitter.of(
+            {unit: CoreTarget(target.bus.name, target.slave) for unit, target in routes.items()},
+            [bus.name for bus in broadcast_buses],
+        )
 
     def lookup(self, unit: int) -> Target | None:
         """The route for ``unit``, ``None`` when there is none."""
         return self.routes.get(unit)
+
+    def bus(self, line: str) -> Bus:
+        """The running line called ``line`` (a name from the routing table)."""
+        return self._by_line[line]
+
+
+def count_local_answer(
+    metrics: GatewayMetrics, listener: str, policy: Policy, role: str | None, function: int,
+    answer: AnswerLocally,
+) -> None:  # fmt: skip
+    """Count a request the gateway answered itself, as every listener does."""
+    if answer.outcome is Outcome.DENIED:
+        metrics.count_denial(listener, policy.role_label(role), function)
+    elif answer.outcome is Outcome.REJECTED:
+        metrics.protocol_errors.labels("invalid_request").inc()
+    metrics.count_request("none", "other", function, answer.outcome)
 
 
 def _peer_text(address: object) -> tuple[str, str]:
@@ -315,57 +342,39 @@ class MasterConnection(asyncio.BufferedProtocol):
         return self._in_flight > 0
 
     def _handle(self, frame: MbapFrame) -> None:
+        """Admit one request (``core.admission``) and execute the result."""
         server = self._server
         arrived = time.monotonic()
         self.idle_since = arrived
         self.requests += 1
         transaction_id, unit, pdu = frame
-        function = pdu[0] if pdu else 0
         tracer = server.tracer
         if tracer is not None:
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
-        # Authorization first: a master learns nothing about requests it may not send. An open
-        # policy can only refuse Force Listen Only Mode (FC 8/4), so only FC 8 asks it.
-        policy = server.policy
-        if not policy.open or function == fc.DIAGNOSTICS:
-            decision = policy.decide(self.principal, unit, pdu)
-            if decision.denied is not None:
-                self._deny(transaction_id, unit, function, decision)
-                return
-        try:
-            if function in server.config.refuse_functions:
-                raise ModbusError(
-                    ExceptionCode.ILLEGAL_FUNCTION, "function refused by configuration"
-                )
-            fc.validate_request(pdu)
-            if unit == 0 and function not in fc.BROADCAST_FUNCTIONS:
-                raise ModbusError(ExceptionCode.ILLEGAL_FUNCTION, "only writes can be broadcast")
-        except ModbusError as error:
-            server.metrics.protocol_errors.labels("invalid_request").inc()
-            self._send(transaction_id, unit, fc.exception_pdu(function, error.code), "rejected")
-            server.metrics.count_request("none", "other", function, "rejected")
-            return
-        if unit == 0:
-            self._broadcast(transaction_id, pdu, arrived)
-            return
-        target = server.router.lookup(unit)
-        if target is None:
-            self._send(
-                transaction_id,
-                unit,
-                fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
-            )
-            server.metrics.count_request("none", "other", function, "no_route")
-            return
-        bus = target.bus
+        router = server.router
+        result = router.admitter.admit(self.principal, unit, pdu, server.policy)
+        if isinstance(result, Submit):
+            target = result.target
+            self._submit(transaction_id, unit, pdu, router.bus(target.line), target.slave, arrived)
+        elif isinstance(result, Broadcast):
+            self._broadcast(transaction_id, pdu, [router.bus(line) for line in result.lines])
+        else:
+            self._answer_locally(transaction_id, unit, pdu, result)
+
+    def _submit(
+        self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int, arrived: float
+    ) -> None:
+        """Queue the request on ``bus``; the reply goes out under its own transaction id."""
+        server = self._server
+        function = pdu[0]
         line = bus.name
-        unit_label = UNIT_LABELS[target.slave]  # the slave address, as in the line's metrics
+        unit_label = UNIT_LABELS[slave]  # the slave address, as in the line's metrics
         duration = bus.request_duration
 
         def reply(response: bytes, outcome: str) -> None:
             self._pending.discard(request)
             if self._closed:
-                outcome = "dropped"
+                outcome = Outcome.DROPPED
                 if server.tracer is not None:
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
@@ -374,42 +383,40 @@ class MasterConnection(asyncio.BufferedProtocol):
             server.metrics.count_request(line, unit_label, function, outcome)
             self._request_done()
 
-        request = Request(target.slave, pdu, self, reply)
+        request = Request(slave, pdu, self, reply)
         self._pending.add(request)
         self._in_flight += 1
         if not bus.submit(request):
             self._pending.discard(request)
             self._in_flight -= 1
-            self._send(
-                transaction_id,
-                unit,
-                fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
-            )
-            server.metrics.count_request(line, unit_label, function, "no_route")
+            no_route = fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
+            self._send(transaction_id, unit, no_route, Outcome.NO_ROUTE)
+            server.metrics.count_request(line, unit_label, function, Outcome.NO_ROUTE)
 
-    def _deny(self, transaction_id: int, unit: int, function: int, decision: Decision) -> None:
-        """Answer 0x01 (Illegal Function) to a request the policy refuses; none reaches the line."""
+    def _answer_locally(
+        self, transaction_id: int, unit: int, pdu: bytes, answer: AnswerLocally
+    ) -> None:
+        """Answer the exception admission chose; nothing reaches a line."""
         server = self._server
+        function = pdu[0] if pdu else 0
         self._send(
-            transaction_id, unit, fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION),
-            "denied",
+            transaction_id, unit, fc.exception_pdu(function, answer.code), answer.outcome
         )  # fmt: skip
-        server.metrics.count_denial(
-            server.name, server.policy.role_label(self.principal.role), function
+        count_local_answer(
+            server.metrics, server.name, server.policy, self.principal.role, function, answer
         )
-        server.metrics.count_request("none", "other", function, "denied")
-        if log.isEnabledFor(logging.DEBUG):
+        if answer.denied is not None and log.isEnabledFor(logging.DEBUG):
             log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
-                      fc.function_name(function), decision.denied)  # fmt: skip
+                      fc.function_name(function), answer.denied)  # fmt: skip
 
-    def _broadcast(self, transaction_id: int, pdu: bytes, arrived: float) -> None:
+    def _broadcast(self, transaction_id: int, pdu: bytes, lines: list[Bus]) -> None:
+        """Send a write to every line that takes broadcasts and is up; 0x0A when none is."""
         server = self._server
-        buses = [bus for bus in server.router.broadcast_buses if bus.up]
+        buses = [bus for bus in lines if bus.up]
         if not buses:
-            self._send(
-                transaction_id, 0, fc.exception_pdu(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
-            )
-            server.metrics.count_request("none", "other", pdu[0], "no_route")
+            no_route = fc.exception_pdu(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
+            self._send(transaction_id, 0, no_route, Outcome.NO_ROUTE)
+            server.metrics.count_request("none", "other", pdu[0], Outcome.NO_ROUTE)
             return
         remaining = len(buses)
 
@@ -430,7 +437,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             if bus.submit(request):
                 self._pending.add(request)
             else:
-                sent(b"", "no_route")
+                sent(b"", Outcome.NO_ROUTE)
 
     def _request_done(self) -> None:
         self._in_flight -= 1

@@ -418,9 +418,11 @@ RULES = (
         help="Unit ids and \"A-B\" ranges, 0 for broadcast. A rule that names a unit covers "
         "that slave whatever unit id reaches it."),
     Key(table=_R, name="line", type=Type.TEXT, show=Show.BLOCK, auto="any",
-        help="A line's name: the rule covers the slaves on that line."),
-    Key(table=_R, name="slave", type=Type.INTEGER, low=1, high=247, show=Show.BLOCK,
-        auto="any", help="A slave address on that line (with line)."),
+        help="A line's name, or a list of them: the rule covers only requests routed to "
+        "those lines (never an unrouted unit or a broadcast)."),
+    Key(table=_R, name="slave", type=Type.RANGES, low=1, high=247, show=Show.BLOCK,
+        auto="any", help="Slave addresses and \"A-B\" ranges: the rule covers only requests "
+        "routed to those slave addresses (on its line, if it names one)."),
     Key(table=_R, name="functions", type=Type.FUNCTIONS, show=Show.BLOCK, auto="any",
         help='Function codes (3, "0x10"), names ("read_holding_registers") and FC 8 '
         'subfunctions ("8:4", "diagnostics:0") or FC 43 MEI types ("43:14").'),

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from gateway.config import ConfigError, build_config, policy_warnings
 from gateway.core.policy import (
     Access,
     DenyReason,
@@ -20,6 +21,7 @@ from gateway.core.policy import (
     lint,
     merge_ranges,
 )
+from gateway.core.routes import Target
 
 
 def h(text: str) -> bytes:
@@ -238,7 +240,7 @@ def test_lint_finds_rules_that_never_match() -> None:
     )  # fmt: skip
     warnings = lint(
         rules, listener="plain", tls=False, read_only=True, allow=(net("10.0.0.0/8"),),
-        routed_units=[1, 2],
+        routes={1: Target("a", 1), 2: Target("a", 2)},
     )  # fmt: skip
     text = "\n".join(warnings)
     assert "p.rules[0] (listener 'plain'): role 'operator' never matches on a plain tcp" in text
@@ -250,4 +252,140 @@ def test_lint_finds_rules_that_never_match() -> None:
     assert "p.rules[7] (listener 'plain'): grants only writes, which the read-only" in text
     assert not [w for w in warnings if w.startswith("p.rules[5]")]
     assert lint(PLANT.rules or (), listener="s", tls=True, read_only=False, allow=(),
-                routed_units=[1, 2, 3]) == []  # fmt: skip
+                routes={u: Target("a", u) for u in (1, 2, 3)}) == []  # fmt: skip
+
+
+# --------------------------------------------------------------------------- rules follow the slave
+
+#: Line a: slaves 1 and 2, each under two unit ids (2 and 12 reach slave 2); line b: slave 1.
+ROUTES = {1: Target("a", 1), 11: Target("a", 1), 2: Target("a", 2), 12: Target("a", 2),
+          3: Target("b", 1)}  # fmt: skip
+READ = h("03 0000 0001")
+WRITE = h("06 0000 0001")
+
+
+def routed(policy: Policy, unit: int, pdu: bytes, who: Principal = NULL) -> bool:
+    """Whether ``policy`` serves ``pdu`` sent to ``unit``, routed as ``ROUTES`` says."""
+    return policy.decide(who, unit, pdu, ROUTES.get(unit)).allowed
+
+
+def test_an_alias_inherits_the_rules_of_its_slave() -> None:
+    policy = Policy((Rule(key="r", units=frozenset({2}), access=Access.READ),), routes=ROUTES)
+    assert routed(policy, 2, READ) and routed(policy, 12, READ)  # 12 reaches slave 2 too
+    assert not routed(policy, 12, WRITE)
+    assert not routed(policy, 1, READ) and not routed(policy, 11, READ)
+    named_by_alias = Policy((Rule(key="r", units=frozenset({12})),), routes=ROUTES)
+    assert routed(named_by_alias, 2, WRITE)  # the rule names the slave, by either unit id
+
+
+def test_an_unrouted_unit_is_matched_by_the_unit_sent() -> None:
+    policy = Policy((Rule(key="r", units=frozenset({2, 77})),), routes=ROUTES)
+    assert policy.decide(NULL, 77, READ, None).allowed
+    assert not policy.decide(NULL, 78, READ, None).allowed
+
+
+def test_line_and_slave_restrict_a_rule_to_routed_targets() -> None:
+    on_a = Policy((Rule(key="a", lines=frozenset({"a"})),), routes=ROUTES)
+    assert routed(on_a, 1, WRITE) and routed(on_a, 12, WRITE)
+    assert not routed(on_a, 3, READ)  # line b
+    assert not on_a.decide(NULL, 77, READ, None).allowed  # unrouted: no line
+    assert not on_a.decide(NULL, 0, WRITE, None).allowed  # broadcast: no single line
+    slave_1 = Policy((Rule(key="s", lines=frozenset({"a"}), slaves=frozenset({1})),), routes=ROUTES)
+    assert routed(slave_1, 1, WRITE) and routed(slave_1, 11, WRITE)
+    assert not routed(slave_1, 2, READ) and not routed(slave_1, 12, READ)
+    any_line = Policy((Rule(key="s", slaves=frozenset({1})),), routes=ROUTES)
+    assert routed(any_line, 3, READ) and routed(any_line, 11, READ)
+    assert not routed(any_line, 2, READ)
+    both = Policy((Rule(key="u", units=frozenset({2}), lines=frozenset({"b"})),), routes=ROUTES)
+    assert not routed(both, 2, READ) and not routed(both, 3, READ)  # all dimensions must hold
+
+
+def test_without_routes_a_rule_matches_the_unit_sent_as_before() -> None:
+    policy = Policy((Rule(key="r", units=frozenset({2})),))
+    assert policy.decide(NULL, 2, READ, Target("a", 2)).allowed
+    assert not policy.decide(NULL, 12, READ, Target("a", 2)).allowed
+    by_line = Policy((Rule(key="l", units=frozenset({2}), lines=frozenset({"a"})),))
+    assert by_line.decide(NULL, 2, READ, Target("a", 2)).allowed
+
+
+some_targets = st.builds(Target, st.sampled_from(["a", "b"]), st.integers(1, 3))
+route_tables = st.dictionaries(st.integers(1, 5), some_targets, max_size=5)
+rules_with_targets = st.builds(
+    Rule,
+    key=st.just("r"),
+    units=st.one_of(st.none(), st.frozensets(st.integers(0, 6), max_size=3)),
+    lines=st.one_of(st.none(), st.frozensets(st.sampled_from(["a", "b"]), max_size=2)),
+    slaves=st.one_of(st.none(), st.frozensets(st.integers(1, 3), max_size=2)),
+    access=st.sampled_from([Access.READ, Access.WRITE, Access.READ_WRITE]),
+)
+
+
+@given(st.lists(rules_with_targets, max_size=4), route_tables, st.integers(0, 6), pdus)
+def test_every_unit_id_of_a_slave_has_the_same_rights(
+    rule_list: list[Rule], routes: dict[int, Target], unit: int, pdu: bytes
+) -> None:
+    policy = Policy(tuple(rule_list), routes=routes)
+    target = routes.get(unit)
+    decision = policy.decide(NULL, unit, pdu, target).allowed
+    for alias, other in routes.items():
+        if other == target:
+            assert policy.decide(NULL, alias, pdu, other).allowed == decision
+
+
+@given(st.lists(rules_with_targets, max_size=4), rules_with_targets, route_tables,
+       st.integers(0, 6), pdus)  # fmt: skip
+def test_a_further_rule_never_takes_a_right_away_with_routes(
+    rule_list: list[Rule], extra: Rule, routes: dict[int, Target], unit: int, pdu: bytes
+) -> None:
+    target = routes.get(unit)
+    before = Policy(tuple(rule_list), routes=routes).decide(NULL, unit, pdu, target)
+    after = Policy((*rule_list, extra), routes=routes).decide(NULL, unit, pdu, target)
+    assert after.allowed or not before.allowed
+
+
+def test_lint_says_when_a_rule_names_only_some_unit_ids_of_a_slave() -> None:
+    rules = (
+        Rule(key="p.rules[0]", units=frozenset({1, 12}), access=Access.READ),
+        Rule(key="p.rules[1]", units=frozenset({11, 2}), access=Access.READ),  # the same slaves
+        Rule(key="p.rules[2]", lines=frozenset({"c"})),
+        Rule(key="p.rules[3]", units=frozenset({1, 11, 2, 12}), access=Access.WRITE),
+    )
+    warnings = lint(rules, listener="l", tls=False, read_only=False, allow=(), routes=ROUTES)
+    text = "\n".join(warnings)
+    assert (
+        "p.rules[0] (listener 'l'): line 'a' slave 2 is reached by units 2, 12, and the rule "
+        "names only unit 12: rules follow the slave" in text
+    )
+    assert "p.rules[0] (listener 'l'): line 'a' slave 1 is reached by units 1, 11" in text
+    assert "p.rules[1] (listener 'l'): adds nothing to p.rules[0]" in text
+    assert "p.rules[2] (listener 'l'): no route reaches its line and slave" in text
+    assert not [w for w in warnings if w.startswith("p.rules[3]")]
+
+
+def _configured(rules: list[dict[str, object]]) -> dict[str, object]:
+    return {
+        "lines": {"a": {"device": "/dev/ttyA", "units": [1, 2]},
+                  "b": {"device": "/dev/ttyB", "units": [3]}},
+        "routes": [{"unit": 12, "line": "a", "slave": 2}],
+        "server": {"policy": "p"},
+        "policies": {"p": {"rules": rules}},
+    }  # fmt: skip
+
+
+def test_rules_name_line_and_slave_in_the_configuration() -> None:
+    built = build_config(_configured([{"line": "a", "slave": [1, "2-3"]}, {"line": ["a", "b"]}]))
+    first, second = built.policies["p"]
+    assert (first.lines, first.slaves) == (frozenset({"a"}), frozenset({1, 2, 3}))
+    assert (second.lines, second.slaves) == (frozenset({"a", "b"}), None)
+    with pytest.raises(ConfigError) as raised:
+        build_config(_configured([{"line": 7, "slave": [0]}]))
+    text = str(raised.value)
+    assert "policies.p.rules[0].line: write a line name or a list of them" in text
+    assert "policies.p.rules[0].slave: 0 outside 1..247" in text
+
+
+def test_check_config_names_the_rules_an_alias_widens() -> None:
+    built = build_config(_configured([{"units": [12], "access": "read"}, {"line": "c"}]))
+    text = "\n".join(policy_warnings(built))
+    assert "line 'a' slave 2 is reached by units 2, 12, and the rule names only unit 12" in text
+    assert "policies.p.rules[1] (listener 'tcp'): no route reaches its line and slave" in text
