@@ -33,6 +33,8 @@ VALID_PARITIES = ("N", "E", "O")
 #: ``tls``: a Modbus/TCP Security slave (the same MBAP framing, over TLS 1.2 or newer).
 VALID_LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
 VALID_WHEN_FULL = ("close_oldest_idle", "refuse")
+#: ``server.max_connections_per_source`` before fair share: a file that still sets it is warned.
+OLD_PER_SOURCE_DEFAULT = 16
 VALID_LOG_FORMATS = ("text", "json")
 VALID_LOG_LEVELS = ("debug", "info", "warning", "error")
 VALID_PROTOCOLS = ("tcp", "tls", "rtu-over-tcp", "serial-slave")
@@ -80,7 +82,7 @@ class ServerConfig:
     read_only: bool = False
     #: The policy of the ``listen`` shorthand listener.
     policy: str | None = None
-    max_connections_per_source: int = 16
+    max_connections_per_source: int = 0
     evict_min_idle: float = 10.0
     send_timeout: float = 10.0
     #: Seconds a TLS master has to complete its handshake before it is disconnected.
@@ -550,7 +552,7 @@ def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
         read_only=check.boolean(table, "read_only", prefix, False),
         policy=_policy_name(check, table, prefix),
         max_connections_per_source=check.integer(
-            table, "max_connections_per_source", prefix, 16, 0, 100_000
+            table, "max_connections_per_source", prefix, 0, 0, 100_000
         ),
         evict_min_idle=check.number(table, "evict_min_idle", prefix, 10.0, 0.0, 86_400.0),
         send_timeout=check.number(table, "send_timeout", prefix, 10.0, 0.0, 3600.0),
@@ -999,6 +1001,14 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             f"metrics.listen: port {metrics.port} is also server.listen's (Modbus TCP); "
             "the second to bind fails: give one of them another port (the defaults are "
             "502 and 9502)"
+        )
+    if server.max_connections_per_source == OLD_PER_SOURCE_DEFAULT:
+        warnings.append(
+            f"server.max_connections_per_source: {OLD_PER_SOURCE_DEFAULT} was the default "
+            "(the example file spelled it out); the default is now 0, no cap: at "
+            "max_connections the address holding the most connections yields its longest-idle "
+            "one. A cap of 16 refuses SCADA and OPC servers that open one connection per "
+            "device; delete the line unless you mean to cap each address"
         )
     return warnings
 
