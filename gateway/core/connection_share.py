@@ -137,13 +137,13 @@ def admit_connection(
     heavier = [key for key, count in counts.items() if count > held and key != source]
     heavier.sort(key=lambda key: (-counts[key], -_idle_of(best.get(key), connections), key))
     for key in (*heavier, source):
-        index = best.get(key)
-        if index is None:
+        candidate = best.get(key)
+        if candidate is None:
             continue
-        if connections[index].idle >= limits.evict_min_idle:
-            return Evict(index)
+        if connections[candidate].idle >= limits.evict_min_idle:
+            return Evict(candidate)
         if key != source and counts[key] >= held + 2:
-            return Evict(index, over_share=True)
+            return Evict(candidate, over_share=True)
     return Refuse(Refusal.MAX_CONNECTIONS)
 
 
