@@ -41,6 +41,8 @@ VALID_WHEN_FULL = tuple(map(str, schema.key(Table.SERVER, "when_full").choices))
 VALID_LOG_FORMATS = tuple(map(str, schema.key(Table.LOGGING, "format").choices))
 VALID_LOG_LEVELS = tuple(map(str, schema.key(Table.LOGGING, "level").choices))
 VALID_PROTOCOLS = tuple(map(str, schema.key(Table.LISTENERS, "protocol").choices))
+#: ``server.max_connections_per_source`` before fair share: a file that still sets it is warned.
+OLD_PER_SOURCE_DEFAULT = 16
 #: What the masters on a ``serial-slave`` listener's line speak (its ``framing``); the first
 #: is the default. Named like ``--framing``: on a listener, ``kind`` would read as ``protocol``.
 VALID_SLAVE_FRAMINGS = tuple(map(str, schema.key(Table.LISTENERS, "framing").choices))
@@ -85,7 +87,7 @@ class ServerConfig:
     read_only: bool = False
     #: The policy of the ``listen`` shorthand listener.
     policy: str | None = None
-    max_connections_per_source: int = 16
+    max_connections_per_source: int = 0
     evict_min_idle: float = 10.0
     send_timeout: float = 10.0
     #: Seconds a TLS master has to complete its handshake before it is disconnected.
@@ -994,6 +996,14 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             f"metrics.listen: port {metrics.port} is also server.listen's (Modbus TCP); "
             "the second to bind fails: give one of them another port (the defaults are "
             "502 and 9502)"
+        )
+    if server.max_connections_per_source == OLD_PER_SOURCE_DEFAULT:
+        warnings.append(
+            f"server.max_connections_per_source: {OLD_PER_SOURCE_DEFAULT} was the default "
+            "(the example file spelled it out); the default is now 0, no cap: at "
+            "max_connections the address holding the most connections yields its longest-idle "
+            "one. A cap of 16 refuses SCADA and OPC servers that open one connection per "
+            "device; delete the line unless you mean to cap each address"
         )
     return warnings
 

@@ -28,9 +28,17 @@ Every connection's resources are bounded, whatever the master does:
 Admission happens at accept, with the peer's address from ``accept()``
 itself, before a byte is read (so before a TLS handshake): the allow lists
 (core's ``connection_admission.admit``; ``SourceScreen`` counts and logs), then
-(``ModbusTcpServer._admit``) a per-source limit, then the listener's cap, which
-closes the master idle longest (at least ``evict_min_idle``, nothing in flight) or
-refuses. Only a complete request makes a master active again.
+(``ModbusTcpServer._admit``) fair share, decided by core's
+``connection_share``: while a slot is free every master is admitted (unless an
+explicit ``max_connections_per_source`` cap, off by default, is reached); at
+``max_connections`` the address holding the most connections yields its
+longest-idle one with nothing in flight: one idle for ``evict_min_idle`` to a
+newcomer of its own address or of one a connection lighter, any to a newcomer
+whose address holds at least two fewer; else the next heaviest address is
+tried, down to the newcomer's own; none: refused. So a newcomer from the
+heaviest address whose connections are all busy or recent is refused, and one
+from a lighter address still gets in. Only a complete request makes a master
+active again.
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
 
@@ -58,6 +66,15 @@ from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
 from ..core.admission import Admitter, AnswerLocally, Broadcast, Submit
 from ..core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
+from ..core.connection_share import (
+    Evict,
+    OpenConnection,
+    Refusal,
+    Refuse,
+    ShareLimits,
+    admit_connection,
+    has_free_slot,
+)
 from ..core.errors import ExceptionCode, FramingError
 from ..core.line import no_reply
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
@@ -757,39 +774,64 @@ class ModbusTcpServer:
     # -- admission ---------------------------------------------------------------------
 
     def _admit(self, source: str, peer: str) -> RejectReason | None:
-        """Make room for a master from ``source`` or say why not (see the module docstring)."""
+        """Make room for a master from ``source`` or say why not (core's ``connection_share``).
+
+        While a slot is free (the common case) the counts decide alone; only at a limit is
+        a snapshot of every connection taken and handed to core.
+        """
         config = self.config
-        per_source = config.max_connections_per_source
-        if per_source and self._per_source.get(source, 0) >= per_source:
-            self.faults.note(
-                f"master {source}", "connection limit of its address",
-                f"{per_source} connections open (server.max_connections_per_source); "
-                "refusing more from it", plural="connections refused, limit of its address",
-            )  # fmt: skip
-            return RejectReason.MAX_PER_SOURCE
-        if len(self._connections) < config.max_connections:
+        limits = ShareLimits(
+            config.max_connections,
+            config.max_connections_per_source,
+            config.when_full == "close_oldest_idle",
+            config.evict_min_idle,
+        )
+        if has_free_slot(limits, len(self._connections), self._per_source.get(source, 0)):
             return None
-        victim = self._eviction_candidate() if config.when_full == "close_oldest_idle" else None
-        if victim is None:
-            self.faults.note(
-                "server", "connection limit",
-                f"{len(self._connections)} masters connected (server.max_connections), none idle "
-                f"for {config.evict_min_idle:g} s (server.evict_min_idle); refusing new ones",
-                plural="connections refused at the limit",
-            )  # fmt: skip
-            return RejectReason.MAX_CONNECTIONS
-        log.debug("master %s: closed to make room for %s", victim.peer, peer)
-        self.events.note("evicted", victim.source)
-        victim.close(CloseReason.EVICTED)
+        connections = list(self._connections)
+        now = time.monotonic()
+        snapshot = [OpenConnection(c.source, c.idle_for(now), c.in_flight) for c in connections]
+        verdict = admit_connection(source, limits, snapshot)
+        if isinstance(verdict, Evict):
+            self._evict(connections[verdict.index], verdict.over_share, peer)
+            return None
+        if isinstance(verdict, Refuse):
+            self._note_refusal(source, verdict.reason)
+            return RejectReason(verdict.reason.value)
         return None
 
-    def _eviction_candidate(self) -> MasterConnection | None:
-        """The master idle longest, if idle for ``evict_min_idle`` with nothing in flight."""
-        now = time.monotonic()
-        victim = max(self._connections, key=lambda c: c.idle_for(now), default=None)
-        if victim is None or victim.busy or victim.idle_for(now) < self.config.evict_min_idle:
-            return None
-        return victim
+    def _evict(self, victim: MasterConnection, over_share: bool, peer: str) -> None:
+        """Close ``victim`` to make room for ``peer``."""
+        why = "its address holds more than the newcomer's" if over_share else "idle longest"
+        log.debug("master %s: closed to make room for %s (%s)", victim.peer, peer, why)
+        self.events.note("evicted", victim.source)
+        victim.close(CloseReason.EVICTED)
+
+    def _note_refusal(self, source: str, reason: Refusal) -> None:
+        """Log a refusal at a bounded rate, naming the setting that caused it."""
+        config = self.config
+        if reason == Refusal.MAX_PER_SOURCE:
+            self.faults.note(
+                f"master {source}", "connection limit of its address",
+                f"{config.max_connections_per_source} connections open "
+                "(server.max_connections_per_source); refusing more from it",
+                plural="connections refused, limit of its address",
+            )  # fmt: skip
+            return
+        if config.when_full != "close_oldest_idle":
+            why = 'server.when_full = "refuse"'
+        else:
+            why = (
+                f"none that a master from {source} may displace is idle for "
+                f"{config.evict_min_idle:g} s (server.evict_min_idle) or held by an address "
+                "with two more connections than its own"
+            )
+        self.faults.note(
+            "server", "connection limit",
+            f"{len(self._connections)} masters connected (server.max_connections); {why}; "
+            "refusing it",
+            plural="connections refused at the limit",
+        )  # fmt: skip
 
     def forget(self, connection: MasterConnection, reason: CloseReason) -> None:
         """Drop a closed connection from the books (once)."""

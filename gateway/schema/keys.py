@@ -35,10 +35,11 @@ SERVER = (
         help="Only a master idle (no request in flight, none received) for at least this "
         "many seconds may be closed to make room; when there is none, the new connection is "
         "refused."),
-    Key(table=_S, name="max_connections_per_source", type=Type.INTEGER, default=16, low=0,
+    Key(table=_S, name="max_connections_per_source", type=Type.INTEGER, default=0, low=0,
         high=100_000,
-        help="Connections from one source address at once (0 = no limit); more are refused "
-        "at accept."),
+        help="Connections from one source address at once (0 = no cap); more are refused "
+        "at accept. Without a cap, at max_connections the address holding the most "
+        "connections yields its longest-idle one (README: \"Hostile masters and networks\")."),
     Key(table=_S, name="idle_timeout", type=Type.SECONDS, default=300.0, low=0.0, high=86_400.0,
         help="Seconds without a complete request after which a master with nothing in flight "
         "is disconnected (0 = never). Stray bytes that do not complete a request do not "

@@ -1,0 +1,241 @@
+"""Fair share at the connection limit: literal snapshots, then invariants with hypothesis."""
+
+from __future__ import annotations
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gateway.config import build_config, config_warnings
+from gateway.core.connection_share import (
+    ADMIT,
+    Evict,
+    OpenConnection,
+    Refusal,
+    Refuse,
+    ShareLimits,
+    Verdict,
+    admit_connection,
+    has_free_slot,
+)
+
+A, B, C = "10.0.0.1", "10.0.0.2", "10.0.0.3"
+FULL_4 = ShareLimits(max_connections=4, evict_min_idle=10.0)
+
+
+def idle(source: str, seconds: float) -> OpenConnection:
+    return OpenConnection(source, seconds, 0)
+
+
+def busy(source: str) -> OpenConnection:
+    return OpenConnection(source, 0.0, 1)
+
+
+# --------------------------------------------------------------------------- free slots
+
+
+def test_while_slots_are_free_every_newcomer_is_admitted_whatever_its_source_holds() -> None:
+    limits = ShareLimits(max_connections=100)
+    snapshot = [busy(A)] * 99
+    assert admit_connection(A, limits, snapshot) == ADMIT
+    assert has_free_slot(limits, total=99, held=99)
+    assert not has_free_slot(limits, total=100, held=0)
+
+
+def test_an_explicit_cap_still_refuses_its_source_beyond_it() -> None:
+    limits = ShareLimits(max_connections=100, max_per_source=16)
+    snapshot = [idle(A, 60.0)] * 16
+    assert admit_connection(A, limits, snapshot) == Refuse(Refusal.MAX_PER_SOURCE)
+    assert admit_connection(B, limits, snapshot) == ADMIT
+    assert not has_free_slot(limits, total=16, held=16)
+    assert has_free_slot(limits, total=16, held=15)
+
+
+# --------------------------------------------------------------------------- at the limit
+
+
+def test_a_single_source_evicts_its_own_longest_idle_connection_as_before() -> None:
+    snapshot = [idle(A, 11.0), idle(A, 30.0), idle(A, 12.0), busy(A)]
+    assert admit_connection(A, FULL_4, snapshot) == Evict(1)
+
+
+def test_a_newcomer_from_the_heaviest_source_is_refused_when_none_of_its_own_may_go() -> None:
+    # B's connection idle for an hour is not the heaviest's to take.
+    snapshot = [idle(A, 1.0), idle(A, 2.0), busy(A), idle(B, 3600.0)]
+    assert admit_connection(A, FULL_4, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_a_newcomer_from_a_lighter_source_displaces_the_heaviest_even_young() -> None:
+    snapshot = [idle(A, 1.0), idle(A, 2.0), idle(A, 0.5), idle(B, 3600.0)]
+    # C holds none, A holds three (>= 0 + 2): A's longest-idle goes, however young.
+    assert admit_connection(C, FULL_4, snapshot) == Evict(1, over_share=True)
+    # B holds one, A three (>= 1 + 2): the same.
+    assert admit_connection(B, FULL_4, snapshot) == Evict(1, over_share=True)
+
+
+def test_the_heaviest_source_yields_its_old_idle_connection_before_anyone_else() -> None:
+    snapshot = [idle(A, 20.0), idle(A, 15.0), idle(B, 3600.0), idle(C, 3600.0)]
+    assert admit_connection(C, FULL_4, snapshot) == Evict(0)
+
+
+def test_when_the_heaviest_has_everything_in_flight_the_next_heaviest_yields() -> None:
+    limits = ShareLimits(max_connections=6, evict_min_idle=10.0)
+    snapshot = [busy(A), busy(A), busy(A), idle(B, 1.0), idle(B, 2.0), idle(C, 0.1)]
+    # D holds none: A cannot give anything, B holds two (>= 0 + 2): its longest-idle goes.
+    assert admit_connection("10.0.0.4", limits, snapshot) == Evict(4, over_share=True)
+    # C holds one: B holds only one more, so only a connection idle for 10 s would do.
+    assert admit_connection(C, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_a_source_one_heavier_yields_only_what_is_idle_for_evict_min_idle() -> None:
+    snapshot = [idle(A, 9.0), idle(A, 2.0), idle(B, 1.0)]
+    limits = ShareLimits(max_connections=3, evict_min_idle=10.0)
+    assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+    later = [idle(A, 10.0), idle(A, 3.0), idle(B, 2.0)]
+    assert admit_connection(B, limits, later) == Evict(0)
+
+
+def test_a_source_no_heavier_than_the_newcomers_is_never_touched() -> None:
+    snapshot = [busy(A), busy(A), idle(B, 3600.0), idle(B, 3600.0)]
+    assert admit_connection(A, FULL_4, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_a_newcomer_may_make_room_among_its_own_after_the_heavier_sources() -> None:
+    snapshot = [busy(A), busy(A), busy(A), idle(B, 11.0)]
+    assert admit_connection(B, FULL_4, snapshot) == Evict(3)
+
+
+def test_connections_with_requests_in_flight_are_never_closed() -> None:
+    snapshot = [busy(A), busy(A), busy(A), busy(B)]
+    assert admit_connection(C, FULL_4, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_when_full_refuse_never_evicts() -> None:
+    limits = ShareLimits(max_connections=4, evict=False)
+    snapshot = [idle(A, 3600.0)] * 4
+    assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_equal_heavy_sources_yield_the_one_idle_longest_first() -> None:
+    snapshot = [idle(A, 1.0), idle(A, 2.0), idle(B, 5.0), idle(B, 4.0)]
+    assert admit_connection(C, FULL_4, snapshot) == Evict(2, over_share=True)
+
+
+def test_the_explicit_cap_is_checked_before_the_share() -> None:
+    limits = ShareLimits(max_connections=4, max_per_source=1)
+    snapshot = [idle(A, 1.0), idle(A, 2.0), idle(A, 3.0), idle(B, 3600.0)]
+    assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_PER_SOURCE)
+
+
+def test_refusal_reasons_are_the_metric_labels() -> None:
+    assert {reason.value for reason in Refusal} == {"max_connections", "max_per_source"}
+
+
+# --------------------------------------------------------------------------- invariants
+
+SOURCES = st.sampled_from([A, B, C, "10.0.0.4"])
+CONNECTION = st.builds(
+    OpenConnection,
+    SOURCES,
+    st.sampled_from([0.0, 0.5, 5.0, 9.99, 10.0, 60.0]),
+    st.sampled_from([0, 0, 1, 3]),
+)
+LIMITS = st.builds(
+    ShareLimits,
+    st.integers(1, 12),
+    st.sampled_from([0, 0, 1, 3, 16]),
+    st.booleans(),
+    st.sampled_from([0.0, 10.0]),
+)
+
+
+def _full(limits: ShareLimits, connections: list[OpenConnection]) -> list[OpenConnection]:
+    return connections[: limits.max_connections]
+
+
+def _after(verdict: Verdict, connections: list[OpenConnection]) -> int:
+    """The number of connections once the verdict is carried out."""
+    if isinstance(verdict, Evict):
+        return len(connections)
+    return len(connections) + (verdict == ADMIT)
+
+
+@given(SOURCES, LIMITS, st.lists(CONNECTION, max_size=14))
+def test_the_count_never_exceeds_max_connections(
+    source: str, limits: ShareLimits, connections: list[OpenConnection]
+) -> None:
+    snapshot = _full(limits, connections)
+    assert _after(admit_connection(source, limits, snapshot), snapshot) <= limits.max_connections
+
+
+@given(SOURCES, LIMITS, st.lists(CONNECTION, max_size=14))
+def test_a_victim_is_idle_and_its_source_no_lighter_than_the_newcomers(
+    source: str, limits: ShareLimits, connections: list[OpenConnection]
+) -> None:
+    snapshot = _full(limits, connections)
+    verdict = admit_connection(source, limits, snapshot)
+    if not isinstance(verdict, Evict):
+        return
+    assert limits.evict and len(snapshot) == limits.max_connections
+    victim = snapshot[verdict.index]
+    counts = {s: sum(c.source == s for c in snapshot) for s in {c.source for c in snapshot}}
+    held = counts.get(source, 0)
+    assert victim.in_flight == 0
+    if victim.source == source:
+        assert victim.idle >= limits.evict_min_idle
+    else:
+        assert counts[victim.source] > held  # never from a source no heavier than its own
+        if victim.idle < limits.evict_min_idle:
+            assert counts[victim.source] >= held + 2 and verdict.over_share
+    # The longest-idle of its source among those with nothing in flight.
+    assert all(
+        c.idle <= victim.idle for c in snapshot if c.source == victim.source and not c.in_flight
+    )
+
+
+@given(SOURCES, st.integers(1, 12), st.lists(CONNECTION, max_size=14))
+def test_a_newcomer_is_never_refused_while_a_source_two_heavier_has_an_idle_connection(
+    source: str, max_connections: int, connections: list[OpenConnection]
+) -> None:
+    limits = ShareLimits(max_connections, evict_min_idle=10.0)
+    snapshot = _full(limits, connections)
+    held = sum(c.source == source for c in snapshot)
+    heavy = {
+        c.source
+        for c in snapshot
+        if c.source != source
+        and c.in_flight == 0
+        and sum(o.source == c.source for o in snapshot) >= held + 2
+    }
+    if heavy:
+        assert not isinstance(admit_connection(source, limits, snapshot), Refuse)
+
+
+@given(SOURCES, st.integers(2, 12), st.lists(SOURCES, min_size=12, max_size=12))
+def test_a_source_within_its_fair_share_gets_in_when_the_others_are_idle(
+    source: str, max_connections: int, sources: list[str]
+) -> None:
+    snapshot = [idle(s, 1.0) for s in sources[:max_connections]]  # full, all young
+    held = sum(s == source for s in sources[:max_connections])
+    share = max_connections // len({*sources[:max_connections], source})
+    verdict = admit_connection(source, ShareLimits(max_connections), snapshot)
+    if held + 1 <= share:
+        assert isinstance(verdict, Evict) and snapshot[verdict.index].source != source
+    else:  # nothing old enough: a source at or over its share gets no one's slot
+        counts = [sum(s == other for s in sources[:max_connections]) for other in sources]
+        if max(counts) < held + 2:
+            assert verdict == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def test_the_default_has_no_cap_and_a_file_keeping_the_old_16_is_warned() -> None:
+    lines = {"a": {"device": "/dev/null", "units": [1]}}
+    assert build_config({"lines": lines}, "<test>").server.max_connections_per_source == 0
+    for value, warned in ((16, True), (0, False), (15, False), (32, False)):
+        raw = {"server": {"max_connections_per_source": value}, "lines": lines}
+        warnings = config_warnings(build_config(raw, "<test>"))
+        about = [w for w in warnings if w.startswith("server.max_connections_per_source")]
+        assert bool(about) == warned, (value, warnings)
+        if warned:
+            assert "default is now 0" in about[0] and "one connection per device" in about[0]
