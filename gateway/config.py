@@ -20,7 +20,7 @@ from typing import Any
 
 from .core import pdu as fc
 from .core.framing import is_mbap
-from .core.pipeline import MAX_IN_FLIGHT
+from .core.line import MAX_IN_FLIGHT
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
 from .core.timing import character_time, t35, transmission_time
 

@@ -29,9 +29,8 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, Handover, LineRequest, Note, Transmit, no_reply
+from ..core.line import Delivery, Handover, LineRequest, Note, Transmit, new_line_core, no_reply
 from ..core.outcome import LineEvent, Outcome, SlaveState
-from ..core.pipeline import new_line_core
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus

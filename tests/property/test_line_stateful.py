@@ -41,7 +41,7 @@ from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import Outcome
-from gateway.core.pipeline import new_line_core
+from gateway.core.line import new_line_core
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
 

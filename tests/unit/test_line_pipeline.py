@@ -17,7 +17,7 @@ from gateway.core.framing import is_mbap, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome, SlaveState
-from gateway.core.pipeline import PipelinedLineCore, new_line_core
+from gateway.core.line import PipelinedLineCore, new_line_core
 
 TIMEOUT = 0.5
 
