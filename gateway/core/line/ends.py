@@ -54,14 +54,15 @@ class AttemptEnds:
     _timeouts: dict[int, float]
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
-        """The slave answered the request on the wire."""
-        self.wire.end(attempt)
+        """The slave answered the request on the wire (the wire has ended ``attempt``)."""
         request = attempt.request
         wire = now - attempt.sent_at
         slave = request.slave
         function = request.pdu[0]
         self.stats.frames_received += 1
-        record = self.health.record(slave)
+        record = self.health.slaves.get(slave)  # ``health.record``, inline: once per answer
+        if record is None:
+            record = self.health.record(slave)
         record.answered.add(function)
         if record.state is SlaveState.UP:
             record.misses = 0  # ``alive``, for a slave that was up
@@ -253,7 +254,8 @@ class AttemptEnds:
 
     def _deliver(self, request: LineRequest, pdu: bytes, outcome: Outcome, wire: float) -> None:
         """Deliver exactly once, to ``request`` and every read that joined it."""
-        self.wire.released(request)
+        if self.wire.orders_outstanding:
+            self.wire.released(request)
         deliveries = self.deliveries
         if request.followers:
             self.sharing.joined.pop(request, None)

@@ -65,6 +65,7 @@ class FlightWire(Wire):
 
     quiet_line = False
     concurrent = True
+    orders_outstanding = True
 
     def __init__(self, ids: TransactionIds, max_in_flight: int) -> None:
         super().__init__()
@@ -80,15 +81,6 @@ class FlightWire(Wire):
         self.open: dict[OpenKey, list[int]] = {}
         self.opened_by: dict[LineRequest, tuple[OpenKey, bool]] = {}  # by identity
         self.estimate = 0.0
-
-    def busy(self) -> bool:
-        return bool(self.flights)
-
-    def room(self) -> bool:
-        return len(self.flights) < self.capacity
-
-    def count(self) -> int:
-        return len(self.flights)
 
     def timer(self) -> float:
         when = INFINITY
@@ -156,6 +148,7 @@ class FlightWire(Wire):
             line.discard(error.kind, 1, request.slave)
             return
         self.estimate += (now - flight.sent_at - self.estimate) * _ESTIMATE_WEIGHT
+        self.end(flight)
         line.complete(flight, RtuFrame(unit, pdu), now)
 
     def expire(self, now: float) -> None:
@@ -232,14 +225,17 @@ class FlightWire(Wire):
         deadline = now + transmit_time + line.timeout_for(slave)
         decoder = line.new_decoder(slave, pdu)
         self.flights[tid] = Attempt(request, decoder, now, deadline, credit, tid, epoch, charged)
+        self.outstanding = len(self.flights)
         return frame
 
     def end(self, attempt: Attempt) -> None:
         self.flights.pop(attempt.tid, None)
+        self.outstanding = len(self.flights)
 
     def take_all(self) -> list[Attempt]:
         flights = list(self.flights.values())
         self.flights.clear()
+        self.outstanding = 0
         return flights
 
     def may_cache(self, attempt: Attempt) -> bool:

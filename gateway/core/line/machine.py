@@ -133,17 +133,17 @@ class LineCore(Sending):
     @property
     def idle(self) -> bool:
         """True when nothing is on the wire or waiting."""
-        return not self.wire.busy() and self.queue.queued == 0
+        return not self.wire.outstanding and self.queue.queued == 0
 
     @property
     def wire_busy(self) -> bool:
         """True while a transaction is on the wire."""
-        return self.wire.busy()
+        return self.wire.outstanding > 0
 
     @property
     def in_flight(self) -> int:
         """Attempts on the wire."""
-        return self.wire.count()
+        return self.wire.outstanding
 
     def slave_state(self, slave: int) -> SlaveState:
         """The isolation state of ``slave``."""
@@ -161,10 +161,10 @@ class LineCore(Sending):
     def get_timer(self) -> float | None:
         """The next time ``handle_timer`` must be called, ``None`` when nothing is due."""
         wire = self.wire
-        when = wire.timer()
-        if self.queue.queued and (wire.concurrent or not wire.busy()):
+        when = wire.timer() if wire.outstanding else INFINITY
+        if self.queue.queued and (wire.concurrent or not wire.outstanding):
             lane = self.lane
-            if wire.room():
+            if wire.outstanding < wire.capacity:
                 when = min(when, self._send_at)
                 if self._wanting_since is not None:
                     when = min(when, self._wanting_since + self._noisy_after)
@@ -192,9 +192,11 @@ class LineCore(Sending):
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return
         queue = self.queue
-        master = queue.master(request.master)
+        master = queue.masters.get(request.master)  # ``queue.master``, inline: once a request
+        if master is None:
+            master = queue.master(request.master)
         on_wire = self.wire.on_wire_for(request.master)
-        if queue.over_master_bound(master, on_wire, self.policy.max_queue_per_master):
+        if master.queued + on_wire >= self.policy.max_queue_per_master:  # the master's bound
             self._answer(request, ExceptionCode.SERVER_DEVICE_BUSY, Outcome.BUSY)
             return
         if queue.queued >= self.policy.max_queue and not self._push_out(master):
@@ -246,9 +248,14 @@ class LineCore(Sending):
                 self._deliver(request, cached, Outcome.CACHED, -1.0)
                 return False
         if self.policy.coalesce:
-            epoch = sharing.epoch(slave)
-            leader = sharing.leader(key, epoch)
-            if leader is not None and not self.order.change_pending(request.master, slave):
+            # ``sharing.epoch`` and ``sharing.leader``, inline: once per read
+            epoch = sharing.write_epoch.get(slave, 0) + sharing.broadcast_epoch
+            leader = sharing.open_reads.get(key)
+            if (
+                leader is not None
+                and leader.epoch == epoch
+                and not self.order.change_pending(request.master, slave)
+            ):
                 sharing.join(leader, request)
                 self.wire.joined(request)
                 self.notes.append(Note(LineEvent.COALESCED, slave))

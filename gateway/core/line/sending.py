@@ -35,11 +35,16 @@ class Sending(AttemptEnds):
         """Put the next requests on the wire while they may go now."""
         self._send_at = INFINITY
         wire = self.wire
-        if not wire.room() or not self._up or not self.queue.queued or self._paused:
+        if (
+            wire.outstanding >= wire.capacity
+            or not self._up
+            or not self.queue.queued
+            or self._paused
+        ):
             self._wanting_since = None
             return
         if wire.draining:  # a broadcast waits for the attempts outstanding
-            if wire.busy():
+            if wire.outstanding:
                 return
             wire.draining = False
         ready_at = self.quiet_since + self._gap
@@ -51,7 +56,7 @@ class Sending(AttemptEnds):
                 self._go_noisy()
             return
         self._wanting_since = None
-        while self.queue.queued and wire.room():
+        while self.queue.queued and wire.outstanding < wire.capacity:
             picked = self._pick(now)
             if picked is None:
                 return
@@ -61,7 +66,7 @@ class Sending(AttemptEnds):
                 self._send_broadcast(request, master, now)
                 self._send_at = self.quiet_since + self._gap  # after the turnaround
                 return
-            if not request.wanted:
+            if request.cancelled and not request.wanted:
                 self.sharing.close(request)
                 self._deliver(request, b"", Outcome.DROPPED, -1.0)
                 if master is not None:

@@ -33,23 +33,17 @@ class Wire:
     concurrent = False
     #: Attempts at most on the wire at once.
     capacity = 1
+    #: The wire keeps accounts of outstanding requests: tell it of every answer.
+    orders_outstanding = False
 
     def __init__(self) -> None:
         self.draining = False  # a broadcast waits for every attempt to end
+        #: Attempts on the wire now: a plain attribute, read on every pass of the machine.
+        self.outstanding = 0
 
     def bind(self, line: LineCore) -> None:
         """The machine this wire serves (it calls its transitions)."""
         self.line = line
-
-    def busy(self) -> bool:
-        raise NotImplementedError
-
-    def room(self) -> bool:
-        """True when another attempt may start."""
-        raise NotImplementedError
-
-    def count(self) -> int:
-        raise NotImplementedError
 
     def timer(self) -> float:
         """The attempts' next deadline (``INFINITY``: none)."""
@@ -82,7 +76,7 @@ class Wire:
         raise NotImplementedError
 
     def end(self, attempt: Attempt) -> None:
-        """``attempt`` ended (answered or failed)."""
+        """``attempt`` failed (an answered one the wire ends itself)."""
         raise NotImplementedError
 
     def take_all(self) -> list[Attempt]:
@@ -126,15 +120,6 @@ class SerialWire(Wire):
         super().__init__()
         self.attempt: Attempt | None = None
         self.echo_left = b""  # the part of our own frame still to come back (``echo``)
-
-    def busy(self) -> bool:
-        return self.attempt is not None
-
-    def room(self) -> bool:
-        return self.attempt is None
-
-    def count(self) -> int:
-        return 0 if self.attempt is None else 1
 
     def timer(self) -> float:
         attempt = self.attempt
@@ -202,6 +187,7 @@ class SerialWire(Wire):
             now + transmit_time + line.timeout_for(slave),
             credit,
         )
+        self.outstanding = 1
         line.quiet_since = now + transmit_time
         if line.echo:
             self.echo_left = frame
@@ -209,11 +195,14 @@ class SerialWire(Wire):
 
     def end(self, attempt: Attempt) -> None:
         self.attempt = None
+        self.outstanding = 0
 
     def take_all(self) -> list[Attempt]:
         attempt = self.attempt
-        self.attempt = None
-        return [] if attempt is None else [attempt]
+        if attempt is None:
+            return []
+        self.end(attempt)
+        return [attempt]
 
     def lost(self) -> None:
         self.echo_left = b""
@@ -272,6 +261,8 @@ class SerialWire(Wire):
         if frame is not None:
             if decoder.leftover:
                 line.discard("trailing_bytes", len(decoder.leftover), attempt.request.slave)
+            self.attempt = None  # ``end``, inline: once per transaction
+            self.outstanding = 0
             line.complete(attempt, frame, now)
             line.service(now)
         elif decoder.waits_for_silence:
@@ -297,6 +288,7 @@ class SerialWire(Wire):
                 if rest and self.attempt is attempt:
                     self._decode(attempt, rest, now)
             else:
+                self.end(attempt)
                 line.complete(attempt, frame, now)
         if self.attempt is attempt and now >= attempt.garbled_at:
             line.fail(attempt, attempt.garbled, now)
