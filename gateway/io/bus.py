@@ -40,7 +40,8 @@ from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
 
-#: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``.
+#: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``, where
+#: ``reply(pdu, outcome)`` takes the answer and its ``Outcome``.
 Request = LineRequest
 
 

@@ -12,7 +12,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from ..core.line import Note
-from ..core.outcome import LineEvent, SlaveState
+from ..core.outcome import DiscardReason, LineEvent, SlaveState
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 
@@ -59,7 +59,9 @@ class LineNotes:
             metrics.retries.labels(self._bus.name, unit).inc()
         elif event is LineEvent.DISCARDED:
             metrics.discarded_frames.labels(self._bus.name, note.detail).inc()
-            if note.detail == "bad_header":  # a Modbus TCP stream out of step: reconnect
+            if (
+                note.detail == DiscardReason.BAD_HEADER
+            ):  # a Modbus TCP stream out of step: reconnect
                 self._loop.call_soon(self._bus.resync)
             self.fault_log.note(
                 f"line {self._bus.name}",

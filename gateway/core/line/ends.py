@@ -16,13 +16,22 @@ from collections import deque
 from .. import pdu as fc
 from ..errors import ExceptionCode, ResponseError
 from ..framing import Framing
-from ..outcome import LineEvent, Outcome, SlaveState
+from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
 from .health import ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
-from .records import Attempt, Delivery, LinePolicy, LineRequest, LineStats, Note, tuple_new
+from .records import (
+    BAD_CHECK,
+    Attempt,
+    Delivery,
+    LinePolicy,
+    LineRequest,
+    LineStats,
+    Note,
+    tuple_new,
+)
 from .sharing import ReadSharing
 from .wire import Wire
 
@@ -43,6 +52,8 @@ class AttemptEnds:
     order: OrderRules
     wire: Wire
     retries: deque[LineRequest]
+    garbled_wait: float
+    _timeouts: dict[int, float]
     _stopping: bool
 
     def timeout_for(self, slave: int) -> float:
@@ -50,8 +61,6 @@ class AttemptEnds:
         if timeout is None:
             timeout = self._timeouts[slave] = self.policy.timeout_for(slave)
         return timeout
-
-    _timeouts: dict[int, float]
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire (the wire has ended ``attempt``)."""
@@ -97,17 +106,15 @@ class AttemptEnds:
         line stayed quiet for ``garbled_wait``, and a valid answer meanwhile is taken.
         """
         slave = attempt.request.slave
-        if error.kind == "crc":
+        if error.kind == BAD_CHECK:
             self.notes.append(Note(LineEvent.CRC_ERROR, slave, error.reason))
         else:
-            self.discard(error.kind, 1, slave)
+            self.discard(DiscardReason(error.kind), 1, slave)
         attempt.garbled = error
         if damaged:
             self.fail(attempt, error, now, damaged=True)
         else:
             attempt.garbled_at = now + self.garbled_wait
-
-    garbled_wait: float
 
     def fail(
         self, attempt: Attempt, error: ResponseError | None, now: float, damaged: bool = False
@@ -127,7 +134,7 @@ class AttemptEnds:
             state = self.health.count_timeout(record, request.pdu[0], now, self.policy)
             if state is not None:
                 self._set_state(slave, record, state)
-        elif error.kind != "crc":  # a CRC error was noted when it arrived
+        elif error.kind != BAD_CHECK:  # a CRC error was noted when it arrived
             self.notes.append(Note(LineEvent.GARBLED, slave, error.reason))
         if before is SlaveState.UP and record.state is not SlaveState.UP:
             self.lane.spend(wire, now)  # the loss that made it suspect is paid from its share
@@ -245,7 +252,7 @@ class AttemptEnds:
             self.sharing.joined[request] = None
         self.queue.queue_at_front(request)
 
-    def discard(self, reason: str, count: int, slave: int = 0) -> None:
+    def discard(self, reason: DiscardReason, count: int, slave: int = 0) -> None:
         self.notes.append(Note(LineEvent.DISCARDED, slave, reason, count))
 
     def _answer(self, request: LineRequest, code: ExceptionCode, outcome: Outcome) -> None:

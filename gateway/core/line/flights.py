@@ -45,6 +45,7 @@ from typing import Final
 from .. import pdu as fc
 from ..errors import FramingError, ResponseError
 from ..mbap import MbapDecoder, TransactionIds
+from ..outcome import DiscardReason
 from ..rtu import RtuFrame, check_identity
 from .fair_queue import Master
 from .records import INFINITY, Attempt, LineRequest, may_change
@@ -118,7 +119,7 @@ class FlightWire(Wire):
         """Bytes from the connection: each complete frame goes to the attempt its TID names."""
         line = self.line
         if self.out_of_step:
-            line.discard("late", len(data))
+            line.discard(DiscardReason.LATE, len(data))
             return
         stream = self.stream
         try:
@@ -128,7 +129,7 @@ class FlightWire(Wire):
         except FramingError:
             # Out of step: every later byte is suspect. The driver reconnects on this note.
             self.out_of_step = True
-            line.discard("bad_header", 1)
+            line.discard(DiscardReason.BAD_HEADER, 1)
         line.service(now)
 
     def _take(self, tid: int, unit: int, pdu: bytes, now: float) -> None:
@@ -136,7 +137,7 @@ class FlightWire(Wire):
         flight = self.flights.get(tid)
         if flight is None:
             slave = self.lost_tids.pop(tid, None)
-            line.discard("unexpected_tid", 1, slave if slave is not None else 0)
+            line.discard(DiscardReason.UNEXPECTED_TID, 1, slave if slave is not None else 0)
             if slave is not None:  # a timed-out attempt's answer: the slave is alive, slow
                 line.alive(slave)
             return
@@ -145,7 +146,7 @@ class FlightWire(Wire):
             check_identity(unit, request.pdu[0], request.pdu, unit, pdu)
         except ResponseError as error:
             # Its TID but not its answer: discarded; the attempt waits on to its deadline.
-            line.discard(error.kind, 1, request.slave)
+            line.discard(DiscardReason(error.kind), 1, request.slave)
             return
         self.estimate += (now - flight.sent_at - self.estimate) * _ESTIMATE_WEIGHT
         self.end(flight)

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 from .. import pdu as fc
 from ..errors import ResponseError
+from ..outcome import DiscardReason
 from .fair_queue import Master
 from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
 
@@ -221,7 +222,7 @@ class SerialWire(Wire):
                 return
         attempt = self.attempt
         if attempt is None:
-            line.discard("late", len(data))
+            line.discard(DiscardReason.LATE, len(data))
             if line.late.windows:
                 line.late_bytes(data)
                 line.service(now)
@@ -242,14 +243,14 @@ class SerialWire(Wire):
                 if error.kind in DISCARD_KINDS:
                     # Another unit's frame, a late answer to an earlier request, or noise
                     # in front of the answer: drop it and keep decoding what followed it.
-                    line.discard(error.kind, 1, attempt.request.slave)
+                    line.discard(DiscardReason(error.kind), 1, attempt.request.slave)
                     if line.late.windows and error.frame:
                         line.late_frame(error.frame)
                 else:
                     line.garbled(attempt, error, decoder.looks_like_answer, now)
                     if self.attempt is not attempt:  # failed: the rest is late bytes
                         if decoder.leftover:
-                            line.discard("late", len(decoder.leftover))
+                            line.discard(DiscardReason.LATE, len(decoder.leftover))
                         line.service(now)
                         return
                 data = decoder.leftover
@@ -260,7 +261,9 @@ class SerialWire(Wire):
             break
         if frame is not None:
             if decoder.leftover:
-                line.discard("trailing_bytes", len(decoder.leftover), attempt.request.slave)
+                line.discard(
+                    DiscardReason.TRAILING_BYTES, len(decoder.leftover), attempt.request.slave
+                )
             self.attempt = None  # ``end``, inline: once per transaction
             self.outstanding = 0
             line.complete(attempt, frame, now)
@@ -281,7 +284,7 @@ class SerialWire(Wire):
             except ResponseError as error:
                 rest = decoder.leftover  # bytes behind noise: the answer may start there
                 if error.kind in DISCARD_KINDS:
-                    line.discard(error.kind, 1, attempt.request.slave)
+                    line.discard(DiscardReason(error.kind), 1, attempt.request.slave)
                 else:
                     line.garbled(attempt, error, decoder.looks_like_answer, now)
                 decoder.reset()
@@ -294,7 +297,9 @@ class SerialWire(Wire):
             line.fail(attempt, attempt.garbled, now)
         if self.attempt is attempt and now >= attempt.deadline:
             if attempt.decoder.buffered:
-                line.discard("incomplete", attempt.decoder.buffered, attempt.request.slave)
+                line.discard(
+                    DiscardReason.INCOMPLETE, attempt.decoder.buffered, attempt.request.slave
+                )
             line.fail(attempt, attempt.garbled, now)
 
     def _strip_echo(self, data: bytes) -> bytes:
