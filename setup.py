@@ -50,6 +50,7 @@ COMPILED_MODULES = [
     "gateway/core/timing.py",
     "gateway/io/bus.py",
     "gateway/io/clock.py",
+    "gateway/io/line_notes.py",
     "gateway/io/rtu_listener.py",
     "gateway/io/serial_port.py",
     "gateway/io/tcp.py",

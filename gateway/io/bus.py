@@ -14,6 +14,10 @@ or a TLS session with a slave (``tls``), connected without blocking the loop and
 reconnected with the same back-off as a port is reopened. While the link is down
 the core answers 0x0A, whatever the kind. A TLS failure is counted by reason and
 logged once per reason until the line works again.
+
+Two collaborators keep ``Bus`` to the pump, the masters' side and the hand-over:
+``LinePort`` (``line_port.py``) opens and reopens the link, and ``LineNotes``
+(``line_notes.py``) turns the core's notes into metrics and log lines.
 """
 
 from __future__ import annotations

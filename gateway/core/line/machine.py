@@ -4,8 +4,11 @@ Theory of operation: see the package's docstring (``gateway.core.line``). The pa
 (the fair queue, slave health and the lane, late-answer windows, read sharing, the
 order rules) keep state and answer questions; the wire strategy (one attempt at a
 time, or flights by transaction id) says which bytes answer which attempt. Every
-change of what becomes of a request is made here, and only here are ``transmits``,
-``deliveries`` and ``notes`` appended (h11's "Rule 1").
+change of what becomes of a request is made by ``LineCore``, and only it appends to
+``transmits``, ``deliveries`` and ``notes`` (h11's "Rule 1"). Its class body is
+written in three layers, each under 400 lines: this module (the masters' side, the
+port, the reload, the timer), ``sending.py`` (which request goes next, sending it)
+and ``ends.py`` (what the end of an attempt does; every delivery).
 """
 
 from __future__ import annotations
