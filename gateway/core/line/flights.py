@@ -64,15 +64,12 @@ OpenKey = tuple[Hashable, int]
 class FlightWire(Wire):
     """Up to ``capacity`` attempts outstanding, matched by TID; see the module doc."""
 
-    quiet_line = False
-    concurrent = True
-    orders_outstanding = True
-
     def __init__(self, ids: TransactionIds, max_in_flight: int) -> None:
-        super().__init__()
         if not 1 <= max_in_flight <= MAX_IN_FLIGHT:
             raise ValueError(f"max_in_flight {max_in_flight} outside 1..{MAX_IN_FLIGHT}")
-        self.capacity = max_in_flight
+        super().__init__(
+            quiet_line=False, concurrent=True, capacity=max_in_flight, orders_outstanding=True
+        )
         self.ids = ids
         self.flights: dict[int, Attempt] = {}  # TID -> attempt
         self.stream = MbapDecoder()

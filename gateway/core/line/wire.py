@@ -28,16 +28,22 @@ if TYPE_CHECKING:
 class Wire:
     """The strategy's questions and commands; the defaults suit a wire without them."""
 
-    #: A shared medium: quiet time before each frame, noise, echo and late-answer windows.
-    quiet_line = True
-    #: Several attempts may be outstanding (the queue is served while one is).
-    concurrent = False
-    #: Attempts at most on the wire at once.
-    capacity = 1
-    #: The wire keeps accounts of outstanding requests: tell it of every answer.
-    orders_outstanding = False
-
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        quiet_line: bool = True,
+        concurrent: bool = False,
+        capacity: int = 1,
+        orders_outstanding: bool = False,
+    ) -> None:
+        # Instance attributes, not class ones: the machine reads them on every pass.
+        #: A shared medium: quiet time before each frame, noise, echo, late-answer windows.
+        self.quiet_line = quiet_line
+        #: Several attempts may be outstanding (the queue is served while one is).
+        self.concurrent = concurrent
+        #: Attempts at most on the wire at once.
+        self.capacity = capacity
+        #: The wire keeps accounts of outstanding requests: tell it of every answer.
+        self.orders_outstanding = orders_outstanding
         self.draining = False  # a broadcast waits for every attempt to end
         #: Attempts on the wire now: a plain attribute, read on every pass of the machine.
         self.outstanding = 0
