@@ -185,14 +185,18 @@ class SerialWire(Wire):
     def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
         line = self.line
         slave = request.slave
-        frame = line.frame(slave, request.pdu)
+        pdu = request.pdu
+        # ``line.frame`` and ``line.timeout_for``, inline when known: once per transaction.
+        frames = line._frames
+        frame = frames.get((slave, pdu)) if frames is not None else None
+        if frame is None:
+            frame = line.frame(slave, pdu)
+        timeout = line._timeouts.get(slave)
+        if timeout is None:
+            timeout = line.timeout_for(slave)
         transmit_time = len(frame) * line.char_time
         self.attempt = Attempt(
-            request,
-            line.new_decoder(slave, request.pdu),
-            now,
-            now + transmit_time + line.timeout_for(slave),
-            credit,
+            request, line.new_decoder(slave, pdu), now, now + transmit_time + timeout, credit
         )
         self.outstanding = 1
         line.quiet_since = now + transmit_time
