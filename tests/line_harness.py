@@ -4,8 +4,8 @@
 driver's pump does), feeds it bytes and timer events with literal times and keeps what
 it decided: the frames it wrote, the answers it delivered (by request, each once), its
 notes. The unit tests' ``Line`` classes build a core for their line (serial, pipelined)
-and add what is their own; the stateful tests drive the same cores through
-``new_core`` and read their answers with ``reply_recorder``.
+and add what is their own; the stateful tests build their cores with ``new_core``
+(their machine keeps its own pump: it checks every action as it is taken).
 
 Importable by any test module (``tests/`` is on the path beside ``conftest.py``).
 """
