@@ -43,7 +43,7 @@ from prometheus_client.registry import Collector
 
 from . import __version__, build
 from .core.line import LineStats
-from .core.outcome import Outcome
+from .core.outcome import DiscardReason, Outcome
 from .core.pdu import function_name
 
 #: ``function`` label by function code (``other`` when unknown): an index, not a call.
@@ -83,15 +83,9 @@ OTHER_UNIT = "other"
 #: Unit labels that are always their own: no slave, and broadcast.
 _FIXED_UNITS = frozenset({OTHER_UNIT, "0"})
 
-#: Why bytes from the line were thrown away: ``late`` (nobody was waiting), ``incomplete``
-#: (half an answer at the timeout), and the core's ``ResponseError`` kinds other than ``crc``
-#: (counted in ``crc_errors_total``).
-DISCARD_REASONS = (
-    "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
-    "short_frame", "oversize", "trailing_bytes", "noise",
-    "restarted", "bad_char",  # ASCII: ':' inside a frame, a character that is not hex
-    "unexpected_tid", "bad_header",  # Modbus TCP slaves: another transaction, a broken header
-)  # fmt: skip
+#: Why bytes from the line were thrown away (``DiscardReason``: a bad CRC is counted in
+#: ``crc_errors_total`` instead).
+DISCARD_REASONS = tuple(reason.value for reason in DiscardReason)
 
 #: Label values for units, made once: ``str(unit)`` per request would allocate.
 UNIT_LABELS = tuple(str(unit) for unit in range(256))

@@ -5,7 +5,7 @@ The order here is the order of the example configuration and of the reference pa
 
 from __future__ import annotations
 
-from ..core.pipeline import MAX_IN_FLIGHT
+from ..core.line import MAX_IN_FLIGHT
 from .model import Flag, Key, Reload, Scope, Show, Table, Type
 
 _S, _LS, _M, _LG = Table.SERVER, Table.LISTENERS, Table.METRICS, Table.LOGGING
