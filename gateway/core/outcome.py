@@ -45,3 +45,6 @@ class LineEvent(StrEnum):
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
     COALESCED = "coalesced"  # a read joined an identical queued read
+
+
+from .reasons import *  # noqa: E402, F403  (the reasons are part of this vocabulary)

@@ -44,6 +44,7 @@ from ..core import pdu as fc
 from ..core.ascii import encode_ascii
 from ..core.errors import ExceptionCode, ModbusError
 from ..core.line import no_reply
+from ..core.outcome import Outcome
 from ..core.policy import Policy, Principal
 from ..core.rtu import MAX_RTU_FRAME
 from ..core.rtu_stream import encode_rtu_reply, heard_request
@@ -283,26 +284,26 @@ class SerialSlave:
             fc.validate_request(pdu)
         except ModbusError as error:
             self._metrics.protocol_errors.labels("invalid_request").inc()
-            self._answer(number, unit, fc.exception_pdu(function, error.code), "rejected")
-            self._metrics.count_request("none", "other", function, "rejected")
+            self._answer(number, unit, fc.exception_pdu(function, error.code), Outcome.REJECTED)
+            self._metrics.count_request("none", "other", function, Outcome.REJECTED)
             return
         if not self.policy.open:
             decision = self.policy.decide(Principal(None), unit, pdu)
             if decision.denied is not None:
                 denial = fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION)
-                self._answer(number, unit, denial, "denied")
+                self._answer(number, unit, denial, Outcome.DENIED)
                 self._metrics.count_denial(self.name, self.policy.role_label(None), function)
-                self._metrics.count_request("none", "other", function, "denied")
+                self._metrics.count_request("none", "other", function, Outcome.DENIED)
                 return
         bus = target.bus
         line, unit_label = bus.name, UNIT_LABELS[target.slave]
 
-        def reply(response: bytes, outcome: str) -> None:
+        def reply(response: bytes, outcome: Outcome) -> None:
             if self._pending is request:
                 self._pending = None
                 self._answer(number, unit, response, outcome)
             else:
-                outcome = "dropped"  # the master gave up on it: a newer request came
+                outcome = Outcome.DROPPED  # the master gave up on it: a newer request came
                 if self.tracer is not None:
                     self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
@@ -331,7 +332,7 @@ class SerialSlave:
             if bus.up:
                 bus.submit(Request(0, pdu, self, no_reply, broadcast=True))
 
-    def _answer(self, number: int, unit: int, pdu: bytes, outcome: str) -> None:
+    def _answer(self, number: int, unit: int, pdu: bytes, outcome: Outcome) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
         frame = self._encode(unit, pdu)
         tracer = self.tracer

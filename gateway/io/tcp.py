@@ -50,6 +50,7 @@ from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode, FramingError, ModbusError
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
+from ..core.outcome import Outcome
 from ..core.policy import Decision, IPAddress, Policy, Principal
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
@@ -320,8 +321,9 @@ class MasterConnection(asyncio.BufferedProtocol):
                 raise ModbusError(ExceptionCode.ILLEGAL_FUNCTION, "only writes can be broadcast")
         except ModbusError as error:
             server.metrics.protocol_errors.labels("invalid_request").inc()
-            self._send(transaction_id, unit, fc.exception_pdu(function, error.code), "rejected")
-            server.metrics.count_request("none", "other", function, "rejected")
+            rejection = fc.exception_pdu(function, error.code)
+            self._send(transaction_id, unit, rejection, Outcome.REJECTED)
+            server.metrics.count_request("none", "other", function, Outcome.REJECTED)
             return
         if unit == 0:
             self._broadcast(transaction_id, pdu, arrived)
@@ -333,17 +335,17 @@ class MasterConnection(asyncio.BufferedProtocol):
                 unit,
                 fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
             )
-            server.metrics.count_request("none", "other", function, "no_route")
+            server.metrics.count_request("none", "other", function, Outcome.NO_ROUTE)
             return
         bus = target.bus
         line = bus.name
         unit_label = UNIT_LABELS[target.slave]  # the slave address, as in the line's metrics
         duration = bus.request_duration
 
-        def reply(response: bytes, outcome: str) -> None:
+        def reply(response: bytes, outcome: Outcome) -> None:
             self._pending.discard(request)
             if self._closed:
-                outcome = "dropped"
+                outcome = Outcome.DROPPED
                 if server.tracer is not None:
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
@@ -363,19 +365,19 @@ class MasterConnection(asyncio.BufferedProtocol):
                 unit,
                 fc.exception_pdu(function, ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
             )
-            server.metrics.count_request(line, unit_label, function, "no_route")
+            server.metrics.count_request(line, unit_label, function, Outcome.NO_ROUTE)
 
     def _deny(self, transaction_id: int, unit: int, function: int, decision: Decision) -> None:
         """Answer 0x01 (Illegal Function) to a request the policy refuses; none reaches the line."""
         server = self._server
         self._send(
             transaction_id, unit, fc.exception_pdu(function, ExceptionCode.ILLEGAL_FUNCTION),
-            "denied",
+            Outcome.DENIED,
         )  # fmt: skip
         server.metrics.count_denial(
             server.name, server.policy.role_label(self.principal.role), function
         )
-        server.metrics.count_request("none", "other", function, "denied")
+        server.metrics.count_request("none", "other", function, Outcome.DENIED)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
                       fc.function_name(function), decision.denied)  # fmt: skip
@@ -387,11 +389,11 @@ class MasterConnection(asyncio.BufferedProtocol):
             self._send(
                 transaction_id, 0, fc.exception_pdu(pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE)
             )
-            server.metrics.count_request("none", "other", pdu[0], "no_route")
+            server.metrics.count_request("none", "other", pdu[0], Outcome.NO_ROUTE)
             return
         remaining = len(buses)
 
-        def sent(_response: bytes, outcome: str) -> None:
+        def sent(_response: bytes, outcome: Outcome) -> None:
             nonlocal remaining
             remaining -= 1
             if remaining:
@@ -408,7 +410,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             if bus.submit(request):
                 self._pending.add(request)
             else:
-                sent(b"", "no_route")
+                sent(b"", Outcome.NO_ROUTE)
 
     def _request_done(self) -> None:
         self._in_flight -= 1
@@ -417,7 +419,9 @@ class MasterConnection(asyncio.BufferedProtocol):
         if self._pauses & ReadPause.PIPELINE and not self._closed and self._batch is None:
             self._run_batch()
 
-    def _send(self, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None) -> None:
+    def _send(
+        self, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
         if self._transport is None or self._closed:
             return
         adu = encode_mbap(transaction_id, unit, pdu)

@@ -69,7 +69,7 @@ def test_outcome_from_the_reply_when_the_caller_does_not_say(
     assert [message.split(" ", 5)[-1] for message in seen.messages] == [
         "exception=0x0A no_route",
         "exception=0x0B target_failed",
-        "exception=0x02 exception",
+        "exception=0x02 slave_exception",
         "exception=0x03 rejected",
         "address=1 value=0x0007 ok",
     ]
