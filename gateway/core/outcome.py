@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from enum import StrEnum
 
+from .reasons import CloseReason as CloseReason  # the reasons belong to this vocabulary
+from .reasons import MasterFault as MasterFault
+from .reasons import RejectReason as RejectReason
+
 
 class Outcome(StrEnum):
     """What became of one request from a master; the ``outcome`` label's whole vocabulary."""
@@ -45,6 +49,3 @@ class LineEvent(StrEnum):
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
     COALESCED = "coalesced"  # a read joined an identical queued read
-
-
-from .reasons import *  # noqa: E402, F403  (the reasons are part of this vocabulary)

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-__all__ = ["CloseReason", "MasterFault", "RejectReason"]
-
 
 class CloseReason(StrEnum):
     """Why a master's connection closed: the ``reason`` label of ``connections_closed_total``."""

@@ -122,3 +122,19 @@ def test_cycles_are_found_when_present() -> None:
 
 def test_no_import_cycle_inside_the_package() -> None:
     assert find_cycles(import_graph()) == []
+
+
+def _every_import(module: str) -> set[str]:
+    """What ``module`` imports anywhere, type-only and function-level imports included."""
+    path = PACKAGE.parent.joinpath(*module.split(".")).with_suffix(".py")
+    targets: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            targets |= _targets(module, False, node)
+    return targets
+
+
+def test_status_and_trace_do_not_know_the_application() -> None:
+    """They read the narrow ``GatewayView`` the app provides, not the app, even for types."""
+    for module in ("gateway.live", "gateway.status", "gateway.trace", "gateway.metrics"):
+        assert "gateway.app" not in _every_import(module), module
