@@ -4,9 +4,9 @@ Theory of operation: every listener holds the gateway's one ``FrameTrace`` from
 the moment it is built; ``TraceHub`` subscribes to it (beside the ``--trace``
 logging tracer, if any) only while somebody watches: a trace stream is open, or
 the status page asked for ``/status`` in the last ``WATCH_S`` seconds. Nobody
-watching costs the frame path a call with no subscriber to serve. Each event
-is matched against each stream's filters and appended to that stream's own
-bounded queue; a stream whose client reads too slowly loses
+watching costs the frame path one attribute test (the trace is not active).
+Each event is matched against each stream's filters and appended to that
+stream's own bounded queue; a stream whose client reads too slowly loses
 events (counted in ``trace_dropped_events_total`` and announced to the client
 as a gap) rather than slowing the gateway: the frame path never waits for a
 socket. Serialising to JSON happens in the stream's writer task, off the

@@ -3,10 +3,11 @@
 Every listener is given one ``FrameTrace`` when it is built and keeps it: the
 trace forwards each frame to its subscribers (the ``--trace`` logging ``Tracer``,
 the live trace hub while somebody watches), so tracing starts and stops by
-subscribing, never by swapping what a listener holds. With no subscriber a frame
-costs a call and an empty loop. Lines go to the ``gateway.trace`` logger at INFO,
-so they follow the log format (JSON lines carry every field separately) and
-never need a second output to be configured.
+subscribing, never by swapping what a listener holds. With no subscriber the
+trace is not ``active`` and a frame costs the listener one attribute test.
+Lines go to the ``gateway.trace`` logger at INFO, so they follow the log format
+(JSON lines carry every field separately) and never need a second output to be
+configured.
 
 A reply line shows the latency from the request's arrival, looked up by
 (master, transaction id, unit) in a bounded table: a master that leaves
@@ -88,16 +89,21 @@ class FrameTracer(Protocol):
 
 
 class FrameTrace:
-    """The one tracer every listener holds: hands each frame to the subscribers of the moment.
+    """The one frame trace every listener holds: hands each frame to its subscribers.
 
     Built once with the gateway and given to each listener as it is built; who watches
     changes by ``subscribe`` and ``unsubscribe``, so nothing a listener holds is swapped.
+    A listener calls it only while ``active`` (somebody subscribed): a gateway nobody
+    traces pays one attribute test per frame.
     """
 
-    __slots__ = ("_subscribers",)
+    __slots__ = ("_subscribers", "active")
 
     def __init__(self, *subscribers: FrameTracer) -> None:
-        self._subscribers: tuple[FrameTracer, ...] = subscribers
+        self._subscribers: tuple[FrameTracer, ...] = ()
+        self.active = False  #: True while somebody subscribed
+        for tracer in subscribers:
+            self.subscribe(tracer)
 
     @property
     def subscribers(self) -> tuple[FrameTracer, ...]:
@@ -108,10 +114,12 @@ class FrameTrace:
         """Send every following frame to ``tracer`` too (once, however often it subscribes)."""
         if tracer not in self._subscribers:
             self._subscribers = (*self._subscribers, tracer)
+        self.active = True
 
     def unsubscribe(self, tracer: FrameTracer) -> None:
         """Stop sending frames to ``tracer`` (nothing if it was not subscribed)."""
         self._subscribers = tuple(s for s in self._subscribers if s is not tracer)
+        self.active = bool(self._subscribers)
 
     def request(
         self,

@@ -73,7 +73,7 @@ class RtuMasterConnection(MasterConnection):
         else:
             self._transport.write(frame)
         tracer = self._server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     def _release(self) -> None:

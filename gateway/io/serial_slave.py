@@ -53,7 +53,7 @@ from ..core.timing import character_time, t35
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
-from ..trace import FrameTracer
+from ..trace import FrameTrace
 from .bus import Request
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
@@ -112,7 +112,7 @@ class SerialSlave:
         self.requests = 0  #: requests served (addressed to a routed unit)
         self.ignored = 0  #: frames ignored in silence (not for us, bad CRC, not a request)
         self.echoes = 0  #: bytes of our own answers dropped as their echo (``echo = true``)
-        self.tracer: FrameTracer | None = None  #: only while tracing (see ``trace``)
+        self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self._sequence = 0  # numbers the requests for the trace (no transaction id on a line)
         self._faults = RateLimitedLogger(log, loop)
 
@@ -278,7 +278,7 @@ class SerialSlave:
         self._sequence = (number + 1) & 0xFFFF
         peer = self._serial.device
         tracer = self.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.request(peer, number, unit, pdu, self.name)
         try:
             fc.validate_request(pdu)
@@ -304,7 +304,7 @@ class SerialSlave:
                 self._answer(number, unit, response, outcome)
             else:
                 outcome = Outcome.DROPPED  # the master gave up on it: a newer request came
-                if self.tracer is not None:
+                if self.tracer.active:
                     self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
 
@@ -324,7 +324,7 @@ class SerialSlave:
             return
         if not self.policy.open and self.policy.decide(Principal(None), 0, pdu).denied:
             return
-        if self.tracer is not None:
+        if self.tracer.active:
             number = self._sequence
             self._sequence = (number + 1) & 0xFFFF
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
@@ -336,7 +336,7 @@ class SerialSlave:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
         frame = self._encode(unit, pdu)
         tracer = self.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self._serial.device, number, unit, pdu, outcome)
         wait = self._last_byte + self._turnaround - time.monotonic()
         if wait > 0:

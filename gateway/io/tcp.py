@@ -55,7 +55,7 @@ from ..core.policy import Decision, IPAddress, Policy, Principal
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
 from ..status import MasterStatus
-from ..trace import FrameTracer
+from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
 from .tls import HandshakeFailure, handshake_failure_reason, role_of
@@ -301,7 +301,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         transaction_id, unit, pdu = frame
         function = pdu[0] if pdu else 0
         tracer = server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
         # Authorization first: a master learns nothing about requests it may not send. An open
         # policy can only refuse Force Listen Only Mode (FC 8/4), so only FC 8 asks it.
@@ -346,7 +346,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
-                if server.tracer is not None:
+                if server.tracer.active:
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
                 self._send(transaction_id, unit, response, outcome)
@@ -430,7 +430,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         else:
             self._transport.write(adu)
         tracer = self._server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     # -- closing -----------------------------------------------------------------------
@@ -533,7 +533,7 @@ class ModbusTcpServer:
         self.policy = policy or Policy()  #: replaced as a whole on reload
         self.ssl_context = ssl_context  #: replaced on reload; new connections use the new one
         self.screen = SourceScreen(self.name, (config.allow, self.listener.allow), metrics)
-        self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
+        self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []

@@ -199,7 +199,9 @@ def test_the_frame_trace_reaches_its_subscribers_of_the_moment() -> None:
     trace.unsubscribe(first)  # not subscribed: nothing happens
     assert first.heard == [("request", 1, None), ("reply", 1, Outcome.OK)]
     assert second.heard == [("reply", 1, Outcome.OK), ("dropped", 2, Outcome.DROPPED)]
-    assert trace.subscribers == (second,)
+    assert trace.subscribers == (second,) and trace.active
+    trace.unsubscribe(second)
+    assert not trace.active and not FrameTrace().active  # listeners call it only when active
 
 
 @pytest.mark.parametrize(
