@@ -260,6 +260,7 @@ class Gateway:
                 ) from error
 
     def _log_listening(self) -> None:
+        """One line per listener (the CLI's tests and operators wait for it), then metrics."""
         for server in self.servers:
             host, port = server.sockets[0]
             listener = server.listener
@@ -330,6 +331,7 @@ class Gateway:
             await self._apply(config)
 
     async def _apply(self, config: GatewayConfig) -> None:
+        """Certificates first (a bad one rejects the reload), then lines, then listeners."""
         assert self.server is not None
         try:
             tls = self._build_tls(config)  # certificates, keys and CAs are read again

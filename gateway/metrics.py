@@ -56,12 +56,6 @@ __all__ = [  # CloseReason and RejectReason live in core; importing them from he
 #: ``function`` label by function code (``other`` when unknown): an index, not a call.
 _FUNCTION_LABELS = tuple(function_name(code) for code in range(256))
 
-#: Outcomes of a request from a master, the ``outcome`` label's whole vocabulary.
-OUTCOMES = tuple(Outcome)
-
-#: The ``reason`` label's vocabulary of ``connections_closed_total``.
-CLOSE_REASONS = tuple(CloseReason)
-
 #: The outcomes a ``requests_total`` row can take, by where the request was answered: its
 #: series are created at 0 together, with the row's first request (see ``count_request``).
 LINE_OUTCOMES = (
