@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from enum import StrEnum
 
+from .reasons import CloseReason as CloseReason  # the reasons belong to this vocabulary
+from .reasons import MasterFault as MasterFault
+from .reasons import RejectReason as RejectReason
+
 
 class Outcome(StrEnum):
     """What became of one request from a master; the ``outcome`` label's whole vocabulary."""

@@ -84,7 +84,7 @@ from ..core.routes import Target as CoreTarget
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
 from ..status import MasterStatus
-from ..trace import FrameTracer
+from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
 from .tls import (
@@ -366,7 +366,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self.requests += 1
         transaction_id, unit, pdu = frame
         tracer = server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
         router = server.router
         result = router.admitter.admit(self.principal, unit, pdu, server.policy)
@@ -388,11 +388,11 @@ class MasterConnection(asyncio.BufferedProtocol):
         unit_label = UNIT_LABELS[slave]  # the slave address, as in the line's metrics
         duration = bus.request_duration
 
-        def reply(response: bytes, outcome: str) -> None:
+        def reply(response: bytes, outcome: Outcome) -> None:
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
-                if server.tracer is not None:
+                if server.tracer.active:
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
                 self._send(transaction_id, unit, response, outcome)
@@ -437,7 +437,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             return
         remaining = len(buses)
 
-        def sent(_response: bytes, outcome: str) -> None:
+        def sent(_response: bytes, outcome: Outcome) -> None:
             nonlocal remaining
             remaining -= 1
             if remaining:
@@ -463,7 +463,9 @@ class MasterConnection(asyncio.BufferedProtocol):
         if self._pauses & ReadPause.PIPELINE and not self._closed and self._batch is None:
             self._run_batch()
 
-    def _send(self, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None) -> None:
+    def _send(
+        self, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
         if self._transport is None or self._closed:
             return
         adu = encode_mbap(transaction_id, unit, pdu)
@@ -472,7 +474,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         else:
             self._transport.write(adu)
         tracer = self._server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     # -- closing -----------------------------------------------------------------------
@@ -607,7 +609,7 @@ class ModbusTcpServer:
         #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
         #: then: the handshake's verdict on the chain stands.
         self._authorities: tuple[x509.Certificate, ...] | None = None
-        self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
+        self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []
