@@ -607,13 +607,16 @@ class ModbusTcpServer:
         #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
         #: then: the handshake's verdict on the chain stands.
         self._authorities: tuple[x509.Certificate, ...] | None = None
+        self._revocations: tuple[x509.CertificateRevocationList, ...] = ()  #: the crl, likewise
         self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []
         self._addresses: list[tuple[str, int]] = []
         self._accepting = False
-        self._starting: set[asyncio.Task[object]] = set()
+        #: Connections being set up (a TLS handshake under way): closing one cancels its
+        #: setup, which closes its socket at once instead of at the handshake timeout.
+        self._starting: dict[MasterConnection, asyncio.Task[object]] = {}
         loop = asyncio.get_running_loop()
         self._loop = loop
         #: Faults a client can repeat at will, logged per (source, kind) at a bounded rate.
@@ -744,23 +747,26 @@ class ModbusTcpServer:
                 ssl_handshake_timeout=self.config.tls_handshake_timeout,
             )  # fmt: skip
         task = self._loop.create_task(setup)
-        self._starting.add(task)
+        self._starting[connection] = task
         task.add_done_callback(lambda done: self._started(done, connection, sock))
 
     def _started(
         self, task: asyncio.Task[object], connection: MasterConnection, sock: socket.socket
     ) -> None:
-        self._starting.discard(task)
+        if self._starting.get(connection) is task:
+            del self._starting[connection]
         error = None if task.cancelled() else task.exception()
         if task.cancelled() or error is not None:
             sock.close()
             connection.close(CloseReason.ERROR)
             if self.ssl_context is not None and error is not None:
-                self.handshake_failed(handshake_failure_reason(error), error)
+                self.handshake_failed(handshake_failure_reason(error), error, connection)
 
-    def handshake_failed(self, reason: HandshakeFailure, error: BaseException) -> None:
-        """Count and log (at a bounded rate) a failed TLS handshake."""
-        self.screen.handshake_failed(reason, error)
+    def handshake_failed(
+        self, reason: HandshakeFailure, error: BaseException, connection: MasterConnection
+    ) -> None:
+        """Count and log (at a bounded rate per source) a failed TLS handshake."""
+        self.screen.handshake_failed(reason, error, connection.peer, connection.principal.source)
 
     def masters(self) -> list[MasterStatus]:
         """A snapshot of the connected masters, for the status page."""
@@ -834,7 +840,10 @@ class ModbusTcpServer:
         )  # fmt: skip
 
     def forget(self, connection: MasterConnection, reason: CloseReason) -> None:
-        """Drop a closed connection from the books (once)."""
+        """Drop a closed connection from the books (once); abandon its setup if under way."""
+        setup = self._starting.pop(connection, None)
+        if setup is not None and not setup.done():
+            setup.cancel()  # the transport is aborted and the descriptor freed now
         if self._connections.pop(connection, False) is None:
             source = connection.source
             remaining = self._per_source.get(source, 1) - 1
@@ -860,6 +869,7 @@ class ModbusTcpServer:
         self.epoch += 1
         if tls is not None:
             self._authorities = tls.authorities
+            self._revocations = tls.revocations
         seen: dict[tuple[bytes, ...], CertificateFacts | None] = {}
         closed = 0
         for connection in list(self._connections):
@@ -888,7 +898,7 @@ class ModbusTcpServer:
         if established and self.listener.tls:
             chain = connection.chain
             if chain not in seen:
-                seen[chain] = certificate_facts(chain, self._authorities)
+                seen[chain] = certificate_facts(chain, self._authorities, self._revocations)
             certificate = seen[chain]
         facts = ConnectionFacts(connection.principal.source, established, certificate)
         return admit(self.screen.door(self.listener.tls), facts, now)
@@ -907,7 +917,7 @@ class ModbusTcpServer:
             self._loop.remove_reader(sock.fileno())
             sock.close()
         if self.ssl_context is not None:
-            for task in self._starting:
+            for task in self._starting.values():
                 task.cancel()
 
     def close_all(self, reason: CloseReason) -> None:
@@ -920,4 +930,4 @@ class ModbusTcpServer:
     async def wait_closed(self) -> None:
         """Wait for the connections still being set up to settle."""
         if self._starting:
-            await asyncio.wait(set(self._starting), timeout=1.0)
+            await asyncio.wait(set(self._starting.values()), timeout=1.0)

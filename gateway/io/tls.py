@@ -57,6 +57,7 @@ class HandshakeFailure(enum.StrEnum):
     NO_CERTIFICATE = "no_certificate"  # the client sent no certificate
     UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # does not chain to the configured CAs
     EXPIRED_CERTIFICATE = "expired_certificate"  # expired or not yet valid
+    REVOKED_CERTIFICATE = "revoked_certificate"  # listed in the listener's crl
     TIMEOUT = "timeout"  # no complete handshake within server.tls_handshake_timeout
     CLOSED = "closed"  # the client went away during the handshake
     OTHER = "other"  # anything else (no common cipher, garbage instead of a ClientHello, ...)
@@ -64,6 +65,19 @@ class HandshakeFailure(enum.StrEnum):
 
 # OpenSSL's X509_V_ERR_CERT_NOT_YET_VALID and X509_V_ERR_CERT_HAS_EXPIRED.
 _EXPIRY_VERIFY_CODES = frozenset({9, 10})
+_REVOKED_VERIFY_CODE = 23  # X509_V_ERR_CERT_REVOKED
+
+#: The suites with forward secrecy (ECDHE), strongest first; TLS 1.3's own suites come
+#: before them whatever this says. No NULL, anonymous, SHA-1 or CCM suite.
+FORWARD_SECRET_SUITES = "ECDHE+AESGCM:ECDHE+CHACHA20:ECDHE+AES:!aNULL:!eNULL:!SHA1:!AESCCM"
+#: TLS_RSA_WITH_AES_128_CBC_SHA256, the suite MB-TCP-Security v21 R-14 requires: RSA key
+#: exchange (an RSA server certificate), no forward secrecy, so listed last.
+REQUIRED_SUITE = "AES128-SHA256"
+
+
+def cipher_string(forward_secrecy_only: bool) -> str:
+    """The OpenSSL cipher list of a listener (the server's order is the one used)."""
+    return FORWARD_SECRET_SUITES if forward_secrecy_only else f"{FORWARD_SECRET_SUITES}:{REQUIRED_SUITE}"
 
 
 def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
@@ -71,6 +85,8 @@ def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
     if isinstance(error, ssl.SSLCertVerificationError):
         if error.verify_code in _EXPIRY_VERIFY_CODES:
             return HandshakeFailure.EXPIRED_CERTIFICATE
+        if error.verify_code == _REVOKED_VERIFY_CODE:
+            return HandshakeFailure.REVOKED_CERTIFICATE
         return HandshakeFailure.UNTRUSTED_CERTIFICATE
     if isinstance(error, ssl.SSLError):
         reason = (error.reason or "").upper()
@@ -134,6 +150,48 @@ def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
     return certificates
 
 
+def _issuer_name(crl: x509.CertificateRevocationList) -> str:
+    names = crl.issuer.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(names[0].value) if names else crl.issuer.rfc4514_string()
+
+
+def _next_update(crl: x509.CertificateRevocationList) -> datetime:
+    """When the CRL's issuer promises the next one (a CRL without a date: never expires)."""
+    return crl.next_update_utc or datetime.max.replace(tzinfo=UTC)
+
+
+def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevocationList, ...]:
+    """The CRLs in a PEM file (one per issuing CA); ``TlsSetupError`` when unusable or expired.
+
+    An expired list (past its ``nextUpdate``) refuses start-up and the reload: OpenSSL would
+    refuse every client certificate against it (``CRL has expired``), so it is a fault to fix
+    before it locks every master out, not a warning.
+    """
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+    except OSError as error:
+        raise TlsSetupError(f"{key} = {path!r}: cannot read: {error.strerror or error}") from None
+    blocks = [b"-----BEGIN X509 CRL-----" + part for part in data.split(b"-----BEGIN X509 CRL-----")[1:]]
+    try:
+        crls = tuple(x509.load_pem_x509_crl(block) for block in blocks)
+    except ValueError:
+        crls = ()
+    if not crls:
+        raise TlsSetupError(
+            f"{key} = {path!r}: no PEM CRL in it (expected -----BEGIN X509 CRL-----; convert a DER "
+            "list with: openssl crl -inform DER -in FILE -out FILE.pem)"
+        )
+    for crl in crls:
+        if now > _next_update(crl):
+            raise TlsSetupError(
+                f"{key} = {path!r}: the CRL of {_issuer_name(crl)!r} expired on "
+                f"{_next_update(crl):%Y-%m-%d %H:%M:%S} UTC (its nextUpdate); fetch the current "
+                "one from the CA, then reload (SIGHUP)"
+            )
+    return crls
+
+
 @dataclass
 class ServerTls:
     """A listener's built TLS context and the certificates it rests on."""
@@ -142,6 +200,8 @@ class ServerTls:
     certificates: list[CertificateInfo]
     #: The CAs client certificates must chain to, for judging open connections at a reload.
     authorities: tuple[x509.Certificate, ...] = ()
+    #: The listener's revocation lists (``crl``), for the same judgement.
+    revocations: tuple[x509.CertificateRevocationList, ...] = ()
 
 
 def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
@@ -180,11 +240,34 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
                 f"{authority.not_valid_after_utc:%Y-%m-%d}",
             )  # fmt: skip
         infos.append(info)
+    revocations = read_crl(listener.crl, f"{prefix}crl", moment) if listener.crl else ()
+    infos.extend(
+        CertificateInfo(listener.name, "crl", _issuer_name(crl), _next_update(crl))
+        for crl in revocations
+    )
+    context = _context(listener)
+    _load_files(context, listener)
+    return ServerTls(context, infos, tuple(authorities), revocations)
+
+
+def _context(listener: ListenerConfig) -> ssl.SSLContext:
+    """The settings of a listener's context: versions, suites, resumption (module docstring)."""
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
     context.verify_mode = ssl.CERT_REQUIRED  # mutual authentication
     context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
     context.options |= ssl.OP_CIPHER_SERVER_PREFERENCE
+    context.set_ciphers(cipher_string(listener.forward_secrecy_only))
+    if not listener.session_resumption:
+        context.options |= ssl.OP_NO_TICKET  # no TLS 1.2 ticket (nor stateless 1.3 ones)
+        context.num_tickets = 0  # no TLS 1.3 ticket of any kind
+    return context
+
+
+def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:
+    """Load the key pair, the CAs and the CRL; raise ``TlsSetupError`` naming the key."""
+    assert listener.cert and listener.key and listener.ca
+    prefix = listener.key_prefix
     try:
         context.load_cert_chain(listener.cert, listener.key)
     except ssl.SSLError as error:
@@ -201,7 +284,12 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
         context.load_verify_locations(cafile=listener.ca)
     except (ssl.SSLError, OSError) as error:
         raise TlsSetupError(f"{prefix}ca = {listener.ca!r}: cannot be used: {error}") from None
-    return ServerTls(context, infos, tuple(authorities))
+    if listener.crl:
+        try:  # checked above with cryptography; OpenSSL reads the same PEM
+            context.load_verify_locations(cafile=listener.crl)
+        except (ssl.SSLError, OSError) as error:
+            raise TlsSetupError(f"{prefix}crl = {listener.crl!r}: cannot be used: {error}") from None
+        context.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
 
 
 def role_from_certificate(der: bytes | None) -> str | None:
@@ -288,7 +376,9 @@ def _anchor(certificate: x509.Certificate, authorities: Sequence[x509.Certificat
 
 
 def certificate_facts(
-    chain: Sequence[bytes], authorities: Sequence[x509.Certificate] | None
+    chain: Sequence[bytes],
+    authorities: Sequence[x509.Certificate] | None,
+    revocations: Sequence[x509.CertificateRevocationList] = (),
 ) -> CertificateFacts | None:
     """What a verified chain (DER, leaf first) shows against ``authorities``; ``None``: none.
 
@@ -296,7 +386,8 @@ def certificate_facts(
     (a CA renewed with the same key still anchors it). The validity window is the
     intersection of the windows along the chain up to that CA (the CA included).
     ``authorities`` ``None`` (not known): the handshake's verdict stands, the whole
-    chain's window counts.
+    chain's window counts. Revoked: the leaf's serial is in a CRL of ``revocations``
+    signed by the leaf's issuer (the leaf alone, as the handshake checks it).
     """
     try:
         certificates = [x509.load_der_x509_certificate(der) for der in chain]
@@ -304,20 +395,46 @@ def certificate_facts(
         return None
     if not certificates:
         return None
+    revoked = _revoked(certificates, authorities or (), revocations)
     if authorities is None:
-        return _facts(certificates, trusted=True)
+        return _facts(certificates, trusted=True, revoked=revoked)
     for index, certificate in enumerate(certificates):
         anchor = _anchor(certificate, authorities)
         if anchor is not None:
-            return _facts([*certificates[: index + 1], anchor], trusted=True)
-    return _facts(certificates[:1], trusted=False)  # the leaf's own window, for the record
+            return _facts([*certificates[: index + 1], anchor], trusted=True, revoked=revoked)
+    return _facts(certificates[:1], trusted=False, revoked=revoked)  # the leaf's own window
 
 
-def _facts(path: Sequence[x509.Certificate], *, trusted: bool) -> CertificateFacts:
+def _revoked(
+    chain: Sequence[x509.Certificate],
+    authorities: Sequence[x509.Certificate],
+    revocations: Sequence[x509.CertificateRevocationList],
+) -> bool:
+    """True when a CRL of the leaf's issuer, signed by it, lists the leaf's serial."""
+    leaf = chain[0]
+    issuers = [c for c in (*chain[1:], *authorities) if c.subject == leaf.issuer]
+    for crl in revocations:
+        if crl.issuer != leaf.issuer:
+            continue
+        if crl.get_revoked_certificate_by_serial_number(leaf.serial_number) is None:
+            continue
+        for issuer in issuers:
+            try:
+                if crl.is_signature_valid(issuer.public_key()):  # type: ignore[arg-type]
+                    return True
+            except (TypeError, ValueError):
+                continue
+    return False
+
+
+def _facts(
+    path: Sequence[x509.Certificate], *, trusted: bool, revoked: bool = False
+) -> CertificateFacts:
     return CertificateFacts(
         max(c.not_valid_before_utc for c in path).timestamp(),
         min(c.not_valid_after_utc for c in path).timestamp(),
         trusted,
+        revoked,
     )
 
 
