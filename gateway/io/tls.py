@@ -24,10 +24,13 @@ UTF8String) is read from the DER with ``cryptography``.
 
 from __future__ import annotations
 
+import _ssl
 import asyncio
+import ctypes
 import enum
 import logging
 import ssl
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -77,7 +80,11 @@ REQUIRED_SUITE = "AES128-SHA256"
 
 def cipher_string(forward_secrecy_only: bool) -> str:
     """The OpenSSL cipher list of a listener (the server's order is the one used)."""
-    return FORWARD_SECRET_SUITES if forward_secrecy_only else f"{FORWARD_SECRET_SUITES}:{REQUIRED_SUITE}"
+    return (
+        FORWARD_SECRET_SUITES
+        if forward_secrecy_only
+        else f"{FORWARD_SECRET_SUITES}:{REQUIRED_SUITE}"
+    )
 
 
 def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
@@ -172,7 +179,9 @@ def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevoca
             data = handle.read()
     except OSError as error:
         raise TlsSetupError(f"{key} = {path!r}: cannot read: {error.strerror or error}") from None
-    blocks = [b"-----BEGIN X509 CRL-----" + part for part in data.split(b"-----BEGIN X509 CRL-----")[1:]]
+    blocks = [
+        b"-----BEGIN X509 CRL-----" + part for part in data.split(b"-----BEGIN X509 CRL-----")[1:]
+    ]
     try:
         crls = tuple(x509.load_pem_x509_crl(block) for block in blocks)
     except ValueError:
@@ -261,7 +270,42 @@ def _context(listener: ListenerConfig) -> ssl.SSLContext:
     if not listener.session_resumption:
         context.options |= ssl.OP_NO_TICKET  # no TLS 1.2 ticket (nor stateless 1.3 ones)
         context.num_tickets = 0  # no TLS 1.3 ticket of any kind
+        if not session_cache_off(context):
+            log.warning(
+                "listener %s: this Python cannot turn off OpenSSL's session cache: TLS 1.2 "
+                "masters may resume sessions by id for up to 7,200 s", listener.name,
+            )  # fmt: skip
     return context
+
+
+_SSL_CTRL_SET_SESS_CACHE_MODE = 44
+_SSL_CTRL_GET_SESS_CACHE_MODE = 45
+_SSL_SESS_CACHE_SERVER = 2  # OpenSSL's default mode for a server context
+
+
+def session_cache_off(context: ssl.SSLContext) -> bool:
+    """Turn off the server's session-id cache (TLS 1.2 resumption by id); ``True`` if done.
+
+    Python's ``ssl`` has no call for ``SSL_CTX_set_session_cache_mode``: it is reached
+    through the ``SSL_CTX`` pointer that CPython's context object holds right after its
+    object header, and libssl as ``_ssl`` loaded it. The mode is read first, and set only
+    when it is OpenSSL's documented default, so a layout this does not expect is left alone.
+    """
+    if sys.implementation.name != "cpython" or type(context) is not ssl.SSLContext:
+        return False
+    try:
+        control = ctypes.PyDLL(_ssl.__file__).SSL_CTX_ctrl
+    except (OSError, AttributeError):
+        return False
+    control.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_long, ctypes.c_void_p]
+    control.restype = ctypes.c_long
+    pointer = ctypes.c_void_p.from_address(id(context) + object.__basicsize__).value
+    if not pointer or control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) != (
+        _SSL_SESS_CACHE_SERVER
+    ):
+        return False
+    control(pointer, _SSL_CTRL_SET_SESS_CACHE_MODE, 0, None)
+    return control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) == 0
 
 
 def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:
@@ -288,7 +332,9 @@ def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:
         try:  # checked above with cryptography; OpenSSL reads the same PEM
             context.load_verify_locations(cafile=listener.crl)
         except (ssl.SSLError, OSError) as error:
-            raise TlsSetupError(f"{prefix}crl = {listener.crl!r}: cannot be used: {error}") from None
+            raise TlsSetupError(
+                f"{prefix}crl = {listener.crl!r}: cannot be used: {error}"
+            ) from None
         context.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
 
 
@@ -331,19 +377,22 @@ def peer_chain(transport: asyncio.BaseTransport) -> tuple[bytes, ...]:
     Kept per connection so that a reload can judge it again against new CAs (``ssl``
     cannot verify an open session again). Python 3.13 names the call
     ``get_verified_chain``; before, the ``_ssl`` object under the ``SSLObject`` has it.
-    Without either, the leaf alone.
+    OpenSSL keeps no verified chain on a TLS 1.2 server session: then the chain the
+    client sent (which that handshake verified); without either, the leaf alone.
     """
     ssl_object: Any = transport.get_extra_info("ssl_object")
     if ssl_object is None:
         return ()
-    chain = getattr(ssl_object, "get_verified_chain", None)
-    if chain is None:
-        chain = getattr(getattr(ssl_object, "_sslobj", None), "get_verified_chain", None)
-    if chain is not None:
+    for name in ("get_verified_chain", "get_unverified_chain"):
+        chain = getattr(ssl_object, name, None)
+        if chain is None:
+            chain = getattr(getattr(ssl_object, "_sslobj", None), name, None)
         try:
-            return tuple(_der_of(certificate) for certificate in chain())
-        except (ssl.SSLError, ValueError, AttributeError):
-            pass
+            certificates = chain() if chain is not None else None
+            if certificates:
+                return tuple(_der_of(certificate) for certificate in certificates)
+        except (ssl.SSLError, ValueError, AttributeError, TypeError):
+            continue
     leaf = ssl_object.getpeercert(binary_form=True)
     return (leaf,) if leaf else ()
 

@@ -1,0 +1,284 @@
+"""A tls listener's suites, resumption, failure log lines and descriptors, over loopback.
+
+Real clients: ``openssl s_client`` offering only the suite the specification
+requires (TLS_RSA_WITH_AES_128_CBC_SHA256) against an RSA server certificate,
+with and without ``forward_secrecy_only``; Python's ssl for session resumption
+(off by default, on with ``session_resumption``); clients from distinct loopback
+sources for the per-source failure lines; and raw TCP clients that never send a
+ClientHello, evicted or closed while in their handshake, for the descriptors.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import ssl
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import (
+    DEADLINE_S,
+    ConnectionClosedError,
+    GatewayFactory,
+    LogCollector,
+    RawClient,
+    RunningGateway,
+    SimFactory,
+    wait_until,
+)
+
+from gateway.config import build_config
+from gateway.sim import plc
+from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
+
+READ = bytes.fromhex("03 0000 0001")
+READ_ANSWER = bytes.fromhex("03 02 0000")
+OPENSSL = shutil.which("openssl")
+
+
+class Master(RawClient):
+    """A raw Modbus master over TLS from a chosen loopback source, with an optional session."""
+
+    def __init__(
+        self,
+        address: tuple[str, int],
+        context: ssl.SSLContext,
+        *,
+        source: str | None = None,
+        session: ssl.SSLSession | None = None,
+    ) -> None:
+        sock = socket.create_connection(
+            address, timeout=DEADLINE_S, source_address=(source, 0) if source else None
+        )
+        self.sock: ssl.SSLSocket = context.wrap_socket(
+            sock, server_hostname="localhost", session=session
+        )
+        self.timeout = DEADLINE_S
+        self._next_tid = 1
+
+
+@pytest.fixture(scope="module")
+def rsa_pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    return make_pki(tmp_path_factory.mktemp("rsa-pki"), KeyAlgorithm.RSA)
+
+
+@pytest.fixture(scope="module")
+def ec_pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    return make_pki(tmp_path_factory.mktemp("ec-pki"))
+
+
+@pytest.fixture
+def access_log() -> Iterator[LogCollector]:
+    collector = LogCollector()
+    logger = logging.getLogger("gateway.access")
+    logger.addHandler(collector)
+    try:
+        yield collector
+    finally:
+        logger.removeHandler(collector)
+
+
+def tls_tables(make_sim: SimFactory, pki: Pki, **options: Any) -> dict[str, Any]:
+    """The tables of a gateway with one tls listener (``options``: its keys, and ``server``)."""
+    sim = make_sim({1: plc(1)})
+    server = options.pop("server", {})
+    listener: dict[str, Any] = {
+        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
+        "key": str(pki.server_key), "ca": str(pki.ca), **options,
+    }  # fmt: skip
+    return {
+        "server": {"listen": "127.0.0.1:0", **server}, "metrics": {"listen": "off"},
+        "lines": {"a": sim.line_table([1])}, "listeners": [listener],
+    }  # fmt: skip
+
+
+def tls_gateway(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, **options: Any
+) -> RunningGateway:
+    return make_gateway(tls_tables(make_sim, pki, **options))
+
+
+def tls_address(gw: RunningGateway) -> tuple[str, int]:
+    return gw.call(lambda: gw.gateway.listener_address("tls"))
+
+
+def client_context(pki: Pki, name: str = "operator") -> ssl.SSLContext:
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cafile=str(pki.ca))
+    context.load_cert_chain(*pki.client(name))
+    return context
+
+
+def s_client(address: tuple[str, int], pki: Pki, *options: str) -> str:
+    """Run ``openssl s_client`` with the operator's certificate; its whole output."""
+    assert OPENSSL is not None
+    chain, key = pki.client("operator")
+    command = [
+        OPENSSL, "s_client", "-connect", f"{address[0]}:{address[1]}", "-cert", chain,
+        "-cert_chain", chain, "-key", key, "-CAfile", str(pki.ca), *options,
+    ]  # fmt: skip
+    done = subprocess.run(command, input=b"", capture_output=True, timeout=DEADLINE_S, check=False)
+    return done.stdout.decode(errors="replace") + done.stderr.decode(errors="replace")
+
+
+# -- suites ---------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+def test_a_client_offering_only_the_required_suite_connects(
+    make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, rsa_pki)
+    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    assert "Cipher is AES128-SHA256" in out, out
+    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")  # the ECDHE suites come first
+    assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
+
+
+@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+def test_forward_secrecy_only_refuses_the_required_suite(
+    make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, rsa_pki, forward_secrecy_only=True)
+    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    assert "Cipher is (NONE)" in out and "Cipher is AES128" not in out, out
+    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")
+    assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
+
+
+@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+def test_null_suites_are_refused(
+    make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, rsa_pki)
+    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "NULL-SHA256:@SECLEVEL=0")
+    assert "Cipher is NULL" not in out and "Cipher is (NONE)" in out, out
+
+
+def test_the_ec_pki_is_served_with_forward_secrecy(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, ec_pki)
+    with Master(tls_address(gw), client_context(ec_pki)) as master:
+        assert master.request(1, READ) == READ_ANSWER
+        cipher = master.sock.cipher()
+        assert cipher is not None and (cipher[1] == "TLSv1.3" or "ECDHE" in cipher[0])
+
+
+# -- session resumption ---------------------------------------------------------------------
+
+
+def resumed(gw: RunningGateway, pki: Pki, version: ssl.TLSVersion) -> bool:
+    """Connect, take the session (after a request: TLS 1.3 tickets come after the
+    handshake), connect again offering it; whether the second one was resumed."""
+    context = client_context(pki)
+    context.minimum_version = context.maximum_version = version
+    with Master(tls_address(gw), context) as first:
+        assert first.request(1, READ) == READ_ANSWER
+        session = first.sock.session
+    with Master(tls_address(gw), context, session=session) as second:
+        assert second.request(1, READ) == READ_ANSWER
+        return second.sock.session_reused
+
+
+@pytest.mark.parametrize("version", [ssl.TLSVersion.TLSv1_2, ssl.TLSVersion.TLSv1_3])
+def test_sessions_are_not_resumed_by_default(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki, version: ssl.TLSVersion
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, ec_pki)
+    assert not resumed(gw, ec_pki, version)
+
+
+@pytest.mark.parametrize("version", [ssl.TLSVersion.TLSv1_2, ssl.TLSVersion.TLSv1_3])
+def test_session_resumption_turns_tickets_on(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki, version: ssl.TLSVersion
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, ec_pki, session_resumption=True)
+    assert resumed(gw, ec_pki, version)
+
+
+# -- failure log lines ----------------------------------------------------------------------
+
+
+def failing_handshake(gw: RunningGateway, pki: Pki, source: str) -> None:
+    """A client whose certificate chains to a CA the listener does not trust."""
+    with pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)):  # noqa: PT012
+        with Master(tls_address(gw), client_context(pki, "otherca"), source=source) as master:
+            master.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
+
+
+def test_a_failed_handshake_is_logged_with_the_peer_once_per_source(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki, access_log: LogCollector
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, ec_pki)
+    server = next(s for s in gw.gateway.servers if s.name == "tls")
+    for source in ("127.0.0.2", "127.0.0.2", "127.0.0.2", "127.0.0.3"):
+        failing_handshake(gw, ec_pki, source)
+    labels = {"listener": "tls", "reason": "untrusted_certificate"}
+    name = "modbus_gateway_tls_handshake_failures_total"
+    wait_until(
+        lambda: gw.call(lambda: server.metrics.registry.get_sample_value(name, labels)) == 4,
+        "four failures counted",
+    )
+    lines = [m for m in access_log.messages if "TLS handshake failed" in m]
+    assert len(lines) == 2, lines  # one per source; the repeats wait for the summary
+    first, other = sorted(lines)
+    assert "master 127.0.0.2" in first and "peer 127.0.0.2:" in first, first
+    assert "untrusted_certificate" in first and "certificate verify failed" in first, first
+    assert "master 127.0.0.3" in other and "peer 127.0.0.3:" in other, other
+
+
+# -- descriptors ----------------------------------------------------------------------------
+
+
+#: Descriptors the loop may open on its own meanwhile (none is a connection's).
+SLACK = 2
+
+
+def open_descriptors() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc")
+def test_connections_evicted_or_closed_in_their_handshake_free_their_descriptors(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
+) -> None:
+    """Stalled clients that never send a ClientHello, far more than ``max_connections``:
+    each newcomer evicts the longest idle (``evict_min_idle = 0``); the gateway (in this
+    process) holds no more descriptors than connections it keeps, long before the
+    handshake timeout. A reload whose allow list shuts the door on their source frees
+    the rest the same way."""
+    limit, stalled = 4, 40
+    tables = tls_tables(make_sim, ec_pki, server={
+        "max_connections": limit, "evict_min_idle": 0.0, "tls_handshake_timeout": 120.0,
+    })  # fmt: skip
+    gw = make_gateway(tables)
+    server = next(s for s in gw.gateway.servers if s.name == "tls")
+    baseline = open_descriptors()
+    clients: list[socket.socket] = []
+    try:
+        for _ in range(stalled):
+            clients.append(socket.create_connection(tls_address(gw), DEADLINE_S, ("127.0.0.2", 0)))
+            wait_until(lambda: gw.call(lambda: server.connections) >= 1, "accepted")
+        wait_until(
+            lambda: open_descriptors() - baseline - len(clients) <= limit + SLACK,
+            f"at most {limit} descriptors held for {stalled} stalled handshakes",
+            timeout=5.0,
+        )
+        assert gw.call(lambda: server.connections) <= limit
+        tables["listeners"][0]["allow"] = ["127.0.0.1/32"]
+        gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
+        wait_until(
+            lambda: open_descriptors() - baseline - len(clients) <= SLACK,
+            "every descriptor of a closed handshake freed",
+            timeout=5.0,
+        )
+        assert gw.call(lambda: server.connections) == 0
+    finally:
+        for client in clients:
+            client.close()
