@@ -207,9 +207,11 @@ def test_session_resumption_turns_tickets_on(
 
 def failing_handshake(gw: RunningGateway, pki: Pki, source: str) -> None:
     """A client whose certificate chains to a CA the listener does not trust."""
-    with pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)):  # noqa: PT012
-        with Master(tls_address(gw), client_context(pki, "otherca"), source=source) as master:
-            master.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
+    with (
+        pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)),
+        Master(tls_address(gw), client_context(pki, "otherca"), source=source) as master,
+    ):
+        master.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
 
 
 def test_a_failed_handshake_is_logged_with_the_peer_once_per_source(
