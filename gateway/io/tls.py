@@ -305,7 +305,7 @@ def session_cache_off(context: ssl.SSLContext) -> bool:
     ):
         return False
     control(pointer, _SSL_CTRL_SET_SESS_CACHE_MODE, 0, None)
-    return control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) == 0
+    return bool(control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) == 0)
 
 
 def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:

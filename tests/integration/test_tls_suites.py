@@ -55,9 +55,8 @@ class Master(RawClient):
         sock = socket.create_connection(
             address, timeout=DEADLINE_S, source_address=(source, 0) if source else None
         )
-        self.sock: ssl.SSLSocket = context.wrap_socket(
-            sock, server_hostname="localhost", session=session
-        )
+        self.tls = context.wrap_socket(sock, server_hostname="localhost", session=session)
+        self.sock = self.tls
         self.timeout = DEADLINE_S
         self._next_tid = 1
 
@@ -104,7 +103,8 @@ def tls_gateway(
 
 
 def tls_address(gw: RunningGateway) -> tuple[str, int]:
-    return gw.call(lambda: gw.gateway.listener_address("tls"))
+    host, port = gw.call(lambda: gw.gateway.listener_address("tls"))
+    return str(host), int(port)
 
 
 def client_context(pki: Pki, name: str = "operator") -> ssl.SSLContext:
@@ -138,6 +138,13 @@ def test_a_client_offering_only_the_required_suite_connects(
     assert "Cipher is AES128-SHA256" in out, out
     default = s_client(tls_address(gw), rsa_pki, "-tls1_2")  # the ECDHE suites come first
     assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
+    context = client_context(rsa_pki)  # and such a master is served
+    context.maximum_version = ssl.TLSVersion.TLSv1_2
+    context.set_ciphers("AES128-SHA256")
+    with Master(tls_address(gw), context) as master:
+        assert master.request(1, READ) == READ_ANSWER
+        cipher = master.tls.cipher()
+        assert cipher is not None and cipher[0] == "AES128-SHA256"
 
 
 @pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
@@ -166,7 +173,7 @@ def test_the_ec_pki_is_served_with_forward_secrecy(
     gw = tls_gateway(make_sim, make_gateway, ec_pki)
     with Master(tls_address(gw), client_context(ec_pki)) as master:
         assert master.request(1, READ) == READ_ANSWER
-        cipher = master.sock.cipher()
+        cipher = master.tls.cipher()
         assert cipher is not None and (cipher[1] == "TLSv1.3" or "ECDHE" in cipher[0])
 
 
@@ -180,10 +187,10 @@ def resumed(gw: RunningGateway, pki: Pki, version: ssl.TLSVersion) -> bool:
     context.minimum_version = context.maximum_version = version
     with Master(tls_address(gw), context) as first:
         assert first.request(1, READ) == READ_ANSWER
-        session = first.sock.session
+        session = first.tls.session
     with Master(tls_address(gw), context, session=session) as second:
         assert second.request(1, READ) == READ_ANSWER
-        return second.sock.session_reused
+        return bool(second.tls.session_reused)
 
 
 @pytest.mark.parametrize("version", [ssl.TLSVersion.TLSv1_2, ssl.TLSVersion.TLSv1_3])
