@@ -89,9 +89,11 @@ from .access import SourceScreen, peer_address_of
 from .bus import Bus, Request
 from .tls import (
     HandshakeFailure,
+    HandshakeNote,
     ServerTls,
     certificate_facts,
     handshake_failure_reason,
+    observed,
     peer_chain,
     role_of,
 )
@@ -746,12 +748,17 @@ class ModbusTcpServer:
                 lambda: connection, sock, ssl=self.ssl_context,
                 ssl_handshake_timeout=self.config.tls_handshake_timeout,
             )  # fmt: skip
-        task = self._loop.create_task(setup)
+        note = HandshakeNote()  # what the handshake shows, for the log line of a failure
+        task = self._loop.create_task(setup, context=observed(note))
         self._starting[connection] = task
-        task.add_done_callback(lambda done: self._started(done, connection, sock))
+        task.add_done_callback(lambda done: self._started(done, connection, sock, note))
 
     def _started(
-        self, task: asyncio.Task[object], connection: MasterConnection, sock: socket.socket
+        self,
+        task: asyncio.Task[object],
+        connection: MasterConnection,
+        sock: socket.socket,
+        note: HandshakeNote,
     ) -> None:
         if self._starting.get(connection) is task:
             del self._starting[connection]
@@ -760,13 +767,19 @@ class ModbusTcpServer:
             sock.close()
             connection.close(CloseReason.ERROR)
             if self.ssl_context is not None and error is not None:
-                self.handshake_failed(handshake_failure_reason(error), error, connection)
+                reason = handshake_failure_reason(error)
+                self.handshake_failed(reason, error, connection, note.subject)
 
     def handshake_failed(
-        self, reason: HandshakeFailure, error: BaseException, connection: MasterConnection
+        self,
+        reason: HandshakeFailure,
+        error: BaseException,
+        connection: MasterConnection,
+        subject: str | None = None,
     ) -> None:
         """Count and log (at a bounded rate per source) a failed TLS handshake."""
-        self.screen.handshake_failed(reason, error, connection.peer, connection.principal.source)
+        source = connection.principal.source
+        self.screen.handshake_failed(reason, error, connection.peer, source, subject)
 
     def masters(self) -> list[MasterStatus]:
         """A snapshot of the connected masters, for the status page."""

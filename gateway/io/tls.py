@@ -20,12 +20,25 @@ hands the connection to the Modbus side, which takes the role once from the
 client certificate (``role_of``). ``ssl`` never shows a certificate's private
 extensions, so the role (extension OID 1.3.6.1.4.1.50316.802.1, an ASN.1
 UTF8String) is read from the DER with ``cryptography``.
+
+Suites: TLS 1.3's, the ECDHE ones, then the specification's required
+TLS_RSA_WITH_AES_128_CBC_SHA256 unless ``forward_secrecy_only``; never NULL.
+Resumption is off unless ``session_resumption`` (no tickets, no session-id
+cache), so every session is checked in full, the ``crl`` included
+(``VERIFY_CRL_CHECK_LEAF``; a reload judges open sessions against it through
+``certificate_facts``). ``ssl`` shows nothing of a refused handshake's
+certificate: a listener's context (``ListenerContext``) has OpenSSL's message
+callback note the subject of the client's Certificate message in the
+connection's ``HandshakeNote`` (reached through ``contextvars``: the setup task
+runs in a context of its own), for the failure's log line; a session that is
+set up moves to the unobserved twin context, so records cost nothing more.
 """
 
 from __future__ import annotations
 
 import _ssl
 import asyncio
+import contextvars
 import ctypes
 import enum
 import logging
@@ -35,7 +48,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
@@ -254,14 +267,28 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
         CertificateInfo(listener.name, "crl", _issuer_name(crl), _next_update(crl))
         for crl in revocations
     )
-    context = _context(listener)
+    context = _context(listener, ListenerContext)
     _load_files(context, listener)
+    context.settled = _context(listener, ssl.SSLContext)
+    _load_files(context.settled, listener)
+    context._msg_callback = _observe  # type: ignore[attr-defined]
     return ServerTls(context, infos, tuple(authorities), revocations)
 
 
-def _context(listener: ListenerConfig) -> ssl.SSLContext:
+class ListenerContext(ssl.SSLContext):
+    """A listener's context: its handshakes are observed (``HandshakeNote``); a session
+    that is set up moves to ``settled``, the same settings unobserved (``role_of``), so
+    the observation costs nothing once the handshake is done."""
+
+    settled: ssl.SSLContext | None = None
+
+
+_C = TypeVar("_C", bound=ssl.SSLContext)
+
+
+def _context(listener: ListenerConfig, kind: type[_C]) -> _C:
     """The settings of a listener's context: versions, suites, resumption (module docstring)."""
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context = kind(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
     context.verify_mode = ssl.CERT_REQUIRED  # mutual authentication
     context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
@@ -291,7 +318,7 @@ def session_cache_off(context: ssl.SSLContext) -> bool:
     object header, and libssl as ``_ssl`` loaded it. The mode is read first, and set only
     when it is OpenSSL's documented default, so a layout this does not expect is left alone.
     """
-    if sys.implementation.name != "cpython" or type(context) is not ssl.SSLContext:
+    if sys.implementation.name != "cpython" or not isinstance(context, ssl.SSLContext):
         return False
     try:
         control = ctypes.PyDLL(_ssl.__file__).SSL_CTX_ctrl
@@ -363,11 +390,66 @@ def role_from_certificate(der: bytes | None) -> str | None:
 # --------------------------------------------------------------------------- the handshake
 
 
+@dataclass(slots=True)
+class HandshakeNote:
+    """What a handshake under way has shown: the client certificate's subject, for the log
+    line of a failure (``ssl`` does not show the certificate of a refused handshake)."""
+
+    subject: str | None = None
+
+
+#: The note of the handshake that runs in the current ``contextvars`` context.
+_HANDSHAKE: contextvars.ContextVar[HandshakeNote | None] = contextvars.ContextVar(
+    "gateway_tls_handshake", default=None
+)
+_HANDSHAKE_RECORD = 22  # TLS ContentType handshake
+_CERTIFICATE_MESSAGE = 11  # HandshakeType certificate
+_TLS13 = 0x0304
+
+
+def observed(note: HandshakeNote) -> contextvars.Context:
+    """A context to run a connection's setup in: its handshake writes into ``note``."""
+    context = contextvars.copy_context()
+    context.run(_HANDSHAKE.set, note)
+    return context
+
+
+def _observe(
+    _conn: object, direction: str, version: int, content_type: int, message: int, data: bytes
+) -> None:
+    """OpenSSL's message callback during a handshake: note the client certificate's subject."""
+    if direction != "read" or content_type != _HANDSHAKE_RECORD or message != _CERTIFICATE_MESSAGE:
+        return
+    note = _HANDSHAKE.get()
+    if note is not None and note.subject is None:
+        note.subject = certificate_message_subject(data, int(version) == _TLS13)
+
+
+def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
+    """The subject of the first certificate of a Certificate handshake message (with its
+    4-byte header); TLS 1.3 puts a request context before the list. ``None``: none."""
+    for form in (tls13, not tls13):
+        offset = 4 + (1 + message[4] if form and len(message) > 4 else 0) + 3
+        length = int.from_bytes(message[offset : offset + 3], "big")
+        try:
+            der = message[offset + 3 : offset + 3 + length]
+            return _subject(x509.load_der_x509_certificate(der)) if der else None
+        except ValueError:
+            continue
+    return None
+
+
 def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:
-    """(is TLS, role) of an accepted transport: the role read once from the client certificate."""
+    """(is TLS, role) of an accepted transport: the role read once from the client certificate.
+
+    The handshake is done: the session moves to its listener's unobserved twin context.
+    """
     ssl_object: Any = transport.get_extra_info("ssl_object")
     if ssl_object is None:
         return False, None
+    settled = getattr(ssl_object.context, "settled", None)
+    if isinstance(settled, ssl.SSLContext):
+        ssl_object.context = settled
     return True, role_from_certificate(ssl_object.getpeercert(binary_form=True))
 
 

@@ -33,6 +33,7 @@ from conftest import (
 )
 
 from gateway.config import build_config
+from gateway.io.tls import ListenerContext
 from gateway.sim import plc
 from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
 
@@ -55,10 +56,15 @@ class Master(RawClient):
         sock = socket.create_connection(
             address, timeout=DEADLINE_S, source_address=(source, 0) if source else None
         )
-        self.tls = context.wrap_socket(sock, server_hostname="localhost", session=session)
-        self.sock = self.tls
+        self.sock = context.wrap_socket(sock, server_hostname="localhost", session=session)
         self.timeout = DEADLINE_S
         self._next_tid = 1
+
+
+def tls_of(client: RawClient) -> ssl.SSLSocket:
+    """The TLS socket of a master."""
+    assert isinstance(client.sock, ssl.SSLSocket)
+    return client.sock
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +149,7 @@ def test_a_client_offering_only_the_required_suite_connects(
     context.set_ciphers("AES128-SHA256")
     with Master(tls_address(gw), context) as master:
         assert master.request(1, READ) == READ_ANSWER
-        cipher = master.tls.cipher()
+        cipher = tls_of(master).cipher()
         assert cipher is not None and cipher[0] == "AES128-SHA256"
 
 
@@ -173,7 +179,7 @@ def test_the_ec_pki_is_served_with_forward_secrecy(
     gw = tls_gateway(make_sim, make_gateway, ec_pki)
     with Master(tls_address(gw), client_context(ec_pki)) as master:
         assert master.request(1, READ) == READ_ANSWER
-        cipher = master.tls.cipher()
+        cipher = tls_of(master).cipher()
         assert cipher is not None and (cipher[1] == "TLSv1.3" or "ECDHE" in cipher[0])
 
 
@@ -187,10 +193,10 @@ def resumed(gw: RunningGateway, pki: Pki, version: ssl.TLSVersion) -> bool:
     context.minimum_version = context.maximum_version = version
     with Master(tls_address(gw), context) as first:
         assert first.request(1, READ) == READ_ANSWER
-        session = first.tls.session
+        session = tls_of(first).session
     with Master(tls_address(gw), context, session=session) as second:
         assert second.request(1, READ) == READ_ANSWER
-        return bool(second.tls.session_reused)
+        return bool(tls_of(second).session_reused)
 
 
 @pytest.mark.parametrize("version", [ssl.TLSVersion.TLSv1_2, ssl.TLSVersion.TLSv1_3])
@@ -212,22 +218,29 @@ def test_session_resumption_turns_tickets_on(
 # -- failure log lines ----------------------------------------------------------------------
 
 
-def failing_handshake(gw: RunningGateway, pki: Pki, source: str) -> None:
+def failing_handshake(
+    gw: RunningGateway, pki: Pki, source: str, version: ssl.TLSVersion = ssl.TLSVersion.TLSv1_3
+) -> None:
     """A client whose certificate chains to a CA the listener does not trust."""
+    context = client_context(pki, "otherca")
+    context.maximum_version = version
     with (
         pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)),
-        Master(tls_address(gw), client_context(pki, "otherca"), source=source) as master,
+        Master(tls_address(gw), context, source=source) as master,
     ):
         master.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
 
 
-def test_a_failed_handshake_is_logged_with_the_peer_once_per_source(
+def test_a_failed_handshake_is_logged_with_peer_and_subject_once_per_source(
     make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki, access_log: LogCollector
 ) -> None:
+    """The subject comes from the Certificate message the handshake saw (TLS 1.3 and 1.2);
+    three failures from 127.0.0.2 give one line (the rest wait for the minute's summary)."""
     gw = tls_gateway(make_sim, make_gateway, ec_pki)
     server = next(s for s in gw.gateway.servers if s.name == "tls")
-    for source in ("127.0.0.2", "127.0.0.2", "127.0.0.2", "127.0.0.3"):
+    for source in ("127.0.0.2", "127.0.0.2", "127.0.0.2"):
         failing_handshake(gw, ec_pki, source)
+    failing_handshake(gw, ec_pki, "127.0.0.3", ssl.TLSVersion.TLSv1_2)
     labels = {"listener": "tls", "reason": "untrusted_certificate"}
     name = "modbus_gateway_tls_handshake_failures_total"
     wait_until(
@@ -235,11 +248,46 @@ def test_a_failed_handshake_is_logged_with_the_peer_once_per_source(
         "four failures counted",
     )
     lines = [m for m in access_log.messages if "TLS handshake failed" in m]
-    assert len(lines) == 2, lines  # one per source; the repeats wait for the summary
+    assert len(lines) == 2, lines
     first, other = sorted(lines)
     assert "master 127.0.0.2" in first and "peer 127.0.0.2:" in first, first
     assert "untrusted_certificate" in first and "certificate verify failed" in first, first
+    assert "certificate 'master-otherca'" in first, first
     assert "master 127.0.0.3" in other and "peer 127.0.0.3:" in other, other
+    assert "certificate 'master-otherca'" in other, other
+
+
+def test_a_handshake_without_a_certificate_names_no_subject(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki, access_log: LogCollector
+) -> None:
+    gw = tls_gateway(make_sim, make_gateway, ec_pki)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cafile=str(ec_pki.ca))
+    with (
+        pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)),
+        Master(tls_address(gw), context) as master,
+    ):
+        master.request(1, READ)
+    wait_until(lambda: any("TLS handshake failed" in m for m in access_log.messages), "logged")
+    line = next(m for m in access_log.messages if "TLS handshake failed" in m)
+    assert "no_certificate" in line and "certificate '" not in line, line
+
+
+def test_a_settled_session_is_no_longer_observed(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
+) -> None:
+    """Once set up, a session moves to the listener's unobserved twin context: OpenSSL's
+    message callback then costs nothing per record."""
+    gw = tls_gateway(make_sim, make_gateway, ec_pki)
+    server = next(s for s in gw.gateway.servers if s.name == "tls")
+    with Master(tls_address(gw), client_context(ec_pki)) as master:
+        assert master.request(1, READ) == READ_ANSWER
+        transports = gw.call(lambda: [c._transport for c in server._connections])
+        contexts = [t.get_extra_info("ssl_object").context for t in transports if t is not None]
+    listener_context = gw.call(lambda: server.ssl_context)
+    assert isinstance(listener_context, ListenerContext)
+    assert contexts == [listener_context.settled]
+    assert getattr(listener_context.settled, "_msg_callback", None) is None
 
 
 # -- descriptors ----------------------------------------------------------------------------
