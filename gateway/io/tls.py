@@ -47,7 +47,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any, TypeVar
 
 from cryptography import x509
@@ -180,6 +180,10 @@ def _next_update(crl: x509.CertificateRevocationList) -> datetime:
     return crl.next_update_utc or datetime.max.replace(tzinfo=UTC)
 
 
+#: A CRL whose nextUpdate is this close when it is read is warned about.
+CRL_WARNING = timedelta(days=1)
+
+
 def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevocationList, ...]:
     """The CRLs in a PEM file (one per issuing CA); ``TlsSetupError`` when unusable or expired.
 
@@ -211,6 +215,12 @@ def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevoca
                 f"{_next_update(crl):%Y-%m-%d %H:%M:%S} UTC (its nextUpdate); fetch the current "
                 "one from the CA, then reload (SIGHUP)"
             )
+        if now + CRL_WARNING > _next_update(crl):
+            log.warning(
+                "%s = %r: the CRL of %r expires on %s UTC (its nextUpdate): once it has, every "
+                "client certificate is refused; fetch the next one and reload (SIGHUP)",
+                key, path, _issuer_name(crl), f"{_next_update(crl):%Y-%m-%d %H:%M:%S}",
+            )  # fmt: skip
     return crls
 
 
@@ -263,10 +273,6 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
             )  # fmt: skip
         infos.append(info)
     revocations = read_crl(listener.crl, f"{prefix}crl", moment) if listener.crl else ()
-    infos.extend(
-        CertificateInfo(listener.name, "crl", _issuer_name(crl), _next_update(crl))
-        for crl in revocations
-    )
     context = _context(listener, ListenerContext)
     _load_files(context, listener)
     context.settled = _context(listener, ssl.SSLContext)

@@ -147,6 +147,15 @@ def test_an_expired_or_unreadable_crl_refuses_start_and_reload(
         assert again.request(1, READ) == READ_ANSWER
 
 
+def test_a_crl_close_to_its_next_update_is_warned_about(
+    make_sim: SimFactory, pki: Pki, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    soon = pki.write_crl(tmp_path / "soon.pem", next_update=dt.timedelta(hours=1))
+    with caplog.at_level(logging.WARNING, logger="gateway.tls"):
+        server_context(build_config(tables_with(make_sim, pki, soon), "<t>").listeners[-1])
+    assert any("soon.pem" in m and "nextUpdate" in m for m in caplog.messages), caplog.messages
+
+
 def test_the_facts_of_a_revoked_chain(pki: Pki, tmp_path: Path) -> None:
     crl_path = pki.write_crl(tmp_path / "crl.pem", revoked=("viewer",))
     crl = x509.load_pem_x509_crl(crl_path.read_bytes())
