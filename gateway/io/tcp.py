@@ -112,6 +112,8 @@ ACCEPT_BATCH = 32
 ACCEPT_RETRY_S = 0.1
 #: Interval of the INFO summary of connection events, and of the rate-limited fault logs.
 LOG_INTERVAL_S = 60.0
+#: Verified client chains remembered per listener (by leaf), for resumed TLS sessions.
+CHAIN_MEMORY = 1024
 _ACCEPT_RESOURCE_ERRORS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 
 
@@ -610,6 +612,8 @@ class ModbusTcpServer:
         #: then: the handshake's verdict on the chain stands.
         self._authorities: tuple[x509.Certificate, ...] | None = None
         self._revocations: tuple[x509.CertificateRevocationList, ...] = ()  #: the crl, likewise
+        #: Chains full handshakes verified, by leaf: a resumed session shows only its leaf.
+        self._chains: dict[bytes, tuple[bytes, ...]] = {}
         self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
@@ -763,12 +767,26 @@ class ModbusTcpServer:
         if self._starting.get(connection) is task:
             del self._starting[connection]
         error = None if task.cancelled() else task.exception()
+        if error is None and not task.cancelled() and connection.chain:
+            self._complete_chain(connection)
         if task.cancelled() or error is not None:
             sock.close()
             connection.close(CloseReason.ERROR)
             if self.ssl_context is not None and error is not None:
                 reason = handshake_failure_reason(error)
                 self.handshake_failed(reason, error, connection, note.subject)
+
+    def _complete_chain(self, connection: MasterConnection) -> None:
+        """Remember a full handshake's chain; give a resumed session (its leaf alone) the
+        chain its first handshake verified, so a reload judges it the same way."""
+        chain = connection.chain
+        if len(chain) > 1:
+            self._chains.pop(chain[0], None)
+            self._chains[chain[0]] = chain
+            if len(self._chains) > CHAIN_MEMORY:
+                del self._chains[next(iter(self._chains))]
+        else:
+            connection.chain = self._chains.get(chain[0], chain)
 
     def handshake_failed(
         self,

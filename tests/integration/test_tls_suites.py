@@ -339,3 +339,21 @@ def test_connections_evicted_or_closed_in_their_handshake_free_their_descriptors
     finally:
         for client in clients:
             client.close()
+
+
+def test_a_resumed_session_is_judged_on_its_full_chain_at_a_reload(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
+) -> None:
+    """A resumed session shows only its leaf (issued by an intermediate the ``ca`` file
+    does not hold): the chain its first handshake verified keeps it trusted at a reload."""
+    tables = tls_tables(make_sim, ec_pki, session_resumption=True)
+    gw = make_gateway(tables)
+    context = client_context(ec_pki)
+    with Master(tls_address(gw), context) as first:
+        assert first.request(1, READ) == READ_ANSWER
+        session = tls_of(first).session
+    with Master(tls_address(gw), context, session=session) as second:
+        assert second.request(1, READ) == READ_ANSWER
+        assert tls_of(second).session_reused
+        gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
+        assert second.request(1, READ) == READ_ANSWER
