@@ -357,3 +357,18 @@ def test_a_resumed_session_is_judged_on_its_full_chain_at_a_reload(
         assert tls_of(second).session_reused
         gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
         assert second.request(1, READ) == READ_ANSWER
+
+
+def test_a_reload_ends_resumption_of_earlier_sessions(
+    make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
+) -> None:
+    tables = tls_tables(make_sim, ec_pki, session_resumption=True)
+    gw = make_gateway(tables)
+    context = client_context(ec_pki)
+    with Master(tls_address(gw), context) as first:
+        assert first.request(1, READ) == READ_ANSWER
+        session = tls_of(first).session
+    gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
+    with Master(tls_address(gw), context, session=session) as second:
+        assert second.request(1, READ) == READ_ANSWER
+        assert not tls_of(second).session_reused
