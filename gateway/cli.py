@@ -389,15 +389,16 @@ def _subcommand(argv: list[str]) -> int | None:
     if argv == ["example-config"]:
         sys.stdout.write(example_config())
         return 0
-    if (
-        argv
-        and argv[0] == "trace"
-        and any(arg == "--url" or arg.startswith("--url=") for arg in argv[1:])
-    ):
+    if argv and argv[0] == "trace" and any(_is_trace_client_flag(arg) for arg in argv[1:]):
         from .trace_client import main as trace_client
 
         return trace_client(argv[1:])
     return None
+
+
+def _is_trace_client_flag(arg: str) -> bool:
+    """``trace --url`` attaches to a running gateway; ``trace --help`` describes that."""
+    return arg in ("--url", "-h", "--help") or arg.startswith("--url=")
 
 
 def _configure(
