@@ -37,7 +37,7 @@ from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.rtu_listener import rtu_over_tcp_server
-from .io.serial_port import check_device_free
+from .io.serial_port import check_device_free, check_device_usable
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
@@ -185,8 +185,8 @@ class Gateway:
             + http_connections
             + _FDS_BESIDES_MASTERS
         )
-        for line in self.config.lines:  # a device another program holds fails the start
-            check_device_free(line)
+        for line in self.config.lines:  # a device held or unusable fails the start
+            check_device_usable(line)
         for line in self.config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in self.config.lines])
