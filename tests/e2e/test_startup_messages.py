@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -33,8 +34,10 @@ QUIET = ("--listen", "127.0.0.1:0", "--metrics", "off")
 class Started:
     """The gateway in a subprocess (optionally under another user), stderr line by line."""
 
-    def __init__(self, *args: str, prefix: tuple[str, ...] = ()) -> None:
-        env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONDONTWRITEBYTECODE="1")
+    def __init__(
+        self, *args: str, prefix: tuple[str, ...] = (), env: dict[str, str] | None = None
+    ) -> None:
+        env = dict(os.environ, **(env or {}), PYTHONPATH=str(REPO), PYTHONDONTWRITEBYTECODE="1")
         self.process = subprocess.Popen(
             [*prefix, sys.executable, "-m", "gateway", *args], stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd="/",
@@ -188,3 +191,13 @@ def test_an_ipv6_metrics_address_is_logged_as_a_url(tmp_path: Path) -> None:
         assert started.stop() == 0
     assert re.fullmatch(r"http://\[::1\]:\d+/metrics", match[1]), match[0]
     assert match[2] == match[1].removesuffix("metrics")
+
+
+def test_the_demo_names_its_status_page() -> None:
+    started = Started("--demo", "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0")
+    try:
+        match = started.wait_for(r"status page on (http://127\.0\.0\.1:(\d+)/)$")
+        page = urllib.request.urlopen(match[1], timeout=DEADLINE_S)
+        assert page.status == 200 and "text/html" in page.headers["Content-Type"]
+    finally:
+        assert started.stop() == 0
