@@ -1,7 +1,8 @@
 """Start-up errors through the real command: a device that exists but cannot serve its line
 stops the start with the fix (in the terms the user gave it), a device not plugged in yet
 does not, permission is waited for while udev may still be setting it, and every message is
-a complete sentence.
+a complete sentence. Also what the start-up log names (the status page, an IPv6 URL) and
+``trace --help``.
 """
 
 from __future__ import annotations
@@ -201,3 +202,13 @@ def test_the_demo_names_its_status_page() -> None:
         assert page.status == 200 and "text/html" in page.headers["Content-Type"]
     finally:
         assert started.stop() == 0
+
+
+def test_trace_help_describes_the_trace_subcommand() -> None:
+    shown = subprocess.run(
+        [sys.executable, "-m", "gateway", "trace", "--help"], env=dict(os.environ,
+        PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=DEADLINE_S, check=False,
+    )  # fmt: skip
+    assert shown.returncode == 0, shown.stderr
+    assert shown.stdout.startswith("usage: modbus-gateway trace ")
+    assert "--url http://HOST:PORT" in shown.stdout and "--serial" not in shown.stdout
