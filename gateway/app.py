@@ -38,7 +38,7 @@ from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.rtu_listener import rtu_over_tcp_server
-from .io.serial_port import check_device_free
+from .io.serial_port import check_device_free, check_device_usable
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
@@ -94,16 +94,31 @@ def bind_error(error: OSError, key: str, host: str, port: int) -> OSError:
             f"{where}: permission denied: ports below 1024 need the CAP_NET_BIND_SERVICE "
             "capability. The systemd unit modbus-gateway@.service grants it (and nothing "
             "else); otherwise listen on a port from 1024 up (e.g. --listen 0.0.0.0:5020) and "
-            "point the masters at it, or grant the capability to the Python interpreter with "
-            '`sudo setcap cap_net_bind_service=+ep "$(realpath .venv/bin/python)"` '
-            "(every program that interpreter runs then has it)"
+            "point the masters at it (or redirect 502 there in the firewall). Never grant it "
+            "to the system Python, which every Python program runs: give it to a copy of the "
+            'interpreter, `cp "$(realpath .venv/bin/python)" .venv/bin/python-bind && sudo '
+            "setcap cap_net_bind_service=+ep .venv/bin/python-bind`, and start the gateway "
+            "with `.venv/bin/python-bind -m gateway`."
         )
     if error.errno == errno.EADDRINUSE:
         return OSError(
             f"{where}: address already in use: another program listens there "
-            f"(ss -ltnp 'sport = :{port}'); stop it or change {key.split(' ')[0]}"
+            f"(ss -ltnp 'sport = :{port}'); stop it, or choose another port with "
+            f"{_key_terms(key)}."
         )
-    return OSError(f"{where}: {error.strerror or error}")
+    return OSError(f"{where}: {error.strerror or error}.")
+
+
+def _key_terms(key: str) -> str:
+    """``metrics.listen, --metrics`` → ``metrics.listen (or --metrics)``."""
+    first, _, flag = key.partition(", ")
+    return f"{first} (or {flag})" if flag else first
+
+
+def http_url(host: str, port: int, path: str = "/") -> str:
+    """A URL a browser opens: an IPv6 address goes in brackets (``http://[::1]:9502/``)."""
+    shown = f"[{host}]" if ":" in host else host
+    return f"http://{shown}:{port}{path}"
 
 
 class Gateway:
@@ -201,8 +216,8 @@ class Gateway:
         ensure_file_descriptors(
             config.server.max_connections * len(listeners) + http_connections + _FDS_BESIDES_MASTERS
         )
-        for line in config.lines:  # a device another program holds fails the start
-            check_device_free(line)
+        for line in config.lines:  # a device held or unusable fails the start
+            check_device_usable(line)
         for line in config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in config.lines])
@@ -275,7 +290,8 @@ class Gateway:
                      host, port, protocol, listener.name, len(self.buses))  # fmt: skip
         if self.metrics_address is not None:
             mhost, mport = self.metrics_address
-            log.info("metrics on http://%s:%d/metrics", mhost, mport)
+            log.info("metrics on %s, status page on %s",
+                     http_url(mhost, mport, "/metrics"), http_url(mhost, mport))  # fmt: skip
 
     async def _start_http(self) -> HttpEndpoint:
         routes = self.live.routes if self.live is not None else None
