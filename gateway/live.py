@@ -552,13 +552,13 @@ class LiveView:
                 writer.write(b": modbus-gateway trace\n\n")
             await writer.drain()
             await _pump(stream, writer, sse)
-        except (ConnectionError, OSError):
-            pass
         except TimeoutError:  # the client read nothing for STALL_S: its slot is freed
             self.hub.remove(stream, StreamEnd.STALLED)
             log.info("trace stream to %s closed: it read nothing for %g s",
                      _peer(writer), STALL_S)  # fmt: skip
             writer.transport.abort()  # close() would wait for a buffer nobody reads
+        except (ConnectionError, OSError):
+            pass
         finally:
             self.hub.remove(stream)
             watcher.cancel()
