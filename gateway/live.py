@@ -73,6 +73,9 @@ HEARTBEAT_S = 15.0
 STALL_S = 10.0
 #: Values one stream's filters may hold, all parameters together: more is answered 400.
 MAX_FILTER_VALUES = 64
+#: Events that come within this long of the first are written to a stream together: one
+#: wake-up and one write for many, however fast the frames come (a person reads the trace).
+BATCH_S = 0.05
 #: Share of the event loop's time that rendering /status may take, however often it is asked.
 STATUS_LOOP_SHARE = 0.05
 
@@ -105,13 +108,18 @@ class TraceEvent:
     latency_ms: float | None = None
     listener: str | None = None  # requests: the listener it came in on
     role: str | None = None  # requests on a tls listener: the client's role ("NULL" for none)
-    encoded: str | None = None  # the JSON text, made by the first stream that sends it
+    ndjson: bytes | None = None  # as NDJSON, made by the first stream that sends it
+    sse_frame: bytes | None = None  # as a server-sent event, the same
 
-    def json_text(self) -> str:
-        """The event's JSON, serialised once for every stream that sends it."""
-        if self.encoded is None:
-            self.encoded = json.dumps(self.to_json(), separators=(",", ":"))
-        return self.encoded
+    def encoded(self, sse: bool) -> bytes:
+        """The event as a stream sends it, serialised once for every stream that does."""
+        if self.ndjson is None:
+            self.ndjson = json.dumps(self.to_json(), separators=(",", ":")).encode() + b"\n"
+        if not sse:
+            return self.ndjson
+        if self.sse_frame is None:
+            self.sse_frame = b"data: " + self.ndjson + b"\n"
+        return self.sse_frame
 
     def to_json(self) -> dict[str, Any]:
         """The event as the stream sends it."""
@@ -593,6 +601,8 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
     while True:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stream.ready.wait(), HEARTBEAT_S)
+        if stream.events and len(stream.events) < QUEUE_LIMIT // 4 and not stream.closed:
+            await asyncio.sleep(BATCH_S)  # gather what comes next: one write for many
         stream.ready.clear()
         if stream.closed:
             return
@@ -602,14 +612,16 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
             stream.dropped = 0
         events = stream.events
         while events:
-            text = events.popleft().json_text()
-            chunks.append(f"data: {text}\n\n".encode() if sse else f"{text}\n".encode())
+            chunks.append(events.popleft().encoded(sse))
         if not chunks:  # quiet for HEARTBEAT_S: show the client (and proxies) we are alive
             chunks.append(b": keep-alive\n\n" if sse else b'{"type":"heartbeat"}\n')
         writer.write(b"".join(chunks))
         # A slow client holds only its own writer; its queue fills. One that reads nothing
         # for STALL_S (the buffer stays above its mark) ends with TimeoutError.
-        await asyncio.wait_for(writer.drain(), STALL_S)
+        if writer.transport.get_write_buffer_size() > STREAM_BUFFER:
+            await asyncio.wait_for(writer.drain(), STALL_S)
+        else:
+            await writer.drain()  # returns at once, or raises if the client has gone
 
 
 def _encode(event: Mapping[str, Any], sse: bool) -> bytes:
