@@ -7,9 +7,11 @@ raw sockets, against a running gateway on a simulated line.
 from __future__ import annotations
 
 import http.client
+import os
 import socket
 import ssl
 import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -288,3 +290,26 @@ def test_status_pollers_share_renderings(
         poller.join(DEADLINE_S * 3)
     assert answered.count(200) == 100
     assert gw.call(lambda: renderer.renderings) < 100  # shared and spaced, not one each
+
+
+def test_the_trace_client_over_https_with_its_token(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    pki = make_pki(tmp_path)
+    gw = gateway(make_sim, make_gateway, tls_cert=str(pki.server_chain),
+                 tls_key=str(pki.server_key), trace_token=TRACE_TOKEN)  # fmt: skip
+    url = f"https://localhost:{metrics_address(gw)[1]}"
+    command = [sys.executable, "-m", "gateway", "trace", "--url", url, "--cacert", str(pki.ca),
+               "--json", "--count", "1"]  # fmt: skip
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=2 * DEADLINE_S,
+                             check=False)  # fmt: skip
+    assert refused.returncode == 2 and "answered 401" in refused.stderr
+    env = dict(os.environ, MODBUS_GATEWAY_TRACE_TOKEN=TRACE_TOKEN)
+    with subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True) as client:  # fmt: skip
+        assert client.stderr is not None and client.stdout is not None
+        assert client.stderr.readline().startswith("tracing ")  # the stream is open
+        with gw.connect() as master:
+            assert master.request(1, READ_10)[0] == 3
+        out, _ = client.communicate(timeout=2 * DEADLINE_S)
+    assert client.returncode == 0 and '"type":"request"' in out.replace(" ", "")
