@@ -149,6 +149,14 @@ class TraceCapture:
             self.writer.rtu(event["time"], line, False, slave, pdu)
 
 
+def _trace_path(base: str, args: argparse.Namespace) -> str:
+    """``/trace`` under the URL's path, with the filters as its query."""
+    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
+    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
+    query += [("master", v) for v in args.master]
+    return (base.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+
+
 def _connection(
     scheme: str, host: str, port: int | None, args: argparse.Namespace
 ) -> http.client.HTTPConnection:
@@ -188,10 +196,7 @@ def main(argv: Sequence[str]) -> int:
         print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT or https://HOST:PORT",
               file=sys.stderr)  # fmt: skip
         return 2
-    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
-    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
-    query += [("master", v) for v in args.master]
-    path = (url.path.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+    path = _trace_path(url.path, args)
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
     connection = _connection(url.scheme, url.hostname, url.port, args)
