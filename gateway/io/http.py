@@ -42,11 +42,13 @@ import contextlib
 import contextvars
 import copy
 import logging
+import socket
 import ssl
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from http import HTTPStatus
+from typing import Protocol
 
 from prometheus_client import Counter
 from prometheus_client.exposition import choose_encoder
@@ -252,7 +254,7 @@ def _log_failure(task: asyncio.Task[None]) -> None:
 
 @dataclass(eq=False, slots=True)
 class _Connection:
-    writer: asyncio.StreamWriter
+    transport: _Abortable  #: a transport, or an HTTPS connection's pending handshake
     opened: float
     source: str
     reading_head: bool = True
@@ -284,6 +286,71 @@ def endpoint_tls(config: MetricsConfig) -> ssl.SSLContext | None:
             ) from None
         context.verify_mode = ssl.CERT_REQUIRED
     return context
+
+
+class _Abortable(Protocol):
+    """What a connection is closed through: its transport, or its pending handshake."""
+
+    def abort(self) -> None: ...
+
+
+class _Handshake:
+    """An HTTPS connection admitted, its handshake under way: aborting cancels it."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.task: asyncio.Task[None] | None = None
+
+    def abort(self) -> None:
+        if self.task is not None:
+            self.task.cancel()  # its finally closes the socket
+        else:
+            self.sock.close()
+
+
+class _TlsListener:
+    """The HTTPS endpoint's listening socket, accepted by hand: a connection is admitted
+    before its handshake (the caps hold handshakes too), and the TLS layer gets the socket
+    before any byte of it is read."""
+
+    BATCH = 32  #: connections accepted per turn of the loop
+
+    def __init__(self, accepted: Callable[[socket.socket, str], None]) -> None:
+        self._accepted = accepted
+        self.sock: socket.socket | None = None
+
+    async def start(self, host: str, port: int) -> None:
+        loop = asyncio.get_running_loop()
+        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        family, kind, proto, _, address = infos[0]
+        sock = socket.socket(family, kind, proto)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+            sock.listen(128)
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self.sock = sock
+        loop.add_reader(sock.fileno(), self._ready)
+
+    def _ready(self) -> None:
+        assert self.sock is not None
+        for _ in range(self.BATCH):
+            try:
+                conn, peer = self.sock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as error:  # out of descriptors: the next turn tries again
+                log.debug("HTTPS accept failed: %s", error)
+                return
+            self._accepted(conn, str(peer[0]))
+
+    def close(self) -> None:
+        if self.sock is not None:
+            asyncio.get_running_loop().remove_reader(self.sock.fileno())
+            self.sock.close()
 
 
 @dataclass(frozen=True, slots=True)
@@ -318,6 +385,8 @@ class HttpEndpoint:
                 refusals.labels(reason)
         self.renderer = ScrapeRenderer(registry)
         self._server: asyncio.Server | None = None
+        self._tls: ssl.SSLContext | None = None
+        self._tls_listener: _TlsListener | None = None
         self._open: dict[_Connection, None] = {}  # in opening order
         self._per_source: dict[str, int] = {}
         self.refused = 0  #: connections closed at once at the cap
@@ -338,6 +407,9 @@ class HttpEndpoint:
     @property
     def address(self) -> tuple[str, int]:
         """The bound address."""
+        if self._tls_listener is not None and self._tls_listener.sock is not None:
+            host, port = self._tls_listener.sock.getsockname()[:2]
+            return str(host), int(port)
         assert self._server is not None
         host, port = self._server.sockets[0].getsockname()[:2]
         return str(host), int(port)
@@ -350,17 +422,25 @@ class HttpEndpoint:
     async def start(self, host: str, port: int, tls: ssl.SSLContext | None = None) -> None:
         """Bind and serve (HTTPS with ``tls``)."""
         self._faults = RateLimitedLogger(log, asyncio.get_running_loop())
-        self._server = await asyncio.start_server(
-            self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD, ssl=tls,
-            ssl_handshake_timeout=self.header_timeout if tls is not None else None,
-        )  # fmt: skip
+        if tls is None:
+            self._server = await asyncio.start_server(
+                self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD
+            )
+            return
+        self._tls = tls
+        self._tls_listener = _TlsListener(self._accepted_tls)
+        await self._tls_listener.start(host, port)
 
     async def close(self) -> None:
         """Stop serving."""
+        if self._tls_listener is not None:
+            self._tls_listener.close()
+            for connection in list(self._open):
+                connection.transport.abort()
         if self._server is not None:
             self._server.close()
             for connection in list(self._open):
-                connection.writer.transport.abort()
+                connection.transport.abort()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
 
@@ -370,15 +450,13 @@ class HttpEndpoint:
         if self._faults is not None:
             self._faults.note("HTTP endpoint", what, detail, plural="connections past the limit")
 
-    def _admit(self, writer: asyncio.StreamWriter) -> _Connection | None:
+    def _admit(self, transport: _Abortable, source: str) -> _Connection | None:
         """Register a new connection, making room at the cap; ``None`` when it is refused."""
-        peer = writer.get_extra_info("peername")
-        source = str(peer[0]) if isinstance(peer, tuple) else ""
         cap = self.limits.max_per_source
         if cap and self._per_source.get(source, 0) >= cap:
             self._note("source limit", f"{source} holds {cap} connections "
                        "(metrics.max_connections_per_source); refusing more")  # fmt: skip
-            self._refuse(writer, HttpRefusal.MAX_PER_SOURCE)
+            self._refuse(transport, HttpRefusal.MAX_PER_SOURCE)
             return None
         if len(self._open) >= self.max_connections:
             waiting = next((c for c in self._open if c.reading_head), None)
@@ -387,11 +465,11 @@ class HttpEndpoint:
                        + ("closing the oldest still sending its request"
                           if waiting is not None else "refusing new ones"))  # fmt: skip
             if waiting is None:
-                self._refuse(writer, HttpRefusal.MAX_CONNECTIONS)
+                self._refuse(transport, HttpRefusal.MAX_CONNECTIONS)
                 return None
-            waiting.writer.transport.abort()  # its _serve forgets it
+            waiting.transport.abort()  # its _serve forgets it
             self._forget(waiting)
-        connection = _Connection(writer, time.monotonic(), source)
+        connection = _Connection(transport, time.monotonic(), source)
         self._open[connection] = None
         self._per_source[source] = self._per_source.get(source, 0) + 1
         return connection
@@ -400,10 +478,10 @@ class HttpEndpoint:
         if self._refusals is not None:
             self._refusals.labels(reason).inc()
 
-    def _refuse(self, writer: asyncio.StreamWriter, reason: HttpRefusal) -> None:
+    def _refuse(self, transport: _Abortable, reason: HttpRefusal) -> None:
         self.refused += 1
         self._refused(reason)
-        writer.transport.abort()
+        transport.abort()
 
     def _forget(self, connection: _Connection) -> None:
         if self._open.pop(connection, False) is None:
@@ -414,15 +492,51 @@ class HttpEndpoint:
                 self._per_source.pop(connection.source, None)
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        connection = self._admit(writer)
-        if connection is None:
-            return
+        peer = writer.get_extra_info("peername")
+        connection = self._admit(writer.transport, str(peer[0]) if peer else "")
+        if connection is not None:
+            await self._serve_connection(connection, reader, writer)
+
+    async def _serve_connection(
+        self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
         try:
             await self._serve_admitted(connection, reader, writer)
         finally:
             self._forget(connection)
             if not writer.transport.is_closing():
                 writer.close()
+
+    def _accepted_tls(self, sock: socket.socket, source: str) -> None:
+        """An HTTPS connection: admitted first, then its handshake in a task of its own."""
+        pending = _Handshake(sock)
+        connection = self._admit(pending, source)
+        if connection is not None:
+            task = asyncio.get_running_loop().create_task(self._serve_tls(connection, sock))
+            pending.task = task
+
+    async def _serve_tls(self, connection: _Connection, sock: socket.socket) -> None:
+        """The handshake within the header timeout, then the request as over HTTP."""
+        assert self._tls is not None
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader(_MAX_REQUEST_HEAD, loop)
+        protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+        transport = None
+        try:
+            transport, _ = await loop.connect_accepted_socket(
+                lambda: protocol, sock, ssl=self._tls, ssl_handshake_timeout=self.header_timeout
+            )
+        except (ssl.SSLError, OSError) as error:  # ConnectionError and TimeoutError too
+            log.debug("HTTPS handshake with %s failed: %s", connection.source, error)
+        finally:
+            if transport is None:  # failed, or cancelled to make room
+                self._forget(connection)
+                sock.close()
+        if transport is None:
+            return
+        connection.transport = transport
+        writer = asyncio.StreamWriter(transport, protocol, reader, loop)
+        await self._serve_connection(connection, reader, writer)
 
     async def _serve_admitted(
         self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter

@@ -313,3 +313,26 @@ def test_the_trace_client_over_https_with_its_token(
             assert master.request(1, READ_10)[0] == 3
         out, _ = client.communicate(timeout=2 * DEADLINE_S)
     assert client.returncode == 0 and '"type":"request"' in out.replace(" ", "")
+
+
+def test_https_handshakes_count_against_the_caps(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    pki = make_pki(tmp_path)
+    gw = gateway(make_sim, make_gateway, tls_cert=str(pki.server_chain),
+                 tls_key=str(pki.server_key), max_connections_per_source=2,
+                 header_timeout=0.5)  # fmt: skip
+    address = metrics_address(gw)
+    with idle_from("127.0.0.2", address, 2) as silent:  # connected, never a ClientHello
+        wait_until(lambda: gw.call(lambda: endpoint(gw).connections) == 2, "2 admitted")
+        with idle_from("127.0.0.2", address, 1) as (third,):
+            assert _closed(third)  # at once: the source holds its share in handshakes
+        assert all(_closed(sock) for sock in silent)  # the handshake timeout (0.5 s)
+    wait_until(lambda: gw.call(lambda: endpoint(gw).connections) == 0, "handshakes freed")
+    assert refusals(gw, "max_per_source") == 1
+    context = ssl.create_default_context(cafile=str(pki.ca))
+    connection = http.client.HTTPSConnection("localhost", address[1], context=context,
+                                             timeout=DEADLINE_S)  # fmt: skip
+    connection.request("GET", "/healthz")
+    assert connection.getresponse().status == 200
+    connection.close()
