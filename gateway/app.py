@@ -24,6 +24,7 @@ from prometheus_client import CollectorRegistry
 
 from . import __version__, build
 from .config import (
+    LINE_PORT_SETTINGS,
     ConfigError,
     GatewayConfig,
     LineConfig,
@@ -50,16 +51,10 @@ from .trace import FrameTrace, Tracer
 
 log = logging.getLogger("gateway")
 
-#: Line settings that need the port reopened when they change.
-_PORT_SETTINGS = ("device", "kind", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
-                  "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
-                  "rs485_delay_before_tx", "rs485_delay_after_tx", "kind",
-                  "cert", "key", "ca", "server_name", "check_server_name",
-                  "max_in_flight")  # fmt: skip
-
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:
-    return any(getattr(old, key) != getattr(new, key) for key in _PORT_SETTINGS)
+    """True when a setting whose change reopens the port differs (the schema says which)."""
+    return any(getattr(old, key) != getattr(new, key) for key in LINE_PORT_SETTINGS)
 
 
 #: File descriptors needed besides one per master and per HTTP connection: lines, timers,
