@@ -33,6 +33,7 @@ from .config import (
 )
 from .core.line import Handover
 from .core.policy import Policy
+from .io.audit import AuditLog, note_config, start_audit
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
@@ -128,6 +129,7 @@ class Gateway:
         self._http: HttpEndpoint | None = None
         self.live: LiveView | None = None  # trace stream, /status and the status page
         self._stopping = False
+        self.audit: AuditLog | None = None  #: the audit log (``[audit] path``)
 
     # -- addresses ---------------------------------------------------------------------
 
@@ -163,6 +165,8 @@ class Gateway:
             ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
         )
         tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
+        self.audit = start_audit(self.config.audit.path, self.metrics.audit_records_dropped.inc)
+        note_config(self.audit, "load", self.config.source, self.config)
         self._line_tls = self._build_line_tls(self.config)
         http_connections = self.config.metrics.max_connections if self.config.metrics.enabled else 0
         ensure_file_descriptors(
@@ -183,7 +187,7 @@ class Gateway:
                 self.config.server, router, self.metrics, listener,
                 self._policy(self.config, listener), built.context if built else None,
             )  # fmt: skip
-            server.tracer = self.tracer
+            server.tracer, server.audit = self.tracer, self.audit
             self.servers.append(server)
         self.server = self.servers[0]
         for listener in self.config.listeners:
@@ -191,7 +195,7 @@ class Gateway:
                 check_device_free(listener.serial)
                 slave = SerialSlave(listener, router, self.metrics,
                                     self._policy(self.config, listener), loop)  # fmt: skip
-                slave.tracer = self.tracer
+                slave.tracer, slave.audit = self.tracer, self.audit
                 self.serial_slaves.append(slave)
                 slave.start()
         self.live = LiveView(self)
@@ -269,6 +273,8 @@ class Gateway:
         for clock in self._clocks.values():
             clock.close()
         self._clocks.clear()
+        if self.audit is not None:
+            self.audit.close()
         log.info("stopped")
         self.stopped.set()
 
@@ -282,6 +288,8 @@ class Gateway:
                 )
                 return
             await self._apply(config)
+            applied = config if self.config is config else None
+            note_config(self.audit, "reload", config.source, applied, "TLS files refused (see log)")
 
     async def _apply(self, config: GatewayConfig) -> None:
         loop = asyncio.get_running_loop()
@@ -463,11 +471,14 @@ async def run_until_signalled(
             log.warning("SIGHUP: no configuration file to reload")
             return
         log.info("SIGHUP received: reloading the configuration file")
+        if gateway.audit is not None:
+            gateway.audit.reopen()  # logrotate: even when the reload is rejected
         notifier.reloading()
         try:
             config = reload_source()
         except ConfigError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
+            note_config(gateway.audit, "reload", error.source, None, str(error))
             notifier.ready("reload rejected: " + serving())
             return
         task = loop.create_task(gateway.reload(config))
