@@ -52,7 +52,8 @@ DROP_LOG_INTERVAL_S: Final = 60.0
 _TAIL: Final = 65536
 STDERR: Final = "-"
 
-Entry = Record | tuple[Pending, AuditOutcome, int | None, str | None] | threading.Event
+Item = Record | tuple[Pending, AuditOutcome, int | None, str | None]
+Entry = Item | threading.Event
 
 
 class AuditOpenError(OSError):
@@ -225,13 +226,11 @@ class AuditLog:
         while queue:
             batch = [queue.popleft() for _ in range(min(len(queue), 1024))]
             markers = [entry for entry in batch if isinstance(entry, threading.Event)]
-            if markers:
-                batch = [entry for entry in batch if not isinstance(entry, threading.Event)]
-            self._write(batch)
+            self._write([entry for entry in batch if not isinstance(entry, threading.Event)])
             for marker in markers:
                 marker.set()
 
-    def _write(self, batch: list[Entry]) -> None:
+    def _write(self, batch: list[Item]) -> None:
         now = self._clock()
         lost = self._queued_lost - self._lost_seen
         self._lost_seen += lost
@@ -276,7 +275,7 @@ class AuditLog:
             log.warning("audit log: %d record(s) dropped: %s", count, why)
 
 
-def _record(entry: Record | tuple[Pending, AuditOutcome, int | None, str | None]) -> Record:
+def _record(entry: Item) -> Record:
     if isinstance(entry, dict):
         return entry
     pending, outcome, code, reason = entry

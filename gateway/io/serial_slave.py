@@ -285,7 +285,9 @@ class SerialSlave:
         result = self.router.admitter.admit(_NO_ONE, unit, pdu, self.policy, self._serves)
         audit = self.audit  # the audit log: None unless configured
         device = self._serial.device
-        ticket = audit and audit.admitted(self.name, device, None, unit, pdu, result)
+        ticket = (
+            None if audit is None else audit.admitted(self.name, device, None, unit, pdu, result)
+        )
         if unit == 0:  # executed or not, a broadcast is never answered
             if isinstance(result, Broadcast):
                 self._broadcast(pdu, result, ticket)

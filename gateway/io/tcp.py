@@ -372,7 +372,11 @@ class MasterConnection(asyncio.BufferedProtocol):
         router = server.router
         result = router.admitter.admit(self.principal, unit, pdu, server.policy)
         audit = server.audit  # the audit log: None unless configured
-        ticket = audit and audit.admitted(server.name, self.peer, self.role_text, unit, pdu, result)
+        ticket = (
+            None
+            if audit is None
+            else audit.admitted(server.name, self.peer, self.role_text, unit, pdu, result)
+        )
         if isinstance(result, Submit):
             target = result.target
             bus = router.bus(target.line)
