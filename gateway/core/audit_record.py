@@ -210,7 +210,8 @@ def refused_record(now: float, listener: str, source: str, reason: str) -> Recor
 
 
 def opened_record(now: float, prev: str, reason: str) -> Record:
-    """The first record the gateway writes to a file it opened (``reason``: start, reopen)."""
+    """The first record the gateway writes to a file it opened (``reason``: start, reopen);
+    ``Chain.seal`` sets its ``prev`` to the head it really follows."""
     return {"event": AuditEvent.OPENED.value, "time": timestamp(now), "prev": prev,
             "reason": reason}  # fmt: skip
 
@@ -267,7 +268,10 @@ class Chain:
     head: str = GENESIS
 
     def seal(self, record: Mapping[str, Any]) -> str:
-        """The line of ``record`` (with its hash and a newline); the head moves on."""
+        """The line of ``record`` (with its hash and a newline); the head moves on. An
+        ``audit_opened`` record gets the head it follows as its ``prev``."""
+        if record.get("event") == AuditEvent.OPENED:
+            record = {**record, "prev": self.head}
         body = canonical(record)
         self.head = link(self.head, body)
         return f'{body[:-1]}{_HASH_KEY}{self.head}"}}\n'

@@ -15,10 +15,12 @@ from gateway.core.audit_record import (
     Chain,
     Pending,
     Verifier,
+    canonical,
     changed_keys,
     config_record,
     flatten,
     is_audited,
+    link,
     opened_record,
     settle,
     timestamp,
@@ -121,8 +123,16 @@ def test_a_log_appended_to_after_a_restart_verifies() -> None:
     chain = Chain(head)
     lines.append(chain.seal(opened_record(T0 + 9, head, "start")))
     assert verify(lines) is None
-    lines.append(Chain(head).seal(opened_record(T0 + 9, GENESIS, "start")))  # a forged restart
+    assert json.loads(lines[-1])["prev"] == head
+    # A forged restart: a new chain from the genesis, to hide what came before.
+    body = canonical(opened_record(T0 + 9, GENESIS, "start"))
+    lines.append(f'{body[:-1]},"hash":"{link(GENESIS, body)}"}}\n')
     assert "audit_opened does not follow" in (verify(lines) or "")
+
+
+def test_an_opened_record_chains_from_the_head_it_is_sealed_after() -> None:
+    chain = Chain("ab" * 32)
+    assert json.loads(chain.seal(opened_record(T0, GENESIS, "reopen")))["prev"] == "ab" * 32
 
 
 @given(st.data())
