@@ -16,6 +16,7 @@ import errno
 import hashlib
 import logging
 import os
+import stat
 import threading
 import time
 from collections import deque
@@ -82,9 +83,9 @@ def open_path(path: str) -> int:
 
 def last_hash(path: str) -> str:
     """The hash the file at ``path`` ends with (``GENESIS`` when it is new or ends with none)."""
-    if path == STDERR:
-        return GENESIS
     try:
+        if path == STDERR or not stat.S_ISREG(os.stat(path).st_mode):
+            return GENESIS  # standard error, a pipe, a device: nothing to read back
         with open(path, "rb") as file:
             size = file.seek(0, os.SEEK_END)
             file.seek(max(0, size - _TAIL))
