@@ -387,10 +387,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         else:
             self._answer_locally(transaction_id, unit, pdu, result)
 
-    def _submit(
-        self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int, arrived: float,
-        ticket: AuditTicket | None = None,
-    ) -> None:  # fmt: skip
+    def _submit(self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int,
+                arrived: float, ticket: AuditTicket | None = None) -> None:  # fmt: skip
         """Queue the request on ``bus``; the reply goes out under its own transaction id."""
         server = self._server
         function = pdu[0]
@@ -438,9 +436,8 @@ class MasterConnection(asyncio.BufferedProtocol):
             log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
                       fc.function_name(function), answer.denied)  # fmt: skip
 
-    def _broadcast(
-        self, transaction_id: int, pdu: bytes, lines: list[Bus], ticket: AuditTicket | None
-    ) -> None:
+    def _broadcast(self, transaction_id: int, pdu: bytes, lines: list[Bus],
+                   ticket: AuditTicket | None) -> None:  # fmt: skip
         """Send a write to every line that takes broadcasts and is up; 0x0A when none is."""
         server = self._server
         buses = [bus for bus in lines if bus.up]
