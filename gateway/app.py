@@ -274,7 +274,7 @@ class Gateway:
             clock.close()
         self._clocks.clear()
         if self.audit is not None:
-            self.audit.close()
+            await asyncio.to_thread(self.audit.close)  # what is queued is written first
         log.info("stopped")
         self.stopped.set()
 

@@ -234,6 +234,8 @@ def flatten(value: object, prefix: str = "") -> dict[str, str]:
         items = ((str(k), v) for k, v in value.items())
     elif isinstance(value, list | tuple) and value and hasattr(value[0], "__dataclass_fields__"):
         items = ((str(getattr(v, "name", i)), v) for i, v in enumerate(value))
+    elif isinstance(value, set | frozenset):  # in a stable order: equal sets, equal text
+        return {prefix: repr(sorted(value, key=repr))}
     else:
         return {prefix: repr(value)}
     flat: dict[str, str] = {}

@@ -88,6 +88,7 @@ def test_configuration_changes_are_named_by_key() -> None:
     old = flatten({"server": {"max_pipeline": 16, "allow": []}, "lines": {"a": {"baud": 9600}}})
     new = flatten({"server": {"max_pipeline": 8, "allow": []}, "lines": {"b": {"baud": 9600}}})
     assert changed_keys(old, new) == ["lines.a.baud", "lines.b.baud", "server.max_pipeline"]
+    assert flatten({"s": frozenset({3, 1, 2})}) == flatten({"s": frozenset({2, 3, 1})})
     record = config_record(T0, "reload", "/etc/g.toml", "ab" * 32, ["x"], accepted=True)
     assert record["result"] == "accepted" and record["changed"] == ["x"]
 
