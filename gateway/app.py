@@ -33,19 +33,21 @@ from .config import (
 )
 from .core.line import Handover
 from .core.policy import Policy
+from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.rtu_listener import rtu_over_tcp_server
-from .io.serial_port import check_device_free
+from .io.serial_port import check_device_free, check_device_usable
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
-from .metrics import CloseReason, GatewayMetrics
-from .trace import Tracer
+from .metrics import GatewayMetrics
+from .status import LineStatus, MasterStatus
+from .trace import FrameTrace, Tracer
 
 log = logging.getLogger("gateway")
 
@@ -93,20 +95,35 @@ def bind_error(error: OSError, key: str, host: str, port: int) -> OSError:
             f"{where}: permission denied: ports below 1024 need the CAP_NET_BIND_SERVICE "
             "capability. The systemd unit modbus-gateway@.service grants it (and nothing "
             "else); otherwise listen on a port from 1024 up (e.g. --listen 0.0.0.0:5020) and "
-            "point the masters at it, or grant the capability to the Python interpreter with "
-            '`sudo setcap cap_net_bind_service=+ep "$(realpath .venv/bin/python)"` '
-            "(every program that interpreter runs then has it)"
+            "point the masters at it (or redirect 502 there in the firewall). Never grant it "
+            "to the system Python, which every Python program runs: give it to a copy of the "
+            'interpreter, `cp "$(realpath .venv/bin/python)" .venv/bin/python-bind && sudo '
+            "setcap cap_net_bind_service=+ep .venv/bin/python-bind`, and start the gateway "
+            "with `.venv/bin/python-bind -m gateway`."
         )
     if error.errno == errno.EADDRINUSE:
         return OSError(
             f"{where}: address already in use: another program listens there "
-            f"(ss -ltnp 'sport = :{port}'); stop it or change {key.split(' ')[0]}"
+            f"(ss -ltnp 'sport = :{port}'); stop it, or choose another port with "
+            f"{_key_terms(key)}."
         )
-    return OSError(f"{where}: {error.strerror or error}")
+    return OSError(f"{where}: {error.strerror or error}.")
+
+
+def _key_terms(key: str) -> str:
+    """``metrics.listen, --metrics`` → ``metrics.listen (or --metrics)``."""
+    first, _, flag = key.partition(", ")
+    return f"{first} (or {flag})" if flag else first
+
+
+def http_url(host: str, port: int, path: str = "/") -> str:
+    """A URL a browser opens: an IPv6 address goes in brackets (``http://[::1]:9502/``)."""
+    shown = f"[{host}]" if ":" in host else host
+    return f"http://{shown}:{port}{path}"
 
 
 class Gateway:
-    """The running gateway."""
+    """The running gateway; also the ``GatewayView`` that /status and the live trace read."""
 
     def __init__(
         self,
@@ -115,7 +132,9 @@ class Gateway:
         tracer: Tracer | None = None,
     ) -> None:
         self.config = config
-        self.tracer = tracer
+        self.tracer = tracer  #: the ``--trace`` logger, subscribed to ``trace`` for good
+        #: The one frame trace every listener holds from its construction on.
+        self.trace = FrameTrace() if tracer is None else FrameTrace(tracer)
         self.metrics = GatewayMetrics(registry)
         self.ready = asyncio.Event()
         self.stopped = asyncio.Event()
@@ -155,31 +174,69 @@ class Gateway:
         """The HTTP endpoint's address, ``None`` when disabled."""
         return self._http.address if self._http is not None else None
 
+    # -- what /status and the live trace read (``GatewayView``) ---------------------------
+
+    def route(self, unit: int) -> tuple[str, int] | None:
+        """The line and slave address ``unit`` goes to now, ``None`` without a route."""
+        target = self.server.router.lookup(unit) if self.server is not None else None
+        return None if target is None else (target.bus.name, target.slave)
+
+    def line_states(self) -> list[LineStatus]:
+        """Each line's own status with the slaves routed to it, sorted by line name."""
+        routed: dict[str, set[int]] = {}
+        for route in self.config.routes.values():
+            routed.setdefault(route.line, set()).add(route.slave)
+        return [
+            bus.status(sorted(routed.get(name, ()))) for name, bus in sorted(self.buses.items())
+        ]
+
+    def masters(self) -> tuple[MasterStatus, ...]:
+        """The masters connected now: TCP listeners first, then serial-slave lines."""
+        masters = [master for server in self.servers for master in server.masters()]
+        masters += [master for slave in self.serial_slaves for master in slave.masters()]
+        return tuple(masters)
+
+    def listen(self) -> str:
+        """``host:port`` of the first Modbus listener (empty before it listens)."""
+        if self.server is None or not self.server.sockets:
+            return ""
+        return "{}:{}".format(*self.server.sockets[0])
+
     # -- lifecycle ---------------------------------------------------------------------
 
     async def start(self) -> None:
         """Open lines, bind the TCP listener and the HTTP endpoint, then set ``ready``."""
         log.info("modbus-gateway %s (%s)", __version__, build())
         loop = asyncio.get_running_loop()
-        listeners = tuple(lst for lst in self.config.listeners if lst.serial is None) or (
-            ListenerConfig("tcp", host=self.config.server.host, port=self.config.server.port),
+        config = self.config
+        listeners = tuple(lst for lst in config.listeners if lst.serial is None) or (
+            ListenerConfig("tcp", host=config.server.host, port=config.server.port),
         )
-        tls = self._build_tls(self.config)  # before anything opens: a bad certificate stops here
-        self.audit = start_audit(self.config.audit.path, self.metrics.audit_records_dropped.inc)
-        note_config(self.audit, "load", self.config.source, self.config)
-        self._line_tls = self._build_line_tls(self.config)
-        http_connections = self.config.metrics.max_connections if self.config.metrics.enabled else 0
+        tls = self._build_tls(config)  # before anything opens: a bad certificate stops here
+        self.audit = start_audit(config.audit.path, self.metrics.audit_records_dropped.inc)
+        note_config(self.audit, "load", config.source, config)
+        self._line_tls = self._build_line_tls(config)
+        http_connections = config.metrics.max_connections if config.metrics.enabled else 0
         ensure_file_descriptors(
-            self.config.server.max_connections * len(listeners)
-            + http_connections
-            + _FDS_BESIDES_MASTERS
+            config.server.max_connections * len(listeners) + http_connections + _FDS_BESIDES_MASTERS
         )
-        for line in self.config.lines:  # a device another program holds fails the start
-            check_device_free(line)
-        for line in self.config.lines:
+        for line in config.lines:  # a device held or unusable fails the start
+            check_device_usable(line)
+        for line in config.lines:
             self._open_bus(line, loop)
-        self.metrics.describe_lines([line.name for line in self.config.lines])
+        self.metrics.describe_lines([line.name for line in config.lines])
         router = self._build_router()
+        self._build_servers(listeners, router, tls)
+        self._start_serial_slaves(router, loop)
+        self.live = LiveView(self, self.metrics, self.trace)
+        await self._bind()
+        self._log_listening()
+        self.ready.set()
+
+    def _build_servers(
+        self, listeners: tuple[ListenerConfig, ...], router: Router, tls: dict[str, ServerTls]
+    ) -> None:
+        """One server per TCP listener, each given the gateway's frame trace as it is built."""
         for listener in listeners:
             built = tls.get(listener.name)
             kind = rtu_over_tcp_server if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
@@ -187,18 +244,23 @@ class Gateway:
                 self.config.server, router, self.metrics, listener,
                 self._policy(self.config, listener), built.context if built else None,
             )  # fmt: skip
-            server.tracer, server.audit = self.tracer, self.audit
+            server.tracer, server.audit = self.trace, self.audit
             self.servers.append(server)
         self.server = self.servers[0]
+
+    def _start_serial_slaves(self, router: Router, loop: asyncio.AbstractEventLoop) -> None:
+        """Open each ``serial-slave`` listener's line (or keep trying in the background)."""
         for listener in self.config.listeners:
             if listener.serial is not None:
                 check_device_free(listener.serial)
                 slave = SerialSlave(listener, router, self.metrics,
                                     self._policy(self.config, listener), loop)  # fmt: skip
-                slave.tracer, slave.audit = self.tracer, self.audit
+                slave.tracer, slave.audit = self.trace, self.audit
                 self.serial_slaves.append(slave)
                 slave.start()
-        self.live = LiveView(self)
+
+    async def _bind(self) -> None:
+        """Bind every TCP listener, then the HTTP endpoint; a port refused names its key."""
         for server in self.servers:
             listener = server.listener
             try:
@@ -216,22 +278,24 @@ class Gateway:
                 raise bind_error(
                     error, "metrics.listen, --metrics", metrics.host, metrics.port
                 ) from error
+
+    def _log_listening(self) -> None:
+        """One line per listener (the CLI's tests and operators wait for it), then metrics."""
         for server in self.servers:
             host, port = server.sockets[0]
             listener = server.listener
             if listener.tls:
-                log.info("listening on %s:%d (Modbus/TCP Security), listener %s, %d line(s)",
-                         host, port, listener.name, len(self.buses))  # fmt: skip
+                protocol = "Modbus/TCP Security"
             elif listener.protocol == "rtu-over-tcp":
-                log.info("listening on %s:%d (RTU over TCP), listener %s, %d line(s)",
-                         host, port, listener.name, len(self.buses))  # fmt: skip
+                protocol = "RTU over TCP"
             else:
-                log.info("listening on %s:%d (Modbus TCP), listener %s, %d line(s)",
-                         host, port, listener.name, len(self.buses))  # fmt: skip
+                protocol = "Modbus TCP"
+            log.info("listening on %s:%d (%s), listener %s, %d line(s)",
+                     host, port, protocol, listener.name, len(self.buses))  # fmt: skip
         if self.metrics_address is not None:
             mhost, mport = self.metrics_address
-            log.info("metrics on http://%s:%d/metrics", mhost, mport)
-        self.ready.set()
+            log.info("metrics on %s, status page on %s",
+                     http_url(mhost, mport, "/metrics"), http_url(mhost, mport))  # fmt: skip
 
     async def _start_http(self) -> HttpEndpoint:
         routes = self.live.routes if self.live is not None else None
@@ -292,7 +356,7 @@ class Gateway:
             note_config(self.audit, "reload", config.source, applied, "TLS files refused (see log)")
 
     async def _apply(self, config: GatewayConfig) -> None:
-        loop = asyncio.get_running_loop()
+        """Certificates first (a bad one rejects the reload), then lines, then listeners."""
         assert self.server is not None
         try:
             tls = self._build_tls(config)  # certificates, keys and CAs are read again
@@ -301,6 +365,20 @@ class Gateway:
             log.error("reload rejected, the running configuration stays: %s", error)
             return
         self._line_tls = line_tls  # a line's next handshake uses its renewed files
+        if not await self._apply_lines(config, line_tls):
+            return  # a stop came while a line was handed over
+        config = self._keep_restart_settings(config)
+        self.config = config
+        router = self._build_router()
+        self._apply_listeners(config, router, tls)
+        self.metrics.describe_lines([line.name for line in config.lines])
+        log.info("reload: configuration from %s applied", config.source)
+
+    async def _apply_lines(
+        self, config: GatewayConfig, line_tls: dict[str, ssl.SSLContext]
+    ) -> bool:
+        """Remove, retune, reopen and add lines; ``False`` when a stop came meanwhile."""
+        loop = asyncio.get_running_loop()
         new_names = {line.name for line in config.lines}
         for name in list(self.buses):
             if name not in new_names:
@@ -311,56 +389,61 @@ class Gateway:
             if bus is not None and not _port_changed(bus.config, line):
                 bus.reconfigure(line)
                 bus.tls_context = line_tls.get(line.name)
-                continue
-            queued: list[Request] = []
-            handover: Handover | None = None
-            if bus is not None:
-                log.info("reload: line %s port settings changed, reopening", line.name)
-                # The queue, and what masters send while the transaction on the wire
-                # finishes, wait for the reopened line; so do the wire's turnaround and
-                # late-answer windows.
-                del self.buses[line.name]  # a stop meanwhile leaves it to us
-                clock = self._clocks.pop(line.name)
-                queued, handover = await bus.hand_over(grace=5.0)
-                clock.close()
-            else:
-                log.info("reload: line %s added", line.name)
-            if self._stopping:  # a stop signal came while the old line finished its transaction
-                Bus.answer_unavailable(queued)
-                return
-            reopened = self._open_bus(line, loop)
-            if bus is not None:
-                bus.successor = reopened
-            reopened.adopt(queued, handover)
-        if (config.server.host, config.server.port) != (
-            self.config.server.host,
-            self.config.server.port,
-        ):
-            log.warning(
-                "reload: server.listen changes need a restart; keeping %s:%d",
-                self.config.server.host,
-                self.config.server.port,
-            )
-            config = replace(
-                config,
-                server=replace(
-                    config.server, host=self.config.server.host, port=self.config.server.port
-                ),
-            )
-        running = {s.name: (s.listener.protocol, s.listener.host, s.listener.port)
-                   for s in self.servers}  # fmt: skip
+            elif not await self._reopen_bus(line, bus, loop):
+                return False
+        return True
+
+    async def _reopen_bus(
+        self, line: LineConfig, bus: Bus | None, loop: asyncio.AbstractEventLoop
+    ) -> bool:
+        """Open ``line`` anew, handing over ``bus``'s queue; ``False`` when a stop came."""
+        queued: list[Request] = []
+        handover: Handover | None = None
+        if bus is not None:
+            log.info("reload: line %s port settings changed, reopening", line.name)
+            # The queue, and what masters send while the transaction on the wire finishes,
+            # wait for the reopened line; so do the wire's turnaround and late-answer windows.
+            del self.buses[line.name]  # a stop meanwhile leaves it to us
+            clock = self._clocks.pop(line.name)
+            queued, handover = await bus.hand_over(grace=5.0)
+            clock.close()
+        else:
+            log.info("reload: line %s added", line.name)
+        if self._stopping:  # a stop signal came while the old line finished its transaction
+            Bus.answer_unavailable(queued)
+            return False
+        reopened = self._open_bus(line, loop)
+        if bus is not None:
+            bus.successor = reopened
+        reopened.adopt(queued, handover)
+        return True
+
+    def _keep_restart_settings(self, config: GatewayConfig) -> GatewayConfig:
+        """``config`` with the running values of the settings a reload cannot change (warned)."""
+        running = self.config
+        if (config.server.host, config.server.port) != (running.server.host, running.server.port):
+            log.warning("reload: server.listen changes need a restart; keeping %s:%d",
+                        running.server.host, running.server.port)  # fmt: skip
+            server = replace(config.server, host=running.server.host, port=running.server.port)
+            config = replace(config, server=server)
+        bound = {s.name: (s.listener.protocol, s.listener.host, s.listener.port)
+                 for s in self.servers}  # fmt: skip
         wanted = {lst.name: (lst.protocol, lst.host, lst.port) for lst in config.listeners
                   if lst.serial is None}  # fmt: skip
-        if config.listeners and wanted != running:
+        if config.listeners and wanted != bound:
             log.warning(
                 "reload: adding, removing or moving listeners needs a restart; the listeners "
                 "stay as they are (their policies and certificates reload)"
             )
-        if (config.metrics, config.logging) != (self.config.metrics, self.config.logging):
+        if (config.metrics, config.logging) != (running.metrics, running.logging):
             log.warning("reload: [metrics] and [logging] changes need a restart; keeping them")
-            config = replace(config, metrics=self.config.metrics, logging=self.config.logging)
-        self.config = config
-        router = self._build_router()
+            config = replace(config, metrics=running.metrics, logging=running.logging)
+        return config
+
+    def _apply_listeners(
+        self, config: GatewayConfig, router: Router, tls: dict[str, ServerTls]
+    ) -> None:
+        """New routes, settings, policies, allow lists and certificates for every listener."""
         by_name = {listener.name: listener for listener in config.listeners}
         for server in self.servers:
             server.config = config.server
@@ -387,8 +470,6 @@ class Gateway:
                 log.warning("reload: serial-slave listener %s: changes to its serial line "
                             "(device, format, framing, echo) need a restart",
                             slave.name)  # fmt: skip
-        self.metrics.describe_lines([line.name for line in config.lines])
-        log.info("reload: configuration from %s applied", config.source)
 
     # -- helpers -----------------------------------------------------------------------
 
@@ -440,6 +521,70 @@ class Gateway:
         return Router(routes, broadcast)
 
 
+class _Signals:
+    """The signals a running gateway handles, in one place: stop (twice: exit), and reload."""
+
+    def __init__(
+        self,
+        gateway: Gateway,
+        reload_source: Callable[[], GatewayConfig] | None,
+        notifier: SystemdNotifier,
+        loop: asyncio.AbstractEventLoop,
+    ) -> None:
+        self._gateway = gateway
+        self._reload_source = reload_source
+        self._notifier = notifier
+        self._loop = loop
+        self.stop_requested = asyncio.Event()
+        self._signals_seen = 0
+        self._reloads: set[asyncio.Task[None]] = set()
+
+    def install(self) -> None:
+        """Handle SIGTERM and SIGINT (stop) and SIGHUP (reload) on the loop."""
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            self._loop.add_signal_handler(signum, self._on_stop_signal, signum)
+        self._loop.add_signal_handler(signal.SIGHUP, self._on_reload_signal)
+
+    def serving(self) -> str:
+        """What systemd's status line says while the gateway serves."""
+        addresses = ", ".join(f"{host}:{port}" for host, port in self._gateway.addresses())
+        return f"listening on {addresses}, {len(self._gateway.buses)} line(s)"
+
+    def _on_stop_signal(self, signum: int) -> None:
+        self._signals_seen += 1
+        if self._signals_seen > 1:
+            log.warning("second %s: exiting at once", signal.Signals(signum).name)
+            raise SystemExit(1)
+        log.info("%s received", signal.Signals(signum).name)
+        self.stop_requested.set()
+
+    def _on_reload_signal(self) -> None:
+        if self._reload_source is None:
+            log.warning("SIGHUP: no configuration file to reload")
+            return
+        log.info("SIGHUP received: reloading the configuration file")
+        if self._gateway.audit is not None:
+            self._gateway.audit.reopen()  # logrotate: even when the reload is rejected
+        self._notifier.reloading()
+        try:
+            config = self._reload_source()
+        except ConfigError as error:
+            log.error("reload rejected, the running configuration stays: %s", error)
+            note_config(self._gateway.audit, "reload", error.source, None, str(error))
+            self._notifier.ready("reload rejected: " + self.serving())
+            return
+        task = self._loop.create_task(self._gateway.reload(config))
+        self._reloads.add(task)
+        task.add_done_callback(self._reload_done)
+
+    def _reload_done(self, task: asyncio.Task[None]) -> None:
+        self._reloads.discard(task)
+        if not task.cancelled() and (error := task.exception()) is not None:
+            log.error("reload failed: %r", error, exc_info=error)
+        if not self.stop_requested.is_set():
+            self._notifier.ready(self.serving())
+
+
 async def run_until_signalled(
     gateway: Gateway,
     reload_source: Callable[[], GatewayConfig] | None,
@@ -453,57 +598,13 @@ async def run_until_signalled(
     """
     loop = asyncio.get_running_loop()
     notifier = SystemdNotifier() if notifier is None else notifier
-    stop_requested = asyncio.Event()
-    signals_seen = 0
-    reloads: set[asyncio.Task[None]] = set()
-
-    def on_stop_signal(signum: int) -> None:
-        nonlocal signals_seen
-        signals_seen += 1
-        if signals_seen > 1:
-            log.warning("second %s: exiting at once", signal.Signals(signum).name)
-            raise SystemExit(1)
-        log.info("%s received", signal.Signals(signum).name)
-        stop_requested.set()
-
-    def on_reload_signal() -> None:
-        if reload_source is None:
-            log.warning("SIGHUP: no configuration file to reload")
-            return
-        log.info("SIGHUP received: reloading the configuration file")
-        if gateway.audit is not None:
-            gateway.audit.reopen()  # logrotate: even when the reload is rejected
-        notifier.reloading()
-        try:
-            config = reload_source()
-        except ConfigError as error:
-            log.error("reload rejected, the running configuration stays: %s", error)
-            note_config(gateway.audit, "reload", error.source, None, str(error))
-            notifier.ready("reload rejected: " + serving())
-            return
-        task = loop.create_task(gateway.reload(config))
-        reloads.add(task)
-        task.add_done_callback(reload_done)
-
-    def reload_done(task: asyncio.Task[None]) -> None:
-        reloads.discard(task)
-        if not task.cancelled() and (error := task.exception()) is not None:
-            log.error("reload failed: %r", error, exc_info=error)
-        if not stop_requested.is_set():
-            notifier.ready(serving())
-
-    def serving() -> str:
-        addresses = ", ".join(f"{host}:{port}" for host, port in gateway.addresses())
-        return f"listening on {addresses}, {len(gateway.buses)} line(s)"
-
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(signum, on_stop_signal, signum)
-    loop.add_signal_handler(signal.SIGHUP, on_reload_signal)
+    signals = _Signals(gateway, reload_source, notifier, loop)
+    signals.install()
     try:
         await gateway.start()
-        notifier.ready(serving())
+        notifier.ready(signals.serving())
         notifier.start_watchdog(loop)
-        await stop_requested.wait()
+        await signals.stop_requested.wait()
         notifier.stopping()
         await gateway.stop(grace)
     finally:

@@ -23,9 +23,10 @@ from .config import (
     read_config_file,
 )
 from .core.framing import is_mbap
+from .io.link import DeviceUnusableError
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
-from .schema import Key, Scope, Type
+from .schema import Key, Scope, Table, Type
 from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
 
@@ -406,15 +407,16 @@ def _subcommand(argv: list[str]) -> int | None:
     if argv == ["example-config"]:
         sys.stdout.write(example_config())
         return 0
-    if (
-        argv
-        and argv[0] == "trace"
-        and any(arg == "--url" or arg.startswith("--url=") for arg in argv[1:])
-    ):
+    if argv and argv[0] == "trace" and any(_is_trace_client_flag(arg) for arg in argv[1:]):
         from .trace_client import main as trace_client
 
         return trace_client(argv[1:])
     return None
+
+
+def _is_trace_client_flag(arg: str) -> bool:
+    """``trace --url`` attaches to a running gateway; ``trace --help`` describes that."""
+    return arg in ("--url", "-h", "--help") or arg.startswith("--url=")
 
 
 def _configure(
@@ -474,6 +476,9 @@ def _serve(args: argparse.Namespace, config: GatewayConfig, demo: DemoLine | Non
         log.info("demo: Modbus TCP units %s at %s", DEMO_TCP_UNITS, demo.tcp_slave.host_port)
     try:
         _run(serve(), use_uvloop=not args.no_uvloop)
+    except DeviceUnusableError as error:
+        log.error("cannot start: %s", _device_error(error, args))
+        return 1
     except (OSError, TlsSetupError) as error:
         log.error("cannot start: %s", error)
         return 1
@@ -484,6 +489,20 @@ def _serve(args: argparse.Namespace, config: GatewayConfig, demo: DemoLine | Non
         if demo is not None:
             demo.stop()
     return 0
+
+
+def _device_error(error: DeviceUnusableError, args: argparse.Namespace) -> str:
+    """The device's error naming the setting as the user gave it: the flag when a flag set
+    it (or when no file is in play and a flag exists), else the file's key."""
+    if error.key == "device":
+        return error.told("--serial") if args.serial else str(error)
+    for key in schema.flagged():
+        flag = key.flag
+        if key.table is not Table.LINES or key.name != error.key or flag is None:
+            continue
+        if not args.config or getattr(args, flag.dest) is not None:
+            return error.told(flag.name)
+    return str(error)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

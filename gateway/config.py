@@ -106,6 +106,9 @@ class ListenerConfig:
     cert: str | None = None  #: the server's certificate chain (PEM), tls only
     key: str | None = None  #: its private key (PEM), tls only
     ca: str | None = None  #: the CAs client certificates must chain to (PEM), tls only
+    crl: str | None = None  #: revocation lists of client certificates (PEM), tls only
+    forward_secrecy_only: bool = False  #: tls: drop the required RSA key-exchange suite
+    session_resumption: bool = False  #: tls: session tickets (OpenSSL's 7,200 s lifetime)
     allow: tuple[IPNetwork, ...] = ()  #: source networks accepted (empty: any)
     read_only: bool = False
     policy: str | None = None  #: a name in ``GatewayConfig.policies``; None: no rules
@@ -1306,7 +1309,7 @@ def _listener(check: _Checker, raw: Any, index: int, server: ServerConfig) -> Li
     }  # fmt: skip
     if protocol == "serial-slave":
         serial, units = _serial_slave_line(check, entry, prefix, name)
-        for other in ("cert", "key", "ca", "allow"):
+        for other in ("cert", "key", "ca", "crl", "allow"):
             if other in entry:
                 check.fail(f"{prefix}{other}", "a serial-slave listener has no network "
                            "peers: remove it")  # fmt: skip
@@ -1321,7 +1324,26 @@ def _listener(check: _Checker, raw: Any, index: int, server: ServerConfig) -> Li
     return ListenerConfig(host=address[0], port=address[1],
                           allow=_networks(check, entry, "allow", prefix),
                           **_listener_files(check, entry, prefix, protocol),
+                          **_listener_tls(check, entry, prefix, protocol),
                           **common)  # fmt: skip
+
+
+def _listener_tls(
+    check: _Checker, entry: Mapping[str, Any], prefix: str, protocol: str
+) -> dict[str, Any]:
+    """``crl``, ``forward_secrecy_only``, ``session_resumption``: a tls listener's options."""
+    names = ("crl", "forward_secrecy_only", "session_resumption")
+    if protocol != "tls":
+        for name in names:
+            if name in entry:
+                check.fail(f"{prefix}{name}", 'only a protocol = "tls" listener takes it')
+        return {}
+    crl = entry.get("crl")
+    if crl is not None and (not isinstance(crl, str) or not crl):
+        check.fail(f"{prefix}crl", "write a file path as a string")
+        crl = None
+    return {"crl": crl, **{name: check.read(_LISTENER_TABLE[name], entry, prefix)
+                           for name in names[1:]}}  # fmt: skip
 
 
 def _check_listeners(

@@ -1,11 +1,12 @@
 """Watching a running gateway: the live trace stream, ``GET /status`` and the status page.
 
-Theory of operation: ``TraceHub`` takes the TCP server's tracer seat (in front
-of the ``--trace`` logging tracer, if any) only while somebody watches: a
-trace stream is open, or the status page asked for ``/status`` in the last
-``WATCH_S`` seconds. Nobody watching costs the frame path nothing more than
-before. Each event is matched against each stream's filters and appended to
-that stream's own bounded queue; a stream whose client reads too slowly loses
+Theory of operation: every listener holds the gateway's one ``FrameTrace`` from
+the moment it is built; ``TraceHub`` subscribes to it (beside the ``--trace``
+logging tracer, if any) only while somebody watches: a trace stream is open, or
+the status page asked for ``/status`` in the last ``WATCH_S`` seconds. Nobody
+watching costs the frame path one attribute test (the trace is not active).
+Each event is matched against each stream's filters and appended to that
+stream's own bounded queue; a stream whose client reads too slowly loses
 events (counted in ``trace_dropped_events_total`` and announced to the client
 as a gap) rather than slowing the gateway: the frame path never waits for a
 socket. Serialising to JSON happens in the stream's writer task, off the
@@ -15,6 +16,10 @@ A request event carries its PDU in hex and, looked up in the router at that
 moment, the line and slave address it goes to (so a remapped unit shows where
 it went). Reply latencies per slave are kept over the last ``LATENCY_SAMPLES``
 answers while watched; line latencies come from the request-duration histogram.
+
+What this module reads of the gateway is ``GatewayView`` (gateway/status.py),
+which the application provides, and the metrics' own counters, read as numbers:
+it never imports the application, and never parses an exposition.
 """
 
 from __future__ import annotations
@@ -29,20 +34,16 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from importlib import resources
-from typing import TYPE_CHECKING, Any
+from typing import Any
 from urllib.parse import parse_qs
-
-from prometheus_client.registry import Collector
 
 from . import __version__
 from .core import pdu as fc
+from .core.outcome import Outcome
 from .io.http import Route, respond
-from .metrics import OUTCOMES
-from .status import GatewayStatus, LineState, quantile, to_json
-from .trace import Tracer, parse_function
-
-if TYPE_CHECKING:
-    from .app import Gateway
+from .metrics import GatewayMetrics
+from .status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
+from .trace import FrameTrace, parse_function, reply_outcome
 
 log = logging.getLogger("gateway.live")
 
@@ -62,8 +63,7 @@ STREAM_BUFFER = 64 * 1024
 HEARTBEAT_S = 15.0
 
 #: Outcomes of a reply that came from the slave, used for its latency.
-_ANSWERED = frozenset({"ok", "slave_exception"})
-_OUTCOME_BY_CODE = {0x0A: "no_route", 0x0B: "target_failed"}
+_ANSWERED = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION})
 
 
 @dataclass(slots=True)  # not frozen: a frozen dataclass costs ~1 us more to build
@@ -79,7 +79,7 @@ class TraceEvent:
     pdu: bytes
     line: str | None = None
     slave: int | None = None
-    outcome: str | None = None
+    outcome: Outcome | None = None
     latency_ms: float | None = None
     listener: str | None = None  # requests: the listener it came in on
     role: str | None = None  # requests on a tls listener: the client's role ("NULL" for none)
@@ -121,7 +121,7 @@ class TraceFilter:
     lines: frozenset[str] = frozenset()
     units: frozenset[int] = frozenset()
     functions: frozenset[int] = frozenset()
-    outcomes: frozenset[str] = frozenset()
+    outcomes: frozenset[Outcome] = frozenset()
     masters: tuple[str, ...] = ()
 
     @classmethod
@@ -150,13 +150,12 @@ class TraceFilter:
                 functions.add(parse_function(text))
             except ValueError as error:
                 raise ValueError(f"function={text!r}: {error}") from None
-        outcomes = set(values("outcome"))
-        known = {*OUTCOMES, "exception"}
-        unknown = outcomes - known
+        wanted = set(values("outcome"))
+        unknown = wanted - set(Outcome)
         if unknown:
-            raise ValueError(
-                f"outcome={','.join(sorted(unknown))}: expected one of {', '.join(sorted(known))}"
-            )
+            known = ", ".join(sorted(Outcome))
+            raise ValueError(f"outcome={','.join(sorted(unknown))}: expected one of {known}")
+        outcomes = {Outcome(value) for value in wanted}
         return cls(frozenset(values("line")), frozenset(units), frozenset(functions),
                    frozenset(outcomes), tuple(values("master")))  # fmt: skip
 
@@ -199,19 +198,24 @@ class TraceStream:
 
 
 class TraceHub:
-    """Sits in the TCP server's tracer seat while watched; fans events out to streams."""
+    """Subscribes to the gateway's frame trace while watched; fans events out to streams."""
 
-    def __init__(self, gateway: Gateway, clock: Callable[[], float] = time.monotonic) -> None:
-        self._gateway = gateway
+    def __init__(
+        self,
+        trace: FrameTrace,
+        view: GatewayView,
+        metrics: GatewayMetrics,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._trace = trace
+        self._view = view
         self._clock = clock
-        self.inner: Tracer | None = gateway.tracer  # the --trace logger keeps working
         self.streams: set[TraceStream] = set()
         self._pending: dict[tuple[str, int, int], tuple[float, str | None, int | None]] = {}
         self._latencies: dict[tuple[str, int], deque[float]] = {}
         self._watched_until = 0.0
         self._unwatch: asyncio.TimerHandle | None = None
-        metrics = gateway.metrics
-        self._m_dropped = metrics.trace_dropped
+        self._m_dropped = metrics.trace_dropped.labels()
         self._m_streams = metrics.trace_streams
 
     # -- who watches ---------------------------------------------------------------------
@@ -219,8 +223,7 @@ class TraceHub:
     @property
     def attached(self) -> bool:
         """True while the hub sees the frames."""
-        server = self._gateway.server
-        return server is not None and server.tracer is self
+        return self in self._trace.subscribers
 
     def watch(self) -> None:
         """The status page is open: gather per-slave latencies for ``WATCH_S`` more seconds."""
@@ -253,17 +256,11 @@ class TraceHub:
 
     def _update(self) -> None:
         wanted = bool(self.streams) or self._clock() < self._watched_until
-        for server in self._gateway.servers:  # every listener
-            if wanted:
-                server.tracer = self
-            elif server.tracer is self:
-                server.tracer = self.inner
-                self._pending.clear()
-        for slave in self._gateway.serial_slaves:  # masters on serial lines too
-            if wanted:
-                slave.tracer = self
-            elif slave.tracer is self:
-                slave.tracer = self.inner
+        if wanted:
+            self._trace.subscribe(self)
+        elif self.attached:
+            self._trace.unsubscribe(self)
+            self._pending.clear()
 
     def slave_latency(self, line: str, slave: int) -> tuple[float | None, float | None]:
         """p50 and p99 in seconds over the slave's recent answers (``None`` without any)."""
@@ -274,7 +271,7 @@ class TraceHub:
         last = len(ordered) - 1
         return ordered[round(0.5 * last)], ordered[round(0.99 * last)]
 
-    # -- the tracer seat -----------------------------------------------------------------
+    # -- the frames, while subscribed ------------------------------------------------------
 
     def request(
         self,
@@ -286,15 +283,12 @@ class TraceHub:
         role: str | None = None,
     ) -> None:
         """A request arrived from ``peer`` (on ``listener``, with ``role`` on TLS)."""
-        if self.inner is not None:
-            self.inner.request(peer, transaction_id, unit, pdu, listener, role)
         line: str | None = None
         slave: int | None = None
-        server = self._gateway.server
-        if server is not None and unit:
-            target = server.router.lookup(unit)
+        if unit:
+            target = self._view.route(unit)
             if target is not None:
-                line, slave = target.bus.name, target.slave
+                line, slave = target
         pending = self._pending
         if len(pending) >= MAX_PENDING:
             del pending[next(iter(pending))]
@@ -306,13 +300,11 @@ class TraceHub:
                                      role=role))  # fmt: skip
 
     def reply(
-        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
     ) -> None:
         """A reply is going out to ``peer``."""
-        if self.inner is not None:
-            self.inner.reply(peer, transaction_id, unit, pdu, outcome)
         if outcome is None:
-            outcome = _derive_outcome(pdu)
+            outcome = reply_outcome(pdu)
         arrived, line, slave = self._pending.pop((peer, transaction_id, unit), (None, None, None))
         latency = None if arrived is None else self._clock() - arrived
         if latency is not None and line is not None and slave is not None and outcome in _ANSWERED:
@@ -328,13 +320,11 @@ class TraceHub:
 
     def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
         """The answer came after its master had left."""
-        if self.inner is not None:
-            self.inner.dropped(peer, transaction_id, unit, function)
         arrived, line, slave = self._pending.pop((peer, transaction_id, unit), (None, None, None))
         if self.streams:
             latency = None if arrived is None else (self._clock() - arrived) * 1000.0
-            self._publish(TraceEvent(time.time(), "dropped", peer, transaction_id, unit,
-                                     function, b"", line, slave, "dropped", latency))  # fmt: skip
+            self._publish(TraceEvent(time.time(), "dropped", peer, transaction_id, unit, function,
+                                     b"", line, slave, Outcome.DROPPED, latency))  # fmt: skip
 
     def _publish(self, event: TraceEvent) -> None:
         for stream in self.streams:
@@ -348,115 +338,79 @@ class TraceHub:
         if self._unwatch is not None:
             self._unwatch.cancel()
             self._unwatch = None
-
-
-def _derive_outcome(pdu: bytes) -> str:
-    if not pdu:
-        return "broadcast"
-    if not fc.is_exception(pdu):
-        return "ok"
-    return _OUTCOME_BY_CODE.get(pdu[1] if len(pdu) > 1 else 0, "exception")
+        self._watched_until = 0.0
+        self._update()
 
 
 # --------------------------------------------------------------------------- status
 
 
 class StatusView:
-    """Builds ``GatewayStatus`` from each part's snapshot and the metrics."""
+    """Builds ``GatewayStatus`` from the gateway's view, the hub and the metrics' counters."""
 
-    def __init__(self, gateway: Gateway, hub: TraceHub) -> None:
-        self._gateway = gateway
+    def __init__(self, view: GatewayView, metrics: GatewayMetrics, hub: TraceHub) -> None:
+        self._view = view
+        self._metrics = metrics
         self._hub = hub
         self._started = time.monotonic()
         # line → (time, wire seconds, CRC errors, utilisation) at the previous snapshot
-        self._last: dict[str, tuple[float, float, float, float | None]] = {}
+        self._last: dict[str, tuple[float, float, int, float | None]] = {}
 
     def snapshot(self) -> GatewayStatus:
         """The gateway's state now."""
-        gateway = self._gateway
-        metrics = gateway.metrics
-        errors = _per_slave_totals(metrics.timeouts, metrics.crc_errors)
-        crc_by_line: dict[str, float] = {}
-        for (line, _unit), count in _per_slave_totals(metrics.crc_errors).items():
-            crc_by_line[line] = crc_by_line.get(line, 0.0) + count
-        slaves_by_line: dict[str, set[int]] = {}
-        for route in gateway.config.routes.values():
-            slaves_by_line.setdefault(route.line, set()).add(route.slave)
         now = time.monotonic()
-        lines = []
-        for name, bus in sorted(gateway.buses.items()):
-            status = bus.status(sorted(slaves_by_line.get(name, ())))
-            wire = metrics.wire_duration.labels(name)
-            faults = crc_by_line.get(name, 0.0)
-            previous = self._last.get(name)
-            noisy = previous is not None and faults > previous[2]
-            utilisation = previous[3] if previous is not None else None
-            if previous is None or now - previous[0] > 0.05:  # too short an interval says little
-                if previous is not None:
-                    busy = (wire.sum - previous[1]) / (now - previous[0])
-                    utilisation = min(1.0, max(0.0, busy))
-                self._last[name] = (now, wire.sum, faults, utilisation)
-            else:
-                self._last[name] = (*previous[:2], faults, utilisation)
-            state = status.state
-            if noisy and state is LineState.UP:
-                state = LineState.NOISY
-            histogram = metrics.request_duration.labels(name)
-            slaves = tuple(
-                replace(
-                    slave,
-                    p50=slave.p50 if slave.p50 is not None else latency[0],
-                    p99=slave.p99 if slave.p99 is not None else latency[1],
-                    errors=int(errors.get((name, str(slave.unit)), 0)),
-                )
-                for slave in status.slaves
-                for latency in (self._hub.slave_latency(name, slave.unit),)
-            )
-            lines.append(
-                replace(
-                    status,
-                    state=state,
-                    utilisation=status.utilisation
-                    if status.utilisation is not None
-                    else utilisation,
-                    slaves=slaves,
-                    p50=quantile(histogram.upper_bounds, histogram.counts, 0.5),
-                    p99=quantile(histogram.upper_bounds, histogram.counts, 0.99),
-                )
-            )
-        server = gateway.server
-        masters = tuple(master for listener in gateway.servers for master in listener.masters())
-        masters += tuple(m for slave in gateway.serial_slaves for m in slave.masters())
+        view = self._view
         return GatewayStatus(
             version=__version__,
             uptime=round(now - self._started, 3),
-            lines=tuple(lines),
-            masters=masters,
-            listen="{}:{}".format(*gateway.address) if server is not None else "",
+            lines=tuple(self._line(status, now) for status in view.line_states()),
+            masters=view.masters(),
+            listen=view.listen(),
             trace_clients=len(self._hub.streams),
-            trace_dropped=int(_sample_total(metrics.trace_dropped)),
+            trace_dropped=self._metrics.trace_events_dropped(),
         )
 
+    def _line(self, status: LineStatus, now: float) -> LineStatus:
+        """One line's own status, with what the metrics and the hub know of it."""
+        name = status.name
+        errors = self._metrics.slave_errors(name)
+        slaves = tuple(
+            replace(
+                slave,
+                p50=slave.p50 if slave.p50 is not None else latency[0],
+                p99=slave.p99 if slave.p99 is not None else latency[1],
+                errors=errors.get(slave.unit, 0),
+            )
+            for slave in status.slaves
+            for latency in (self._hub.slave_latency(name, slave.unit),)
+        )
+        noisy, utilisation = self._activity(name, now)
+        state = LineState.NOISY if noisy and status.state is LineState.UP else status.state
+        histogram = self._metrics.request_duration.labels(name)
+        return replace(
+            status,
+            state=state,
+            utilisation=status.utilisation if status.utilisation is not None else utilisation,
+            slaves=slaves,
+            p50=quantile(histogram.upper_bounds, histogram.counts, 0.5),
+            p99=quantile(histogram.upper_bounds, histogram.counts, 0.99),
+        )
 
-def _per_slave_totals(*families: Collector) -> dict[tuple[str, str], float]:
-    """Sum of ``*_total`` samples per ``(line, unit)`` over counter families."""
-    totals: dict[tuple[str, str], float] = {}
-    for family in families:
-        for metric in family.collect():
-            for sample in metric.samples:
-                if sample.name.endswith("_total"):
-                    key = (sample.labels["line"], sample.labels["unit"])
-                    totals[key] = totals.get(key, 0.0) + sample.value
-    return totals
-
-
-def _sample_total(family: Collector) -> float:
-    return sum(
-        float(sample.value)
-        for metric in family.collect()
-        for sample in metric.samples
-        if sample.name.endswith("_total")
-    )
+    def _activity(self, name: str, now: float) -> tuple[bool, float | None]:
+        """Whether CRC errors grew since the last snapshot, and the wire's busy share."""
+        wire = self._metrics.wire_duration.labels(name).sum
+        faults = self._metrics.crc_errors_on(name)
+        previous = self._last.get(name)
+        noisy = previous is not None and faults > previous[2]
+        utilisation = previous[3] if previous is not None else None
+        if previous is None or now - previous[0] > 0.05:  # too short an interval says little
+            if previous is not None:
+                busy = (wire - previous[1]) / (now - previous[0])
+                utilisation = min(1.0, max(0.0, busy))
+            self._last[name] = (now, wire, faults, utilisation)
+        else:
+            self._last[name] = (*previous[:2], faults, utilisation)
+        return noisy, utilisation
 
 
 # --------------------------------------------------------------------------- HTTP routes
@@ -470,9 +424,9 @@ def status_page() -> bytes:
 class LiveView:
     """The hub, the status builder and their HTTP routes, for one gateway."""
 
-    def __init__(self, gateway: Gateway) -> None:
-        self.hub = TraceHub(gateway)
-        self.status = StatusView(gateway, self.hub)
+    def __init__(self, view: GatewayView, metrics: GatewayMetrics, trace: FrameTrace) -> None:
+        self.hub = TraceHub(trace, view, metrics)
+        self.status = StatusView(view, metrics, self.hub)
         self._page = status_page()
         self._tasks: set[asyncio.Task[None]] = set()
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import time
 from bisect import bisect_left
 from collections.abc import Iterable, Iterator
-from enum import StrEnum
 from itertools import accumulate
 from typing import Protocol
 
@@ -43,55 +42,46 @@ from prometheus_client.registry import Collector
 
 from . import __version__, build
 from .core.line import LineStats
-from .core.outcome import Outcome
+from .core.outcome import DiscardReason, Outcome, SlaveState
 from .core.pdu import function_name
+from .core.reasons import CloseReason, MasterFault, RejectReason
+
+__all__ = [  # CloseReason and RejectReason live in core; importing them from here still works
+    "CloseReason",
+    "GatewayMetrics",
+    "MasterFault",
+    "RejectReason",
+]
 
 #: ``function`` label by function code (``other`` when unknown): an index, not a call.
 _FUNCTION_LABELS = tuple(function_name(code) for code in range(256))
 
-#: Outcomes of a request from a TCP master, the ``outcome`` label's whole vocabulary.
-OUTCOMES = tuple(outcome.value for outcome in Outcome)
-
-
-class CloseReason(StrEnum):
-    """Why a TCP connection closed: the ``reason`` label of ``connections_closed_total``."""
-
-    PEER_CLOSED = "peer_closed"  # the master closed it
-    ERROR = "error"  # the socket failed (reset, timeout)
-    PROTOCOL_ERROR = "protocol_error"  # a malformed MBAP header
-    IDLE = "idle"  # no complete request for server.idle_timeout
-    EVICTED = "evicted"  # closed to make room for a new master
-    STALLED = "stalled"  # left its replies unread for server.send_timeout
-    SHUTDOWN = "shutdown"  # the gateway stopped
-    NO_LONGER_ADMITTED = "no_longer_admitted"  # a reload's allow lists, CAs or dates refuse it
-
-
-class RejectReason(StrEnum):
-    """Why a TCP connection was refused at accept: ``connections_rejected_total``'s ``reason``."""
-
-    MAX_CONNECTIONS = "max_connections"  # full, and no master idle long enough to evict
-    MAX_PER_SOURCE = "max_per_source"  # that source address has all it may have
-
-
-#: The ``reason`` label's vocabulary of ``connections_closed_total``.
-CLOSE_REASONS = tuple(CloseReason)
+#: The outcomes a ``requests_total`` row can take, by where the request was answered: its
+#: series are created at 0 together, with the row's first request (see ``count_request``).
+LINE_OUTCOMES = (
+    Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.NO_ROUTE, Outcome.TARGET_FAILED, Outcome.BUSY,
+    Outcome.DROPPED, Outcome.CACHED,
+)  # fmt: skip
+#: Answered by the gateway without a line (``line="none"``).
+LOCAL_OUTCOMES = (Outcome.NO_ROUTE, Outcome.REJECTED, Outcome.DENIED)
+#: Broadcasts (``line="broadcast"``).
+BROADCAST_OUTCOMES = (Outcome.BROADCAST, Outcome.NO_ROUTE)
+#: ``line`` label of the requests answered without a line, and of broadcasts.
+NO_LINE = "none"
+BROADCAST_LINE = "broadcast"
 
 #: Outcomes that show a slave is present: its unit gets its own label in ``requests_total``.
-_HEARD_OUTCOMES = frozenset({"ok", "slave_exception", "cached"})
+_HEARD_OUTCOMES = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.CACHED})
 #: The ``unit`` label of requests to a slave never heard from, and of those without a line.
 OTHER_UNIT = "other"
 #: Unit labels that are always their own: no slave, and broadcast.
 _FIXED_UNITS = frozenset({OTHER_UNIT, "0"})
+#: Slave states counted by ``slaves_isolated`` (the others are up).
+ISOLATED_STATES = (SlaveState.SUSPECT, SlaveState.DOWN)
 
-#: Why bytes from the line were thrown away: ``late`` (nobody was waiting), ``incomplete``
-#: (half an answer at the timeout), and the core's ``ResponseError`` kinds other than ``crc``
-#: (counted in ``crc_errors_total``).
-DISCARD_REASONS = (
-    "late", "incomplete", "unexpected_unit", "unexpected_function", "mismatch",
-    "short_frame", "oversize", "trailing_bytes", "noise",
-    "restarted", "bad_char",  # ASCII: ':' inside a frame, a character that is not hex
-    "unexpected_tid", "bad_header",  # Modbus TCP slaves: another transaction, a broken header
-)  # fmt: skip
+#: Why bytes from the line were thrown away (``DiscardReason``: a bad CRC is counted in
+#: ``crc_errors_total`` instead).
+DISCARD_REASONS = tuple(reason.value for reason in DiscardReason)
 
 #: Label values for units, made once: ``str(unit)`` per request would allocate.
 UNIT_LABELS = tuple(str(unit) for unit in range(256))
@@ -220,6 +210,10 @@ class LoopCount:
     def __init__(self) -> None:
         self.value = 0
 
+    def inc(self, amount: int = 1) -> None:
+        """Count ``amount`` more (what prometheus-client's ``Counter`` children offer)."""
+        self.value += amount
+
 
 class LoopCounter(Collector):
     """A counter family of ``LoopCount`` series, exported at scrape time.
@@ -241,10 +235,19 @@ class LoopCounter(Collector):
             child = self._children[values] = LoopCount()
         return child
 
+    def inc(self, amount: int = 1) -> None:
+        """Count on the family's only series (a family without labels)."""
+        self.labels().inc(amount)
+
+    def series(self) -> Iterator[tuple[tuple[str, ...], int]]:
+        """Each series' label values and count: what status reads, without a scrape."""
+        for values, child in list(self._children.items()):
+            yield values, child.value
+
     def collect(self) -> Iterator[Metric]:
         family = CounterMetricFamily(self.name, self.documentation, labels=self._labelnames)
-        for values, child in list(self._children.items()):
-            family.add_metric(list(values), child.value)
+        for values, count in self.series():
+            family.add_metric(list(values), count)
         yield family
 
 
@@ -278,17 +281,29 @@ class LineHistogram(Collector):
 
 
 class GatewayMetrics:
-    """The metric families and cached children the I/O layer updates."""
+    """The metric families and cached children the I/O layer updates.
+
+    Every label whose values come from a fixed vocabulary (close and reject reasons,
+    faults, slave states, a line's discard reasons and handshake failures) has all its
+    series created at 0 as soon as its owner exists, so ``rate()`` and alerts see the
+    first event; docs/metrics.md says which series appear only with their first event.
+    """
 
     def __init__(self, registry: CollectorRegistry | None = None) -> None:
         self.registry = registry if registry is not None else CollectorRegistry()
-        r = self.registry
-        p = "modbus_gateway_"
+        self._request_families()
+        self._line_families()
+        self._slave_families()
+        self._connection_families()
+        self._security_families()
+        self._exported_state()
+
+    def _request_families(self) -> None:
+        r, p = self.registry, "modbus_gateway_"
         self.requests = LoopCounter(
             p + "requests", "Requests from TCP masters by outcome.",
             ("line", "unit", "function", "outcome"),
         )  # fmt: skip
-        r.register(self.requests)
         self.request_duration = LineHistogram(
             p + "request_duration_seconds",
             "Time from a request's arrival to its reply, as the master sees it.",
@@ -302,19 +317,14 @@ class GatewayMetrics:
         self.queue_wait = LineHistogram(
             p + "queue_wait_seconds", "Time requests waited for the serial line.", _WAIT_BUCKETS
         )
-        for histogram in (self.request_duration, self.wire_duration, self.queue_wait):
-            r.register(histogram)
-        self.crc_errors = Counter(
-            p + "crc_errors", "Responses with a bad CRC, per slave.", ["line", "unit"], registry=r
-        )
-        self.timeouts = Counter(
-            p + "timeouts", "Attempts the slave did not answer in time.", ["line", "unit"],
-            registry=r,
-        )  # fmt: skip
-        self.retries = Counter(
-            p + "retries", "Requests sent again after a timeout or bad CRC.", ["line", "unit"],
-            registry=r,
-        )  # fmt: skip
+        for family in (self.requests, self.request_duration, self.wire_duration, self.queue_wait):
+            r.register(family)
+        self._request_children: dict[tuple[str, str, str, str], LoopCount] = {}
+        self._rows: set[tuple[str, str, str]] = set()  #: (line, unit, function) created at 0
+        self._heard: set[tuple[str, str]] = set()  #: (line, unit) of slaves that answered
+
+    def _line_families(self) -> None:
+        r, p = self.registry, "modbus_gateway_"
         self.discarded_frames = Counter(
             p + "discarded_frames",
             "Answers or bytes thrown away: late, incomplete, from another unit or function.",
@@ -332,22 +342,6 @@ class GatewayMetrics:
         self.line_up = Gauge(
             p + "line_up", "1 when the serial line is open, 0 when it is down.", ["line"],
             registry=r,
-        )  # fmt: skip
-        self.slave_up = Gauge(
-            p + "slave_up", "1 when the slave answers, 0 while it is isolated as dead.",
-            ["line", "unit"], registry=r,
-        )  # fmt: skip
-        self.slave_suspect = Gauge(
-            p + "slave_suspect",
-            "1 while the slave is suspect (missed its last answer): its requests wait behind "
-            "the healthy slaves', one at a time.",
-            ["line", "unit"], registry=r,
-        )  # fmt: skip
-        self.slaves_isolated = Gauge(
-            p + "slaves_isolated",
-            "Slaves of the line that are suspect or down now, heard from or not (slave_up and "
-            "slave_suspect name only slaves that have answered).",
-            ["line", "state"], registry=r,
         )  # fmt: skip
         self.line_noisy = Gauge(
             p + "line_noisy",
@@ -369,6 +363,39 @@ class GatewayMetrics:
             "Read requests served by another master's identical transaction.",
             ["line"], registry=r,
         )  # fmt: skip
+
+    def _slave_families(self) -> None:
+        r, p = self.registry, "modbus_gateway_"
+        self.crc_errors = LoopCounter(
+            p + "crc_errors", "Responses with a bad CRC, per slave.", ("line", "unit")
+        )
+        self.timeouts = LoopCounter(
+            p + "timeouts", "Attempts the slave did not answer in time.", ("line", "unit")
+        )
+        self.retries = LoopCounter(
+            p + "retries", "Requests sent again after a timeout or bad CRC.", ("line", "unit")
+        )
+        for family in (self.crc_errors, self.timeouts, self.retries):
+            r.register(family)
+        self.slave_up = Gauge(
+            p + "slave_up", "1 when the slave answers, 0 while it is isolated as dead.",
+            ["line", "unit"], registry=r,
+        )  # fmt: skip
+        self.slave_suspect = Gauge(
+            p + "slave_suspect",
+            "1 while the slave is suspect (missed its last answer): its requests wait behind "
+            "the healthy slaves', one at a time.",
+            ["line", "unit"], registry=r,
+        )  # fmt: skip
+        self.slaves_isolated = Gauge(
+            p + "slaves_isolated",
+            "Slaves of the line that are suspect or down now, heard from or not (slave_up and "
+            "slave_suspect name only slaves that have answered).",
+            ["line", "state"], registry=r,
+        )  # fmt: skip
+
+    def _connection_families(self) -> None:
+        r, p = self.registry, "modbus_gateway_"
         self.connections_open = Gauge(
             p + "connections_open", "TCP connections from masters open now.", registry=r
         )
@@ -386,13 +413,24 @@ class GatewayMetrics:
             p + "protocol_errors", "Malformed input from masters, by kind.", ["kind"],
             registry=r,
         )  # fmt: skip
-        self.trace_dropped = Counter(
+        self.trace_dropped = LoopCounter(
             p + "trace_dropped_events",
-            "Live trace events not sent because the client read too slowly.", registry=r,
+            "Live trace events not sent because the client read too slowly.", (),
         )  # fmt: skip
+        r.register(self.trace_dropped)
         self.trace_streams = Gauge(
             p + "trace_streams", "Live trace streams open now (GET /trace).", registry=r
         )
+        for close in CloseReason:
+            self.connections_closed.labels(close)
+        for reject in RejectReason:
+            self.connections_rejected.labels(reject)
+        for fault in MasterFault:
+            self.protocol_errors.labels(fault)
+        self.trace_dropped.labels()
+
+    def _security_families(self) -> None:
+        r, p = self.registry, "modbus_gateway_"
         self.denied_requests = Counter(
             p + "denied_requests",
             "Requests refused by a listener's policy (answered 0x01), by listener, role and "
@@ -419,24 +457,23 @@ class GatewayMetrics:
             "of the gateway's certificate), by reason.",
             ["line", "reason"], registry=r,
         )  # fmt: skip
+        self._denial_children: dict[tuple[str, str, int], Counter] = {}
+
+    def _exported_state(self) -> None:
+        """The collectors that read state kept elsewhere (certificates, line counters)."""
+        r = self.registry
         self._certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._certificates))
         self._line_certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._line_certificates, owner="line"))
-        self._denial_children: dict[tuple[str, str, int], Counter] = {}
         self.info = Info(
-            p + "build", "Version, build (compiled or interpreted) and lines.", registry=r
-        )
+            "modbus_gateway_build", "Version, build (compiled or interpreted) and lines.",
+            registry=r,
+        )  # fmt: skip
         self.describe_lines([])
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
-        self._request_children: dict[tuple[str, str, str, str], LoopCount] = {}
-        self._heard: set[tuple[str, str]] = set()  #: (line, unit) of slaves that answered
-        for reason in CLOSE_REASONS:
-            self.connections_closed.labels(reason)
-        for reject in RejectReason:
-            self.connections_rejected.labels(reject)
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
@@ -456,7 +493,7 @@ class GatewayMetrics:
             self.discarded_frames.labels(line, reason)
         self.line_lost.labels(line)
         self.line_noisy_total.labels(line)
-        for state in ("suspect", "down"):
+        for state in ISOLATED_STATES:
             self.slaves_isolated.labels(line, state).set(0)
         self.late_windows.labels(line)
 
@@ -510,11 +547,11 @@ class GatewayMetrics:
             self._denial_children[key] = child
         child.inc()
 
-    def count_request(self, line: str, unit: str, function: int, outcome: str) -> None:
+    def count_request(self, line: str, unit: str, function: int, outcome: Outcome) -> None:
         """Count one request's outcome (children cached: this runs per request).
 
-        ``outcome`` must be one of ``OUTCOMES``; ``function`` is the request's code.
-        ``unit`` is counted as ``other`` until that slave has answered (module docstring).
+        ``function`` is the request's code. ``unit`` is counted as ``other`` until that
+        slave has answered (module docstring).
         """
         key = (line, unit, _FUNCTION_LABELS[function & 0xFF], outcome)
         child = self._request_children.get(key)
@@ -531,11 +568,45 @@ class GatewayMetrics:
         if unit not in _FIXED_UNITS and (line, unit) not in self._heard:
             if outcome not in _HEARD_OUTCOMES:
                 # Not cached: the slave may be heard from later, and then has its own label.
+                self._prepare_row(line, OTHER_UNIT, function)
                 return self.requests.labels(line, OTHER_UNIT, function, outcome)
             self._heard.add((line, unit))
+        self._prepare_row(line, unit, function)
         child = self.requests.labels(line, unit, function, outcome)
         self._request_children[key] = child
         return child
+
+    def _prepare_row(self, line: str, unit: str, function: str) -> None:
+        """Create at 0 every outcome a ``(line, unit, function)`` row can take, once."""
+        row = (line, unit, function)
+        if row in self._rows:
+            return
+        self._rows.add(row)
+        if line == NO_LINE:
+            outcomes: tuple[Outcome, ...] = LOCAL_OUTCOMES
+        elif line == BROADCAST_LINE:
+            outcomes = BROADCAST_OUTCOMES
+        else:
+            outcomes = LINE_OUTCOMES
+        for outcome in outcomes:
+            self.requests.labels(line, unit, function, outcome)
+
+    def slave_errors(self, line: str) -> dict[int, int]:
+        """Timeouts and CRC errors per slave address of ``line`` since start (for /status)."""
+        errors: dict[int, int] = {}
+        for family in (self.timeouts, self.crc_errors):
+            for (series_line, unit), count in family.series():
+                if series_line == line and unit.isdigit():
+                    errors[int(unit)] = errors.get(int(unit), 0) + count
+        return errors
+
+    def crc_errors_on(self, line: str) -> int:
+        """CRC errors on ``line`` since start, every slave together."""
+        return sum(count for (name, _unit), count in self.crc_errors.series() if name == line)
+
+    def trace_events_dropped(self) -> int:
+        """Live trace events dropped since start (slow readers)."""
+        return sum(count for _labels, count in self.trace_dropped.series())
 
     def exposition_registry(self) -> Collector:
         """What the HTTP endpoint exposes: every metric, without ``_created`` series."""

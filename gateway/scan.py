@@ -14,23 +14,27 @@ This runs without an event loop: it is a short, interactive command.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import enum
 import json
 import re
+import socket
+import ssl
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, TextIO, cast
+from typing import Any, Protocol, TextIO, cast
 
 import serial
 
-from .config import ConfigError, LineConfig, build_config, read_config_file
+from .config import NETWORK_LINE_KINDS, ConfigError, LineConfig, build_config, read_config_file
 from .core import pdu as fc
 from .core.errors import ResponseError
-from .core.rtu import RtuResponseDecoder, encode_rtu
-from .core.timing import character_time, t35
+from .core.framing import framing_for
+from .core.timing import character_time
 from .io.serial_port import DeviceBusyError, SerialPortError, open_serial
+from .io.tls import TlsSetupError, client_context
 
 #: Baud rates ``--baudrate auto`` tries, the most common on Modbus lines first.
 AUTO_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 4800, 2400, 1200)
@@ -39,6 +43,10 @@ AUTO_FORMATS = (("E", 1), ("N", 1), ("O", 1), ("N", 2))
 #: The harmless read: one holding register at address 0.
 PROBE = bytes.fromhex("03 0000 0001")
 _MAX_IDENTIFICATION_REQUESTS = 8
+_READ_CHUNK = 4096
+#: Exceptions a gateway answers for a unit nobody serves (gateway path unavailable, target
+#: failed to respond): a Modbus TCP slave that is itself a gateway says "nobody" this way.
+_NOBODY_THERE = frozenset({0x0A, 0x0B})
 
 
 class Answer(enum.Enum):
@@ -90,6 +98,14 @@ class ScanResult:
     slaves: list[Slave]
     tried: list[Tried]
     garbled: list[int]  # addresses that got bytes that were no answer
+    kind: str = "rtu"  # the line's kind: a network kind has no serial format of its own
+
+    @property
+    def where(self) -> str:
+        """``/dev/ttyUSB0 at 9600 8E1``, or ``10.0.0.5:502 (tcp)`` on a network line."""
+        if self.kind in NETWORK_LINE_KINDS:
+            return f"{self.device} ({self.kind})"
+        return f"{self.device} at {self.settings}"
 
 
 class Progress:
@@ -115,56 +131,141 @@ class Progress:
         self.stream.flush()
 
 
-class Port:
-    """An open line: one request at a time, the frame gap kept before each."""
+class Wire(Protocol):
+    """The bytes of one line, whatever carries them: a serial port or a TCP/TLS connection."""
 
-    def __init__(self, line: LineConfig, timeout: float) -> None:
-        self.line = line
-        self.timeout = timeout
+    def write(self, data: bytes) -> None: ...
+
+    def read(self, timeout: float) -> bytes:
+        """What arrives within ``timeout`` seconds (at least one byte), or ``b""``."""
+        ...
+
+    def discard_input(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class SerialWire:
+    """A serial device or pyserial URL, opened exactly as the gateway opens it."""
+
+    def __init__(self, line: LineConfig) -> None:
         # Every port type pyserial opens (device, socket://, rfc2217://) has these methods.
         self.port = cast(serial.Serial, open_serial(line))
-        self._char = character_time(line.baudrate, line.data_bits, line.parity, line.stop_bits)
-        self._gap = t35(line.baudrate, line.data_bits, line.parity, line.stop_bits)
-        self._silence = max(self._gap, 0.05 if line.is_url else 0.0)
+
+    def write(self, data: bytes) -> None:
+        self.port.write(data)
+
+    def read(self, timeout: float) -> bytes:
+        port = self.port
+        port.timeout = timeout
+        data = bytes(port.read(1))
+        if data:
+            port.timeout = 0
+            data += port.read(port.in_waiting or 0)
+        return data
+
+    def discard_input(self) -> None:
+        self.port.reset_input_buffer()
 
     def close(self) -> None:
         self.port.close()
 
+
+class SocketWire:
+    """A TCP connection (``rtu-over-tcp``, ``tcp``) or a TLS session (``tls``) to the line."""
+
+    def __init__(self, line: LineConfig) -> None:
+        sock = socket.create_connection((line.host, line.port), timeout=line.connect_timeout)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if line.kind == "tls":
+            context = client_context(line).context
+            sock.settimeout(line.tls_handshake_timeout)
+            try:
+                sock = context.wrap_socket(sock, server_hostname=line.server_name or line.host)
+            except BaseException:
+                sock.close()
+                raise
+        self.sock = sock
+        self.where = line.device
+
+    def write(self, data: bytes) -> None:
+        self.sock.settimeout(None)
+        self.sock.sendall(data)
+
+    def read(self, timeout: float) -> bytes:
+        self.sock.settimeout(max(timeout, 0.001))
+        try:
+            data = self.sock.recv(_READ_CHUNK)
+        except TimeoutError:
+            return b""
+        if not data:
+            raise ConnectionError(f"{self.where} closed the connection")
+        return data
+
+    def discard_input(self) -> None:
+        """Drop a late answer still buffered, so it is never taken for the next one."""
+        self.sock.setblocking(False)
+        with contextlib.suppress(BlockingIOError, ssl.SSLWantReadError):
+            while self.sock.recv(_READ_CHUNK):
+                pass
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def open_wire(line: LineConfig) -> Wire:
+    """The line's wire: a connection for a network kind, else its serial port."""
+    return SocketWire(line) if line.networked else SerialWire(line)
+
+
+class Port:
+    """An open line: one request at a time in the line's framing, the frame gap kept before each."""
+
+    def __init__(self, line: LineConfig, timeout: float) -> None:
+        self.line = line
+        self.timeout = timeout
+        self.framing = framing_for(line.kind)
+        self.wire = open_wire(line)
+        self._char = 0.0
+        if not line.networked:  # the request's own transmission time counts on a serial line
+            self._char = character_time(line.baudrate, line.data_bits, line.parity,
+                                        line.stop_bits)  # fmt: skip
+        self._gap = line.gap
+        self._silence = line.silence
+
+    def close(self) -> None:
+        self.wire.close()
+
     def transact(self, address: int, pdu: bytes) -> tuple[Answer, bytes]:
         """Send ``pdu`` to ``address`` and wait for its answer (or the timeout)."""
-        port = self.port
-        time.sleep(self._gap)  # the line must be silent for t3.5 before a request
-        port.reset_input_buffer()
-        frame = encode_rtu(address, pdu)
-        port.write(frame)
-        decoder = RtuResponseDecoder(address, pdu)
+        wire = self.wire
+        if self._gap:
+            time.sleep(self._gap)  # the line must be silent for t3.5 before a request
+        wire.discard_input()
+        frame = self.framing.encode(address, pdu)
+        wire.write(frame)
+        decoder = self.framing.decoder(address, pdu)
         deadline = time.monotonic() + len(frame) * self._char + self.timeout
         received = False
         while (remaining := deadline - time.monotonic()) > 0:
-            port.timeout = min(remaining, self._silence) if decoder.buffered else remaining
-            data = port.read(1)
-            if not data:
-                if decoder.buffered and decoder.waits_for_silence:
-                    try:
-                        result = decoder.end_of_frame()
-                    except ResponseError:
-                        return Answer.GARBLED, b""
-                    if result is not None:
-                        return _answer(result.pdu)
-                continue
-            received = True
-            port.timeout = 0
-            data += port.read(port.in_waiting or 0)
+            ends_on_silence = decoder.buffered and decoder.waits_for_silence
+            data = wire.read(min(remaining, self._silence) if ends_on_silence else remaining)
             try:
-                answer = decoder.feed(data)
+                if not data:
+                    result = decoder.end_of_frame() if ends_on_silence else None
+                else:
+                    received = True
+                    result = decoder.feed(data)
             except ResponseError:
                 return Answer.GARBLED, b""
-            if answer is not None:
-                return _answer(answer.pdu)
+            if result is not None:
+                return _answer(result.pdu)
         return (Answer.GARBLED if received else Answer.SILENT), b""
 
 
 def _answer(pdu: bytes) -> tuple[Answer, bytes]:
+    if fc.is_exception(pdu) and len(pdu) > 1 and pdu[1] in _NOBODY_THERE:
+        return Answer.SILENT, b""  # a gateway on the way says no slave answers at that unit
     return (Answer.EXCEPTION if fc.is_exception(pdu) else Answer.NORMAL), pdu
 
 
@@ -229,7 +330,7 @@ def scan(
                 found = settings
                 break
         if found is None:
-            return ScanResult(line.device, None, [], tried, [])
+            return ScanResult(line.device, None, [], tried, [], line.kind)
         chosen = found
     port = Port(_line_with(line, chosen), timeout)
     try:
@@ -248,8 +349,9 @@ def scan(
                 identify(port, slave)
     finally:
         port.close()
-    progress.note(f"{chosen}: {len(slaves)} slave(s) answer")
-    return ScanResult(line.device, chosen, slaves, tried, garbled)
+    scanned = ScanResult(line.device, chosen, slaves, tried, garbled, line.kind)
+    progress.note(f"{scanned.where}: {len(slaves)} slave(s) answer")
+    return scanned
 
 
 def _probe(
@@ -284,7 +386,7 @@ def format_table(result: ScanResult) -> str:
         out.append(f"{result.device}: no slave answered at any format tried:")
         out.extend(f"  {tried.settings}: {tried.result}" for tried in result.tried)
         return "\n".join(out)
-    out.append(f"{result.device} at {result.settings}: {len(result.slaves)} slave(s)")
+    out.append(f"{result.where}: {len(result.slaves)} slave(s)")
     rows = [("address", "answer", "device identification (FC 43/14)", "server id (FC 17)")]
     for slave in result.slaves:
         ident = " ".join(result_text for _, result_text in sorted(slave.identification.items()))
@@ -385,41 +487,70 @@ def main(argv: Sequence[str], stderr: TextIO | None = None) -> int:
         args.line = None
     try:
         line = _line(args)
+        candidates = _candidates(args, line)
     except ConfigError as error:
         print(f"modbus-gateway scan: {error}", file=errors)
         return 2
-    candidates = None
-    if hasattr(args, "baudrate") and args.baudrate is None:
-        formats = [(p, s) for p, s in AUTO_FORMATS
-                   if (args.parity is None or p == args.parity)
-                   and (args.stopbits is None or s == args.stopbits)]  # fmt: skip
-        if not formats:
-            formats = [(args.parity or "N", args.stopbits or 1)]
-        candidates = [Settings(b, p, s) for b in AUTO_BAUDRATES for p, s in formats]
     progress = Progress(errors)
     progress.note(f"scanning {line.device}: addresses {_ranges(args.range)}, "
                   f"{args.timeout:g} s each")  # fmt: skip
-    report: Callable[[ScanResult], str] = format_table
+    result = _scan_reporting_errors(line, args, candidates, progress)
+    if result is None:
+        return 1
+    report: Callable[[ScanResult], str] = _json if args.json else format_table
+    print(report(result))
+    return 0 if result.slaves else 1
+
+
+def _candidates(args: argparse.Namespace, line: LineConfig) -> list[Settings] | None:
+    """The formats ``--baudrate auto`` tries; None without it. Only a serial line has them."""
+    if not hasattr(args, "baudrate") or args.baudrate is not None:
+        return None
+    if line.networked:
+        where = "the device server's serial side" if line.kind == "rtu-over-tcp" else "nothing"
+        raise ConfigError(
+            "--baudrate auto",
+            [f"line {line.name!r} is a {line.kind} line, whose baud rate is set on {where}: "
+             "scan it without --baudrate"],
+        )  # fmt: skip
+    formats = [(p, s) for p, s in AUTO_FORMATS
+               if (args.parity is None or p == args.parity)
+               and (args.stopbits is None or s == args.stopbits)]  # fmt: skip
+    if not formats:
+        formats = [(args.parity or "N", args.stopbits or 1)]
+    return [Settings(b, p, s) for b in AUTO_BAUDRATES for p, s in formats]
+
+
+def _scan_reporting_errors(
+    line: LineConfig, args: argparse.Namespace, candidates: list[Settings] | None,
+    progress: Progress,
+) -> ScanResult | None:  # fmt: skip
+    """The scan's result, or None once its failure is told as a sentence with the fix."""
     try:
-        result = scan(line, args.range, args.timeout, candidates, progress, not args.no_identify)
+        return scan(line, args.range, args.timeout, candidates, progress, not args.no_identify)
     except DeviceBusyError as error:
         held = re.search(r" is in use by (.*?); ", str(error))
         holder = held[1] if held else "another program"
         progress.note(
             f"modbus-gateway scan: {line.device} is in use by {holder}; a scan is a second "
-            "master on the line: stop the gateway (or that program) first"
+            "master on the line: stop the gateway (or that program) first."
         )
-        return 1
-    except (SerialPortError, serial.SerialException, OSError) as error:
+    except TlsSetupError as error:
+        progress.note(f"modbus-gateway scan: {error}.")
+    except (SerialPortError, serial.SerialException) as error:
         progress.note(f"modbus-gateway scan: {error}")
-        return 1
+    except OSError as error:
+        if not line.networked:
+            progress.note(f"modbus-gateway scan: {error}")
+        else:
+            progress.note(
+                f"modbus-gateway scan: line {line.name!r}: no {line.kind} connection with "
+                f"{line.device}: {error}. Check the address, and that nothing else holds the "
+                "device server's only connection (a running gateway may)."
+            )
     except KeyboardInterrupt:
         progress.note("modbus-gateway scan: interrupted")
-        return 1
-    if args.json:
-        report = _json
-    print(report(result))
-    return 0 if result.slaves else 1
+    return None
 
 
 def _json(result: ScanResult) -> str:

@@ -4,6 +4,9 @@ The line, the TCP server and the metrics each hand out one of these small
 frozen records instead of having their private fields read: the status page
 depends on this vocabulary, not on how a line or a connection keeps its books.
 ``to_json`` turns a snapshot into the plain dictionaries the page fetches.
+
+``GatewayView`` is all the status page and the live trace read of a running
+gateway: the application provides it, so neither needs to know the application.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from .core.outcome import SlaveState as SlaveState  # the status vocabulary is the core's
 
@@ -72,6 +75,22 @@ class GatewayStatus:
     listen: str = ""  # the Modbus TCP address
     trace_clients: int = 0
     trace_dropped: int = 0
+
+
+class GatewayView(Protocol):
+    """What ``/status`` and the live trace read of the running gateway (the app provides it)."""
+
+    def route(self, unit: int) -> tuple[str, int] | None:
+        """The line and slave address ``unit`` goes to now, ``None`` without a route."""
+
+    def line_states(self) -> list[LineStatus]:
+        """Each line's own status with its routed slaves, sorted by line name."""
+
+    def masters(self) -> tuple[MasterStatus, ...]:
+        """The masters connected now, on every listener."""
+
+    def listen(self) -> str:
+        """``host:port`` of the first Modbus listener (empty before it listens)."""
 
 
 def _plain(value: Any) -> Any:

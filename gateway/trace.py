@@ -1,10 +1,13 @@
 """The live frame trace for commissioning: every request and reply of the masters, decoded.
 
-The TCP server holds a ``Tracer`` only while tracing is on and calls it behind
-an ``if tracer is not None`` test, so a gateway that does not trace pays one
-attribute check per frame. Lines go to the ``gateway.trace`` logger at INFO,
-so they follow the log format (JSON lines carry every field separately) and
-never need a second output to be configured.
+Every listener is given one ``FrameTrace`` when it is built and keeps it: the
+trace forwards each frame to its subscribers (the ``--trace`` logging ``Tracer``,
+the live trace hub while somebody watches), so tracing starts and stops by
+subscribing, never by swapping what a listener holds. With no subscriber the
+trace is not ``active`` and a frame costs the listener one attribute test.
+Lines go to the ``gateway.trace`` logger at INFO, so they follow the log format
+(JSON lines carry every field separately) and never need a second output to be
+configured.
 
 A reply line shows the latency from the request's arrival, looked up by
 (master, transaction id, unit) in a bounded table: a master that leaves
@@ -20,15 +23,29 @@ from typing import Protocol
 
 from .core import pdu as fc
 from .core.errors import ExceptionCode
+from .core.outcome import Outcome
 
 #: Requests remembered for their reply's latency; the oldest are forgotten past this.
 MAX_PENDING = 4096
 
-#: Outcome shown for a reply when the caller does not name one, by exception code.
-_OUTCOME_BY_CODE: dict[int, str] = {
-    ExceptionCode.GATEWAY_PATH_UNAVAILABLE: "no_route",
-    ExceptionCode.GATEWAY_TARGET_FAILED: "target_failed",
+#: Outcome of a reply whose caller does not name one, by the exception code it carries.
+_OUTCOME_BY_CODE: dict[int, Outcome] = {
+    ExceptionCode.GATEWAY_PATH_UNAVAILABLE: Outcome.NO_ROUTE,
+    ExceptionCode.GATEWAY_TARGET_FAILED: Outcome.TARGET_FAILED,
 }
+
+
+def reply_outcome(pdu: bytes) -> Outcome:
+    """What a reply says of its request when the caller does not say: read off the PDU.
+
+    No PDU is a broadcast's; the gateway's own 0x0A and 0x0B name theirs; any other
+    exception is taken as the slave's.
+    """
+    if not pdu:
+        return Outcome.BROADCAST
+    if not fc.is_exception(pdu):
+        return Outcome.OK
+    return _OUTCOME_BY_CODE.get(pdu[1] if len(pdu) > 1 else 0, Outcome.SLAVE_EXCEPTION)
 
 
 def parse_function(text: str) -> int:
@@ -63,12 +80,71 @@ class FrameTracer(Protocol):
         """A request arrived from ``peer`` on ``listener`` (``role``: TLS only)."""
 
     def reply(
-        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
     ) -> None:
-        """A reply is going out to ``peer``."""
+        """A reply is going out to ``peer`` (``outcome``: see ``reply_outcome`` when None)."""
 
     def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
         """The answer to a request came after its master had left."""
+
+
+class FrameTrace:
+    """The one frame trace every listener holds: hands each frame to its subscribers.
+
+    Built once with the gateway and given to each listener as it is built; who watches
+    changes by ``subscribe`` and ``unsubscribe``, so nothing a listener holds is swapped.
+    A listener calls it only while ``active`` (somebody subscribed): a gateway nobody
+    traces pays one attribute test per frame.
+    """
+
+    __slots__ = ("_subscribers", "active")
+
+    def __init__(self, *subscribers: FrameTracer) -> None:
+        self._subscribers: tuple[FrameTracer, ...] = ()
+        self.active = False  #: True while somebody subscribed
+        for tracer in subscribers:
+            self.subscribe(tracer)
+
+    @property
+    def subscribers(self) -> tuple[FrameTracer, ...]:
+        """Who receives the frames now, in the order they subscribed."""
+        return self._subscribers
+
+    def subscribe(self, tracer: FrameTracer) -> None:
+        """Send every following frame to ``tracer`` too (once, however often it subscribes)."""
+        if tracer not in self._subscribers:
+            self._subscribers = (*self._subscribers, tracer)
+        self.active = True
+
+    def unsubscribe(self, tracer: FrameTracer) -> None:
+        """Stop sending frames to ``tracer`` (nothing if it was not subscribed)."""
+        self._subscribers = tuple(s for s in self._subscribers if s is not tracer)
+        self.active = bool(self._subscribers)
+
+    def request(
+        self,
+        peer: str,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        listener: str | None = None,
+        role: str | None = None,
+    ) -> None:
+        """A request arrived from ``peer``: every subscriber hears of it."""
+        for tracer in self._subscribers:
+            tracer.request(peer, transaction_id, unit, pdu, listener, role)
+
+    def reply(
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
+        """A reply is going out to ``peer``: every subscriber hears of it."""
+        for tracer in self._subscribers:
+            tracer.reply(peer, transaction_id, unit, pdu, outcome)
+
+    def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
+        """An answer found its master gone: every subscriber hears of it."""
+        for tracer in self._subscribers:
+            tracer.dropped(peer, transaction_id, unit, function)
 
 
 class Tracer:
@@ -127,7 +203,7 @@ class Tracer:
         )  # fmt: skip
 
     def reply(
-        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
     ) -> None:
         """A reply is going out to ``peer``; ``outcome`` as in the request metric when known."""
         function = pdu[0] & 0x7F if pdu else 0
@@ -135,7 +211,7 @@ class Tracer:
             return
         latency_ms = self._latency_ms(peer, transaction_id, unit)
         if outcome is None:
-            outcome = _derive_outcome(pdu)
+            outcome = reply_outcome(pdu)
         name = fc.function_name(function)
         if function in fc.ECHOED_WRITES and not fc.is_exception(pdu):
             detail = fc.describe_request(pdu)  # an echo: address, then value or quantity
@@ -161,19 +237,10 @@ class Tracer:
             peer, transaction_id, unit, name, function,
             extra={"direction": "none", "peer": peer, "transaction_id": transaction_id,
                    "unit": unit, "function": name, "function_code": function,
-                   "outcome": "dropped", "latency_ms": latency_ms},
+                   "outcome": Outcome.DROPPED, "latency_ms": latency_ms},
         )  # fmt: skip
 
     def _latency_ms(self, peer: str, transaction_id: int, unit: int) -> float | None:
         """Milliseconds since the request arrived (``None`` if it was not traced)."""
         arrived = self._pending.pop((peer, transaction_id, unit), None)
         return None if arrived is None else (self._clock() - arrived) * 1000.0
-
-
-def _derive_outcome(pdu: bytes) -> str:
-    if not pdu:
-        return "broadcast"
-    if not fc.is_exception(pdu):
-        return "ok"
-    code = pdu[1] if len(pdu) > 1 else 0
-    return _OUTCOME_BY_CODE.get(code, "exception")

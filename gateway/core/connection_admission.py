@@ -11,7 +11,8 @@ documented order:
    refused whenever a list exists);
 2. on a TLS listener, once the handshake is done: a client certificate exists;
 3. it still chains to a CA the listener trusts now;
-4. ``now`` lies inside its validity window (the latest ``notBefore`` and the
+4. it is not revoked (the listener's ``crl`` lists it);
+5. ``now`` lies inside its validity window (the latest ``notBefore`` and the
    earliest ``notAfter`` along the chain up to that CA).
 
 At accept nothing but the source is known (``established`` false): the listener
@@ -24,10 +25,9 @@ are not admission: the policy decides each request as it comes, so a narrowed
 rule holds from the open connection's next request.
 
 A revocation list (CRL) is one more fact of the same kind as ``trusted``: io
-reads the list and tells whether the chain's serial numbers are revoked; a
-``revoked`` field on ``CertificateFacts`` and one more step (with its
-``NotAdmitted`` member) here make it hold at accept and at every reload alike,
-without a second mechanism.
+reads the list and tells whether the leaf's serial number is revoked
+(``revoked``); step 4 makes it hold at every reload, as OpenSSL's CRL check does
+at the handshake, without a second mechanism.
 
 Invariants: ``admit`` is pure and total; a wider door (more networks in each
 list, more trusted CAs) never refuses a connection a narrower one admits.
@@ -48,6 +48,7 @@ class NotAdmitted(StrEnum):
     SOURCE_NOT_ALLOWED = "source_not_allowed"  # outside an allow list
     NO_CERTIFICATE = "no_certificate"  # a TLS connection without a client certificate
     CA_NOT_TRUSTED = "ca_not_trusted"  # its chain reaches none of the CAs trusted now
+    CERTIFICATE_REVOKED = "certificate_revoked"  # the listener's crl lists it
     CERTIFICATE_NOT_YET_VALID = "certificate_not_yet_valid"  # before its notBefore
     CERTIFICATE_EXPIRED = "certificate_expired"  # past its notAfter
 
@@ -67,6 +68,7 @@ class CertificateFacts:
     not_before: float  #: the latest notBefore along the chain
     not_after: float  #: the earliest notAfter along the chain
     trusted: bool  #: it chains to one of the CAs the listener trusts now (worked out in io)
+    revoked: bool = False  #: the listener's CRL lists the leaf (worked out in io)
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +103,8 @@ def admit(door: Door, facts: ConnectionFacts, now: float) -> NotAdmitted | None:
         return NotAdmitted.NO_CERTIFICATE
     if not certificate.trusted:
         return NotAdmitted.CA_NOT_TRUSTED
+    if certificate.revoked:
+        return NotAdmitted.CERTIFICATE_REVOKED
     if now < certificate.not_before:
         return NotAdmitted.CERTIFICATE_NOT_YET_VALID
     if now > certificate.not_after:

@@ -1,12 +1,17 @@
 """One vocabulary for what became of a request, and for the line's notable events.
 
 Every layer speaks it: the line core decides an ``Outcome``, the TCP side writes the
-matching reply, metrics use the values as label values (so the set is fixed and small).
+matching reply, metrics use the values as label values (so the set is fixed and small)
+and create every labelled series from these enums.
 """
 
 from __future__ import annotations
 
 from enum import StrEnum
+
+from .reasons import CloseReason as CloseReason  # the reasons belong to this vocabulary
+from .reasons import MasterFault as MasterFault
+from .reasons import RejectReason as RejectReason
 
 
 class Outcome(StrEnum):
@@ -45,3 +50,25 @@ class LineEvent(StrEnum):
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
     COALESCED = "coalesced"  # a read joined an identical queued read
+
+
+class DiscardReason(StrEnum):
+    """Why bytes from a line were thrown away: the ``reason`` label's whole vocabulary.
+
+    The line core's own reasons, and the answer decoders' fault kinds
+    (``ResponseError.kind``) except a bad CRC or LRC, which is counted on its own.
+    """
+
+    LATE = "late"  # nobody was waiting (or a lost answer, after its attempt failed)
+    INCOMPLETE = "incomplete"  # half an answer at the timeout
+    UNEXPECTED_UNIT = "unexpected_unit"  # another unit's frame
+    UNEXPECTED_FUNCTION = "unexpected_function"  # an answer to another function
+    MISMATCH = "mismatch"  # the right unit and function, not this request's answer
+    SHORT_FRAME = "short_frame"  # shorter than any answer
+    OVERSIZE = "oversize"  # longer than any answer may be
+    TRAILING_BYTES = "trailing_bytes"  # bytes after a complete answer
+    NOISE = "noise"  # bytes in front of the answer
+    RESTARTED = "restarted"  # ASCII: ':' inside a frame, a new frame began
+    BAD_CHAR = "bad_char"  # ASCII: a character that is not hexadecimal
+    UNEXPECTED_TID = "unexpected_tid"  # Modbus TCP: an answer to another transaction
+    BAD_HEADER = "bad_header"  # Modbus TCP: a header no slave sends (the stream is out of step)

@@ -49,6 +49,7 @@ _REASON_TEXT = {
     NotAdmitted.CERTIFICATE_EXPIRED: ": its client certificate has expired",
     NotAdmitted.CERTIFICATE_NOT_YET_VALID: ": its client certificate is not valid yet",
     NotAdmitted.NO_CERTIFICATE: ": it showed no client certificate",
+    NotAdmitted.CERTIFICATE_REVOKED: ": its client certificate is revoked (listener's crl)",
 }
 
 
@@ -92,13 +93,26 @@ class SourceScreen:
                 plural="connections from outside the allow list",
             )
 
-    def handshake_failed(self, reason: HandshakeFailure, error: BaseException) -> None:
-        """Count a failed TLS handshake by reason; log it at a bounded rate."""
+    def handshake_failed(
+        self,
+        reason: HandshakeFailure,
+        error: BaseException,
+        peer: str,
+        source: IPAddress | None,
+        subject: str | None = None,
+    ) -> None:
+        """Count a failed TLS handshake by reason; log it at a bounded rate per source.
+
+        The line names the peer (address and port) and, when one is known, the client
+        certificate's subject; further failures of the same kind from the same address
+        within the window are summed in one line.
+        """
         self._metrics.tls_handshake_failures.labels(self.listener, reason.value).inc()
         if self._log is not None:
+            certificate = f", certificate {subject!r}" if subject else ""
             self._log.note(
-                f"listener {self.listener}",
+                f"listener {self.listener}: master {source if source is not None else peer}",
                 f"TLS handshake failed ({reason.value})",
-                str(error) or type(error).__name__,
+                f"peer {peer}{certificate}: {str(error) or type(error).__name__}",
                 plural=f"TLS handshakes failed ({reason.value})",
             )

@@ -14,13 +14,16 @@ or a TLS session with a slave (``tls``), connected without blocking the loop and
 reconnected with the same back-off as a port is reopened. While the link is down
 the core answers 0x0A, whatever the kind. A TLS failure is counted by reason and
 logged once per reason until the line works again.
+
+Two collaborators keep ``Bus`` to the pump, the masters' side and the hand-over:
+``LinePort`` (``line_port.py``) opens and reopens the link, and ``LineNotes``
+(``line_notes.py``) turns the core's notes into metrics and log lines.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import socket
 import ssl
 import time
 from collections.abc import Hashable, Iterable
@@ -29,25 +32,21 @@ from ..config import LineConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
-from ..core.line import Delivery, Handover, LineRequest, Note, Transmit, no_reply
-from ..core.outcome import LineEvent, Outcome, SlaveState
-from ..core.pipeline import new_line_core
-from ..logs import RateLimitedLogger
-from ..metrics import UNIT_LABELS, GatewayMetrics
+from ..core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
+from ..core.outcome import Outcome, SlaveState
+from ..metrics import GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock, wait_until
-from .link import Link, LinkError, TcpLink, TlsLink, connect_tcp, connect_tls
-from .serial_port import SerialLink, SerialPortError, open_serial
-from .tls import LineTlsFailure, line_failure_message, line_failure_reason
+from .line_notes import LineNotes
+from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
+from .link import Link, LinkError, TlsLink
+from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
 
-#: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``.
+#: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``, where
+#: ``reply(pdu, outcome)`` takes the answer and its ``Outcome``.
 Request = LineRequest
-
-
-_REOPEN_FIRST_DELAY = 0.05
-_REOPEN_MAX_DELAY = 0.5
 
 
 class Bus:
@@ -77,10 +76,9 @@ class Bus:
             config.max_in_flight,
         )
         self._link: Link | None = None
-        self._reopener: asyncio.Task[None] | None = None
+        self._port = LinePort(self, metrics, loop)
         self._stopping = False
         self._pumping = False
-        self._open_error = ""
         #: The line that replaced this one (``hand_over``): requests go there from now on.
         self.successor: Bus | None = None
         self._watch_wire = False  # ``hand_over`` waits for ``_wire_free``
@@ -94,15 +92,12 @@ class Bus:
         self._m_queue_wait = metrics.queue_wait.labels(self.name)
         self._m_wire = metrics.wire_duration.labels(self.name)
         self._m_line_up = metrics.line_up.labels(self.name)
-        self._m_coalesced = metrics.coalesced.labels(self.name)
-        self._m_noisy = metrics.line_noisy.labels(self.name)
         self._m_line_up.set(0)
-        self._m_noisy.set(0)
         metrics.prepare_line(self.name)
         metrics.set_line_kind(self.name, config.kind)
         if config.kind == "tls":
             metrics.prepare_line_tls(self.name, (reason.value for reason in LineTlsFailure))
-        self._fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
+        self._notes = LineNotes(self, metrics, loop)
 
     # -- state ---------------------------------------------------------------------------
 
@@ -129,10 +124,7 @@ class Bus:
 
     def start(self) -> None:
         """Open the port, or begin retrying (a network line connects in the background)."""
-        if self.config.networked:
-            self._schedule_reopen(first_delay=0.0)
-        elif not self._try_open():
-            self._schedule_reopen()
+        self._port.start()
 
     async def stop(self, grace: float) -> None:
         """Finish the transaction on the wire (within ``grace``), answer the rest 0x0A, close."""
@@ -178,8 +170,7 @@ class Bus:
     def _stop_taking(self) -> None:
         """No reopening and no more requests: the core answers what waits 0x0A."""
         self._stopping = True
-        if self._reopener is not None:
-            self._reopener.cancel()
+        self._port.stop()
         self._core.stop(time.monotonic())
         self._pump()
 
@@ -189,7 +180,7 @@ class Bus:
             self._link.close()
             self._link = None
         self._m_line_up.set(0)
-        self._fault_log.flush()
+        self._notes.flush()
 
     def reconfigure(self, config: LineConfig) -> None:
         """Take new timeouts, retries and limits; the port settings must be unchanged."""
@@ -242,7 +233,8 @@ class Bus:
 
     # -- events from the port and the clock ----------------------------------------------
 
-    def _on_data(self, data: bytes) -> None:
+    def on_data(self, data: bytes) -> None:
+        """Bytes read from the link."""
         self._core.receive(data, time.monotonic())
         self._pump()
 
@@ -255,11 +247,12 @@ class Bus:
         self._core.handle_timer(at if now < at else now)
         self._pump(not_before=at)
 
-    def _on_lost(self, error: OSError) -> None:
+    def on_lost(self, error: OSError) -> None:
+        """The link went away: 0x0A for what waits, and reopen it (unless stopping)."""
         link = self._link
         refused = isinstance(link, TlsLink) and not link.confirmed
         if refused:  # TLS 1.3: the slave's verdict on the gateway's certificate comes late
-            self._tls_failed(error)
+            self._port.tls_failed(error)
         else:
             log.error(
                 "line %s: %s lost: %s; answering 0x0A until it returns",
@@ -272,15 +265,15 @@ class Bus:
         self._core.port_lost(time.monotonic())
         self._pump()
         if not self._stopping:
-            self._schedule_reopen(_REOPEN_MAX_DELAY if refused else _REOPEN_FIRST_DELAY)
+            self._port.schedule_reopen(REOPEN_MAX_DELAY if refused else REOPEN_FIRST_DELAY)
 
-    def _resync(self) -> None:
+    def resync(self) -> None:
         """Drop a connection whose byte stream can no longer be split into frames."""
         link = self._link
         if link is None or link.closed or self._stopping:
             return
         link.close()
-        self._on_lost(ConnectionError("a frame header no Modbus TCP slave sends; reconnecting"))
+        self.on_lost(ConnectionError("a frame header no Modbus TCP slave sends; reconnecting"))
 
     # -- the pump ------------------------------------------------------------------------
 
@@ -302,7 +295,7 @@ class Bus:
                 if core.notes:  # before the answers: a master that sees its answer sees them
                     notes, core.notes = core.notes, []
                     for note in notes:
-                        self._note(note)
+                        self._notes.note(note)
                 if core.deliveries:
                     deliveries, core.deliveries = core.deliveries, []
                     self._deliver(deliveries)
@@ -353,198 +346,14 @@ class Bus:
                 # the rest of this batch their answers; logged in full, not swallowed
                 log.exception("line %s: handing an answer back failed", self.name)
 
-    def _note(self, note: Note) -> None:
-        event = note.event
-        if event is LineEvent.COALESCED:  # the only note on the hot path
-            self._m_coalesced.inc()
-            return
-        metrics = self._metrics
-        unit = UNIT_LABELS[note.slave]
-        subject = f"unit {unit} on line {self.name}"
-        if event is LineEvent.TIMEOUT:
-            metrics.timeouts.labels(self.name, unit).inc()
-            self._fault_log.note(subject, "timeout", note.detail)
-        elif event is LineEvent.CRC_ERROR:
-            metrics.crc_errors.labels(self.name, unit).inc()
-            self._fault_log.note(subject, "CRC error", note.detail)
-        elif event is LineEvent.GARBLED:
-            self._fault_log.note(subject, "garbled answer", note.detail)
-        elif event is LineEvent.RETRY:
-            metrics.retries.labels(self.name, unit).inc()
-        elif event is LineEvent.DISCARDED:
-            metrics.discarded_frames.labels(self.name, note.detail).inc()
-            if note.detail == "bad_header":  # a Modbus TCP stream out of step: reconnect
-                self._loop.call_soon(self._resync)
-            self._fault_log.note(
-                f"line {self.name}",
-                "discarded input",
-                f"{note.amount} {note.detail} byte(s) or frame(s)",
-                level=logging.INFO,
-            )
-        elif event is LineEvent.LATE_WINDOW:
-            metrics.late_windows.labels(self.name).inc()
-        elif event is LineEvent.SLAVE_STATE:
-            self._slave_state(note)
-        elif event is LineEvent.LINE_NOISY:
-            self._m_noisy.set(1)
-            metrics.line_noisy_total.labels(self.name).inc()
-            self._fault_log.note(
-                f"line {self.name}",
-                "noisy line",
-                f"{note.detail}; waiting requests answered 0x0B until a gap appears",
-            )
-        elif event is LineEvent.LINE_QUIET:
-            self._m_noisy.set(0)
-            log.info("line %s: quiet again, serving requests", self.name)
-
-    def _slave_state(self, note: Note) -> None:
-        unit = UNIT_LABELS[note.slave]
-        state = note.state
-        metrics = self._metrics
-        states = list(self._core.slave_states().values())
-        for counted in (SlaveState.SUSPECT, SlaveState.DOWN):
-            metrics.slaves_isolated.labels(self.name, counted.value).set(states.count(counted))
-        # Per-slave series only for slaves that have answered: a scan of every routed
-        # address (all 247 with --serial) must not add two series per absent unit.
-        if metrics.heard(self.name, unit):
-            metrics.slave_up.labels(self.name, unit).set(0 if state is SlaveState.DOWN else 1)
-            metrics.slave_suspect.labels(self.name, unit).set(
-                1 if state is SlaveState.SUSPECT else 0
-            )
-        if state is SlaveState.DOWN:
-            log.warning(
-                "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
-                "probing every %.1f s or more",
-                self.name, note.slave, note.amount, self.config.probe_interval,
-            )  # fmt: skip
-        elif state is SlaveState.SUSPECT:
-            self._fault_log.note(
-                f"unit {unit} on line {self.name}",
-                "suspect slave",
-                "missed an answer; its requests wait behind the others, one at a time",
-                level=logging.INFO,
-            )
-        else:
-            log.info("line %s: slave %d answers again", self.name, note.slave)
-
     # -- port state ----------------------------------------------------------------------
 
-    def _try_open(self) -> bool:
-        try:
-            port = open_serial(self.config)
-        except SerialPortError as error:
-            reason = str(error)
-            if reason != self._open_error:  # first failure, or a new reason: say it once
-                self._open_error = reason
-                log.error("%s; retrying", reason)
-            return False
-        self._open_error = ""
-        self._link = SerialLink(port, self._loop, self._on_data, self._on_lost)
-        self._m_line_up.set(1)
-        log.info("line %s: %s open at %d baud", self.name, self.config.device, self.config.baudrate)
-        self._core.port_opened(time.monotonic())
-        self._pump()
-        return True
-
-    async def _try_connect(self) -> bool:
-        """Connect to the device server (then wait ``connect_delay``); False on failure."""
-        config = self.config
-        try:
-            sock = await connect_tcp(config.host, config.port, config.connect_timeout)
-        except OSError as error:
-            reason = f"line {self.name!r}: cannot connect to {config.device}: {error}"
-            if reason != self._open_error:  # first failure, or a new reason: say it once
-                self._open_error = reason
-                log.error("%s; retrying", reason)
-            return False
-        lost: list[OSError] = []
-        link: TcpLink | TlsLink
-        if config.kind == "tls":
-            handshaken = await self._handshake(sock, lost)
-            if handshaken is None:
-                return False
-            link = handshaken
-        else:
-            link = TcpLink(sock, config.device, self._loop, self._discard, lost.append)
-        if config.connect_delay > 0:
-            # Some device servers drop what arrives while they set up their serial side:
-            # nothing is sent (the line stays down, 0x0A) and nothing read counts.
-            try:
-                await asyncio.sleep(config.connect_delay)
-            except asyncio.CancelledError:
-                link.close()
-                raise
-        if lost or link.closed:
-            reason = f"line {self.name!r}: {config.device} closed the connection at once"
-            if reason != self._open_error:
-                self._open_error = reason
-                log.error("%s; retrying", reason)
-            return False
-        link.on_data, link.on_lost = self._on_data, self._on_lost
+    def attach(self, link: Link) -> None:
+        """The port is open (``LinePort``): the core takes requests from now on."""
         self._link = link
         self._m_line_up.set(1)
-        if isinstance(link, TlsLink) and self._open_error:
-            # After a TLS failure the slave's first answer says it took the certificate:
-            # until then a reconnect is not news (the failure was logged once).
-            link.on_confirmed = self._tls_confirmed
-            log.debug("line %s: TLS handshake with %s done", self.name, config.device)
-        else:
-            self._open_error = ""
-            log.info("line %s: connected to %s (%s)", self.name, config.device, config.kind)
         self._core.port_opened(time.monotonic())
         self._pump()
-        return True
-
-    async def _handshake(self, sock: socket.socket, lost: list[OSError]) -> TlsLink | None:
-        """The TLS handshake of a ``tls`` line on a connected socket; None on failure."""
-        config = self.config
-        assert self.tls_context is not None, "a tls line is opened with its context"
-        try:
-            tls = await connect_tls(
-                sock, self.tls_context, config.server_name, config.tls_handshake_timeout
-            )
-        except OSError as error:
-            self._tls_failed(error)
-            return None
-        return TlsLink(tls, config.device, self._loop, self._discard, lost.append)
-
-    def _tls_failed(self, error: OSError) -> None:
-        """Count a TLS failure by reason; log it when the reason is new."""
-        reason = line_failure_reason(error)
-        self._metrics.line_tls_failures.labels(self.name, reason.value).inc()
-        key = f"tls:{reason.value}"
-        if key != self._open_error:
-            self._open_error = key
-            log.error("%s; retrying", line_failure_message(self.config, reason, error))
-
-    def _tls_confirmed(self) -> None:
-        self._open_error = ""
-        log.info("line %s: TLS session with %s accepted, back up", self.name, self.config.device)
-
-    @staticmethod
-    def _discard(_data: bytes) -> None:
-        """Bytes read during the connect delay: not an answer to anything."""
-
-    def _schedule_reopen(self, first_delay: float = _REOPEN_FIRST_DELAY) -> None:
-        if self._reopener is None or self._reopener.done():
-            self._reopener = self._loop.create_task(
-                self._reopen(first_delay), name=f"reopen-{self.name}"
-            )
-
-    async def _reopen(self, first_delay: float = _REOPEN_FIRST_DELAY) -> None:
-        delay = first_delay
-        while not self._stopping:
-            if delay > 0:
-                await asyncio.sleep(delay)
-            if self._stopping:
-                return
-            opened = await self._try_connect() if self.config.networked else self._try_open()
-            if opened:
-                if delay > 0 and not self._open_error:  # a TLS session: when confirmed
-                    log.info("line %s: back up", self.name)
-                self._reopener = None
-                return
-            delay = min(max(delay * 2, _REOPEN_FIRST_DELAY), _REOPEN_MAX_DELAY)
 
     # -- status: the status page's only view of a line ------------------------------------
 

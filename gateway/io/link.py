@@ -58,6 +58,26 @@ class DeviceBusyError(SerialPortError):
     """The device is held by another program (or another line of this gateway)."""
 
 
+class DeviceUnusableError(SerialPortError):
+    """A device that exists but cannot serve its line: not a terminal, permission denied, or
+    a setting it refuses. Retrying cannot fix it, so a start stops with the fix.
+
+    ``key`` is the line's setting to change (``device``, ``data_bits``, ...): ``told``
+    names it as the user gave it, a configuration key or a command-line flag.
+    """
+
+    def __init__(self, line: str, key: str, problem: str, fix: str) -> None:
+        self.line = line
+        self.key = key
+        self.problem = problem
+        self.fix = fix  #: may name the setting as ``{setting}``
+        super().__init__(self.told(f"lines.{line}.{key}"))
+
+    def told(self, setting: str) -> str:
+        """The whole sentence, naming the setting to change as ``setting``."""
+        return f"line {self.line!r}: {self.problem}; {self.fix.format(setting=setting)}."
+
+
 class Link(Protocol):
     """What ``Bus`` needs from whatever carries a line's bytes."""
 

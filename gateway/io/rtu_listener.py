@@ -18,6 +18,7 @@ import asyncio
 import ssl
 
 from ..config import ListenerConfig, ServerConfig
+from ..core.outcome import Outcome
 from ..core.policy import IPAddress, Policy
 from ..core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
 from ..metrics import GatewayMetrics
@@ -59,7 +60,9 @@ class RtuMasterConnection(MasterConnection):
         self._rtu.silence()
         self._run_batch()
 
-    def _send(self, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None) -> None:
+    def _send(
+        self, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
         if unit == 0:
             return  # a broadcast is never answered on RTU
         if self._transport is None or self._closed:
@@ -70,7 +73,7 @@ class RtuMasterConnection(MasterConnection):
         else:
             self._transport.write(frame)
         tracer = self._server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     def _release(self) -> None:

@@ -22,9 +22,11 @@ import asyncio
 import contextlib
 import errno
 import fcntl
+import logging
 import os
 import struct
 import termios
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -32,7 +34,9 @@ import serial
 import serial.rs485
 
 from ..config import LineConfig
-from .link import DeviceBusyError, SerialPortError
+from .link import DeviceBusyError, DeviceUnusableError, SerialPortError
+
+log = logging.getLogger("gateway.io.serial_port")
 
 _PARITIES = {"N": serial.PARITY_NONE, "E": serial.PARITY_EVEN, "O": serial.PARITY_ODD}
 _STOP_BITS = {
@@ -41,12 +45,19 @@ _STOP_BITS = {
     2.0: serial.STOPBITS_TWO,
 }
 _READ_CHUNK = 4096
+#: How long a start tries again a device that denies permission (udev setting its mode).
+PERMISSION_SETTLE_S = 3.0
+_PERMISSION_POLL_S = 0.1
+_MISSING = frozenset({errno.ENOENT, errno.ENODEV, errno.ENXIO})
+_DENIED = frozenset({errno.EACCES, errno.EPERM})
 
 __all__ = [
     "DeviceBusyError",
+    "DeviceUnusableError",
     "SerialLink",
     "SerialPortError",
     "check_device_free",
+    "check_device_usable",
     "describe_holder",
     "open_serial",
 ]
@@ -167,11 +178,26 @@ def _apply(line: LineConfig, port: Any, setting: str, value: Any, shown: object 
         setattr(port, setting, value)
     except (ValueError, serial.SerialException, termios.error, OSError) as error:
         shown = value if shown is None else shown
-        raise SerialPortError(
-            f"line {line.name!r} ({line.device}): cannot set {setting}={shown!r}: {error}; "
-            f"check lines.{line.name}.{_CONFIG_KEY.get(setting, setting)} against what the "
-            "adapter supports"
-        ) from error
+        key = _CONFIG_KEY.get(setting, setting)
+        raise DeviceUnusableError(
+            line.name, key, f"{line.device} cannot set {key} = {shown!r} ({_reason(error)})",
+            "choose a value the adapter supports with {setting}" + _HINTS.get(key, ""),
+        ) from error  # fmt: skip
+
+
+_HINTS = {
+    "data_bits": " (a pseudo-terminal, and many USB adapters, take 8 data bits only)",
+    "rs485": " (most USB-RS485 adapters switch direction themselves: leave it off)",
+}
+
+
+def _reason(error: BaseException) -> str:
+    """``Invalid argument`` rather than ``(22, 'Invalid argument')``."""
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    if len(error.args) == 2 and isinstance(error.args[1], str):  # termios.error(errno, text)
+        return error.args[1]
+    return str(error)
 
 
 _CONFIG_KEY = {"bytesize": "data_bits", "stopbits": "stop_bits", "rs485_mode": "rs485"}
@@ -191,12 +217,7 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
     try:
         port.open()
     except (serial.SerialException, OSError) as error:
-        if getattr(error, "errno", None) == errno.EBUSY:
-            raise _busy(line, describe_holder(line.device)) from error
-        raise SerialPortError(
-            f"line {line.name!r}: cannot open {line.device}: {error}; check the device exists, "
-            "is not used by another program, and that the gateway's user is in the dialout group"
-        ) from error
+        raise _open_failure(line, error) from error
     exclusive = False
     try:
         if not line.is_url:
@@ -228,6 +249,102 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
                 port.close()
         raise
     return port
+
+
+def _open_failure(line: LineConfig, error: BaseException) -> SerialPortError:
+    """Why a device did not open, as the error a start stops on or a reopen retries."""
+    number = getattr(error, "errno", None)
+    if number == errno.EBUSY:
+        return _busy(line, describe_holder(line.device))
+    if number in _DENIED:
+        return _denied(line)
+    if number not in _MISSING and _exists_but_not_a_terminal(line.device):
+        return _not_a_terminal(line)
+    return SerialPortError(
+        f"line {line.name!r}: cannot open {line.device}: {error}; check that the device exists "
+        "(a USB adapter is opened once it is plugged in) and that the gateway's user is in "
+        "the dialout group."
+    )
+
+
+def _exists_but_not_a_terminal(path: str) -> bool:
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return False
+    try:
+        return not os.isatty(fd)
+    finally:
+        os.close(fd)
+
+
+def _not_a_terminal(line: LineConfig) -> DeviceUnusableError:
+    return DeviceUnusableError(
+        line.name, "device", f"{line.device} is not a serial device (not a terminal)",
+        "set {setting} to the adapter's device, such as /dev/ttyUSB0 or a name under "
+        "/dev/serial/by-id/",
+    )  # fmt: skip
+
+
+def _denied(line: LineConfig, waited: float = 0.0) -> DeviceUnusableError:
+    after = f" (still after {waited:g} s)" if waited else ""
+    return DeviceUnusableError(
+        line.name, "device", f"permission denied opening {line.device}{after}",
+        "add the gateway's user to the device's group (usermod -aG dialout USER, then log in "
+        "again; the systemd unit has it already), or set {setting} to a device that user may "
+        "open",
+    )  # fmt: skip
+
+
+def check_device_usable(
+    line: LineConfig,
+    settle: float = PERMISSION_SETTLE_S,
+    clock: Callable[[], float] = time.monotonic,
+    wait: Callable[[float], None] = time.sleep,
+) -> None:
+    """At start: raise ``DeviceUnusableError`` for a device that exists but cannot serve the
+    line (not a terminal, permission denied, a setting it refuses) and ``DeviceBusyError``
+    for one another program holds. A device that does not exist passes: a USB adapter may
+    be plugged in later, and the line opens it then. Permission denied is tried again for
+    ``settle`` seconds: udev may still be setting the mode of a device that just appeared.
+    """
+    if line.is_url:
+        return
+    fd = _open_when_permitted(line, settle, clock, wait)
+    if fd is None:
+        return
+    try:
+        if not os.isatty(fd):
+            raise _not_a_terminal(line)
+    finally:
+        os.close(fd)
+    check_device_free(line)
+    _release(open_serial(line))  # every setting applied once, exactly as the line will
+
+
+def _open_when_permitted(
+    line: LineConfig, settle: float, clock: Callable[[], float], wait: Callable[[float], None]
+) -> int | None:
+    """The device opened, ``None`` when it does not exist; permission denied is retried."""
+    deadline = clock() + settle
+    told = False
+    while True:
+        try:
+            return os.open(line.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError as error:
+            if error.errno in _MISSING:
+                return None
+            if error.errno == errno.EBUSY:
+                raise _busy(line, describe_holder(line.device)) from None
+            if error.errno not in _DENIED:
+                raise _open_failure(line, error) from error
+            if clock() >= deadline:
+                raise _denied(line, settle) from None
+        if not told:
+            told = True
+            log.info("line %s: permission denied opening %s; trying again for %g s (udev may "
+                     "still be setting its mode)", line.name, line.device, settle)  # fmt: skip
+        wait(_PERMISSION_POLL_S)
 
 
 def _release(port: serial.SerialBase) -> None:

@@ -61,7 +61,7 @@ from ..core.timing import character_time, t35
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
-from ..trace import FrameTracer
+from ..trace import FrameTrace
 from .audit import AuditLog, AuditTicket
 from .bus import Request
 from .clock import PreciseClock
@@ -123,7 +123,7 @@ class SerialSlave:
         self.requests = 0  #: requests served (addressed to a routed unit)
         self.ignored = 0  #: frames ignored in silence (not for us, bad CRC, not a request)
         self.echoes = 0  #: bytes of our own answers dropped as their echo (``echo = true``)
-        self.tracer: FrameTracer | None = None  #: only while tracing (see ``trace``)
+        self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self.audit: AuditLog | None = None  #: the audit log, when configured (``Gateway``)
         self._sequence = 0  # numbers the requests for the trace (no transaction id on a line)
         self._faults = RateLimitedLogger(log, loop)
@@ -300,7 +300,7 @@ class SerialSlave:
         self.requests += 1
         number = self._sequence
         self._sequence = (number + 1) & 0xFFFF
-        if self.tracer is not None:
+        if self.tracer.active:
             self.tracer.request(self._serial.device, number, unit, pdu, self.name)
         if isinstance(result, Submit):
             self._submit(number, unit, pdu, result.target, ticket)
@@ -317,7 +317,7 @@ class SerialSlave:
         function = pdu[0]
         line, unit_label = target.line, UNIT_LABELS[target.slave]
 
-        def reply(response: bytes, outcome: str) -> None:
+        def reply(response: bytes, outcome: Outcome) -> None:
             if ticket is not None:  # an audited write: what became of it
                 ticket.settle(request.sent, response, outcome)
             if self._pending is request:
@@ -325,7 +325,7 @@ class SerialSlave:
                 self._answer(number, unit, response, outcome)
             else:
                 outcome = Outcome.DROPPED  # the master gave up on it: a newer request came
-                if self.tracer is not None:
+                if self.tracer.active:
                     self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
 
@@ -335,7 +335,7 @@ class SerialSlave:
 
     def _broadcast(self, pdu: bytes, result: Broadcast, ticket: AuditTicket | None) -> None:
         """Executed on every line that takes broadcasts and is up; never answered."""
-        if self.tracer is not None:
+        if self.tracer.active:
             number = self._sequence
             self._sequence = (number + 1) & 0xFFFF
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
@@ -345,11 +345,11 @@ class SerialSlave:
             if bus.up:
                 bus.submit(Request(0, pdu, self, reply, broadcast=True))
 
-    def _answer(self, number: int, unit: int, pdu: bytes, outcome: str) -> None:
+    def _answer(self, number: int, unit: int, pdu: bytes, outcome: Outcome) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
         frame = self._encode(unit, pdu)
         tracer = self.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self._serial.device, number, unit, pdu, outcome)
         wait = self._last_byte + self._turnaround - time.monotonic()
         if wait > 0:

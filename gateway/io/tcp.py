@@ -84,15 +84,17 @@ from ..core.routes import Target as CoreTarget
 from ..logs import EventSummary, RateLimitedLogger
 from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
 from ..status import MasterStatus
-from ..trace import FrameTracer
+from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
 from .audit import AuditLog, AuditTicket
 from .bus import Bus, Request
 from .tls import (
     HandshakeFailure,
+    HandshakeNote,
     ServerTls,
     certificate_facts,
     handshake_failure_reason,
+    observed,
     peer_chain,
     role_of,
 )
@@ -111,6 +113,8 @@ ACCEPT_BATCH = 32
 ACCEPT_RETRY_S = 0.1
 #: Interval of the INFO summary of connection events, and of the rate-limited fault logs.
 LOG_INTERVAL_S = 60.0
+#: Verified client chains remembered per listener (by leaf), for resumed TLS sessions.
+CHAIN_MEMORY = 1024
 _ACCEPT_RESOURCE_ERRORS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 
 
@@ -367,7 +371,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self.requests += 1
         transaction_id, unit, pdu = frame
         tracer = server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
         router = server.router
         result = router.admitter.admit(self.principal, unit, pdu, server.policy)
@@ -396,13 +400,13 @@ class MasterConnection(asyncio.BufferedProtocol):
         unit_label = UNIT_LABELS[slave]  # the slave address, as in the line's metrics
         duration = bus.request_duration
 
-        def reply(response: bytes, outcome: str) -> None:
+        def reply(response: bytes, outcome: Outcome) -> None:
             if ticket is not None:  # an audited write: what became of it
                 ticket.settle(request.sent, response, outcome)
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
-                if server.tracer is not None:
+                if server.tracer.active:
                     server.tracer.dropped(self.peer, transaction_id, unit, function)
             else:
                 self._send(transaction_id, unit, response, outcome)
@@ -448,7 +452,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             return
         remaining = len(buses)
 
-        def sent(_response: bytes, outcome: str) -> None:
+        def sent(_response: bytes, outcome: Outcome) -> None:
             nonlocal remaining
             remaining -= 1
             if remaining:
@@ -476,7 +480,9 @@ class MasterConnection(asyncio.BufferedProtocol):
         if self._pauses & ReadPause.PIPELINE and not self._closed and self._batch is None:
             self._run_batch()
 
-    def _send(self, transaction_id: int, unit: int, pdu: bytes, outcome: str | None = None) -> None:
+    def _send(
+        self, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
         if self._transport is None or self._closed:
             return
         adu = encode_mbap(transaction_id, unit, pdu)
@@ -485,7 +491,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         else:
             self._transport.write(adu)
         tracer = self._server.tracer
-        if tracer is not None:
+        if tracer.active:
             tracer.reply(self.peer, transaction_id, unit, pdu, outcome)
 
     # -- closing -----------------------------------------------------------------------
@@ -620,14 +626,19 @@ class ModbusTcpServer:
         #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
         #: then: the handshake's verdict on the chain stands.
         self._authorities: tuple[x509.Certificate, ...] | None = None
-        self.tracer: FrameTracer | None = None  # only while tracing: the frame path tests for None
+        self._revocations: tuple[x509.CertificateRevocationList, ...] = ()  #: the crl, likewise
+        #: Chains full handshakes verified, by leaf: a resumed session shows only its leaf.
+        self._chains: dict[bytes, tuple[bytes, ...]] = {}
+        self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self.audit: AuditLog | None = None  #: the audit log, when configured (``Gateway``)
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []
         self._addresses: list[tuple[str, int]] = []
         self._accepting = False
-        self._starting: set[asyncio.Task[object]] = set()
+        #: Connections being set up (a TLS handshake under way): closing one cancels its
+        #: setup, which closes its socket at once instead of at the handshake timeout.
+        self._starting: dict[MasterConnection, asyncio.Task[object]] = {}
         loop = asyncio.get_running_loop()
         self._loop = loop
         #: Faults a client can repeat at will, logged per (source, kind) at a bounded rate.
@@ -757,24 +768,52 @@ class ModbusTcpServer:
                 lambda: connection, sock, ssl=self.ssl_context,
                 ssl_handshake_timeout=self.config.tls_handshake_timeout,
             )  # fmt: skip
-        task = self._loop.create_task(setup)
-        self._starting.add(task)
-        task.add_done_callback(lambda done: self._started(done, connection, sock))
+        note = HandshakeNote()  # what the handshake shows, for the log line of a failure
+        task = self._loop.create_task(setup, context=observed(note))
+        self._starting[connection] = task
+        task.add_done_callback(lambda done: self._started(done, connection, sock, note))
 
     def _started(
-        self, task: asyncio.Task[object], connection: MasterConnection, sock: socket.socket
+        self,
+        task: asyncio.Task[object],
+        connection: MasterConnection,
+        sock: socket.socket,
+        note: HandshakeNote,
     ) -> None:
-        self._starting.discard(task)
+        if self._starting.get(connection) is task:
+            del self._starting[connection]
         error = None if task.cancelled() else task.exception()
+        if error is None and not task.cancelled() and connection.chain:
+            self._complete_chain(connection)
         if task.cancelled() or error is not None:
             sock.close()
             connection.close(CloseReason.ERROR)
             if self.ssl_context is not None and error is not None:
-                self.handshake_failed(handshake_failure_reason(error), error)
+                reason = handshake_failure_reason(error)
+                self.handshake_failed(reason, error, connection, note.subject)
 
-    def handshake_failed(self, reason: HandshakeFailure, error: BaseException) -> None:
-        """Count and log (at a bounded rate) a failed TLS handshake."""
-        self.screen.handshake_failed(reason, error)
+    def _complete_chain(self, connection: MasterConnection) -> None:
+        """Remember a full handshake's chain; give a resumed session (its leaf alone) the
+        chain its first handshake verified, so a reload judges it the same way."""
+        chain = connection.chain
+        if len(chain) > 1:
+            self._chains.pop(chain[0], None)
+            self._chains[chain[0]] = chain
+            if len(self._chains) > CHAIN_MEMORY:
+                del self._chains[next(iter(self._chains))]
+        else:
+            connection.chain = self._chains.get(chain[0], chain)
+
+    def handshake_failed(
+        self,
+        reason: HandshakeFailure,
+        error: BaseException,
+        connection: MasterConnection,
+        subject: str | None = None,
+    ) -> None:
+        """Count and log (at a bounded rate per source) a failed TLS handshake."""
+        source = connection.principal.source
+        self.screen.handshake_failed(reason, error, connection.peer, source, subject)
 
     def masters(self) -> list[MasterStatus]:
         """A snapshot of the connected masters, for the status page."""
@@ -848,7 +887,10 @@ class ModbusTcpServer:
         )  # fmt: skip
 
     def forget(self, connection: MasterConnection, reason: CloseReason) -> None:
-        """Drop a closed connection from the books (once)."""
+        """Drop a closed connection from the books (once); abandon its setup if under way."""
+        setup = self._starting.pop(connection, None)
+        if setup is not None and not setup.done():
+            setup.cancel()  # the transport is aborted and the descriptor freed now
         if self._connections.pop(connection, False) is None:
             source = connection.source
             remaining = self._per_source.get(source, 1) - 1
@@ -874,6 +916,7 @@ class ModbusTcpServer:
         self.epoch += 1
         if tls is not None:
             self._authorities = tls.authorities
+            self._revocations = tls.revocations
         seen: dict[tuple[bytes, ...], CertificateFacts | None] = {}
         closed = 0
         for connection in list(self._connections):
@@ -902,7 +945,7 @@ class ModbusTcpServer:
         if established and self.listener.tls:
             chain = connection.chain
             if chain not in seen:
-                seen[chain] = certificate_facts(chain, self._authorities)
+                seen[chain] = certificate_facts(chain, self._authorities, self._revocations)
             certificate = seen[chain]
         facts = ConnectionFacts(connection.principal.source, established, certificate)
         return admit(self.screen.door(self.listener.tls), facts, now)
@@ -921,7 +964,7 @@ class ModbusTcpServer:
             self._loop.remove_reader(sock.fileno())
             sock.close()
         if self.ssl_context is not None:
-            for task in self._starting:
+            for task in self._starting.values():
                 task.cancel()
 
     def close_all(self, reason: CloseReason) -> None:
@@ -934,4 +977,4 @@ class ModbusTcpServer:
     async def wait_closed(self) -> None:
         """Wait for the connections still being set up to settle."""
         if self._starting:
-            await asyncio.wait(set(self._starting), timeout=1.0)
+            await asyncio.wait(set(self._starting.values()), timeout=1.0)

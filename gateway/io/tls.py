@@ -20,19 +20,35 @@ hands the connection to the Modbus side, which takes the role once from the
 client certificate (``role_of``). ``ssl`` never shows a certificate's private
 extensions, so the role (extension OID 1.3.6.1.4.1.50316.802.1, an ASN.1
 UTF8String) is read from the DER with ``cryptography``.
+
+Suites: TLS 1.3's, the ECDHE ones, then the specification's required
+TLS_RSA_WITH_AES_128_CBC_SHA256 unless ``forward_secrecy_only``; never NULL.
+Resumption is off unless ``session_resumption`` (no tickets, no session-id
+cache), so every session is checked in full, the ``crl`` included
+(``VERIFY_CRL_CHECK_LEAF``; a reload judges open sessions against it through
+``certificate_facts``). ``ssl`` shows nothing of a refused handshake's
+certificate: a listener's context (``ListenerContext``) has OpenSSL's message
+callback note the subject of the client's Certificate message in the
+connection's ``HandshakeNote`` (reached through ``contextvars``: the setup task
+runs in a context of its own), for the failure's log line; a session that is
+set up moves to the unobserved twin context, so records cost nothing more.
 """
 
 from __future__ import annotations
 
+import _ssl
 import asyncio
+import contextvars
+import ctypes
 import enum
 import logging
 import ssl
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
-from typing import Any
+from datetime import UTC, datetime, timedelta
+from typing import Any, TypeVar
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
@@ -57,6 +73,7 @@ class HandshakeFailure(enum.StrEnum):
     NO_CERTIFICATE = "no_certificate"  # the client sent no certificate
     UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # does not chain to the configured CAs
     EXPIRED_CERTIFICATE = "expired_certificate"  # expired or not yet valid
+    REVOKED_CERTIFICATE = "revoked_certificate"  # listed in the listener's crl
     TIMEOUT = "timeout"  # no complete handshake within server.tls_handshake_timeout
     CLOSED = "closed"  # the client went away during the handshake
     OTHER = "other"  # anything else (no common cipher, garbage instead of a ClientHello, ...)
@@ -64,6 +81,23 @@ class HandshakeFailure(enum.StrEnum):
 
 # OpenSSL's X509_V_ERR_CERT_NOT_YET_VALID and X509_V_ERR_CERT_HAS_EXPIRED.
 _EXPIRY_VERIFY_CODES = frozenset({9, 10})
+_REVOKED_VERIFY_CODE = 23  # X509_V_ERR_CERT_REVOKED
+
+#: The suites with forward secrecy (ECDHE), strongest first; TLS 1.3's own suites come
+#: before them whatever this says. No NULL, anonymous, SHA-1 or CCM suite.
+FORWARD_SECRET_SUITES = "ECDHE+AESGCM:ECDHE+CHACHA20:ECDHE+AES:!aNULL:!eNULL:!SHA1:!AESCCM"
+#: TLS_RSA_WITH_AES_128_CBC_SHA256, the suite MB-TCP-Security v21 R-14 requires: RSA key
+#: exchange (an RSA server certificate), no forward secrecy, so listed last.
+REQUIRED_SUITE = "AES128-SHA256"
+
+
+def cipher_string(forward_secrecy_only: bool) -> str:
+    """The OpenSSL cipher list of a listener (the server's order is the one used)."""
+    return (
+        FORWARD_SECRET_SUITES
+        if forward_secrecy_only
+        else f"{FORWARD_SECRET_SUITES}:{REQUIRED_SUITE}"
+    )
 
 
 def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
@@ -71,6 +105,8 @@ def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
     if isinstance(error, ssl.SSLCertVerificationError):
         if error.verify_code in _EXPIRY_VERIFY_CODES:
             return HandshakeFailure.EXPIRED_CERTIFICATE
+        if error.verify_code == _REVOKED_VERIFY_CODE:
+            return HandshakeFailure.REVOKED_CERTIFICATE
         return HandshakeFailure.UNTRUSTED_CERTIFICATE
     if isinstance(error, ssl.SSLError):
         reason = (error.reason or "").upper()
@@ -134,6 +170,60 @@ def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
     return certificates
 
 
+def _issuer_name(crl: x509.CertificateRevocationList) -> str:
+    names = crl.issuer.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(names[0].value) if names else crl.issuer.rfc4514_string()
+
+
+def _next_update(crl: x509.CertificateRevocationList) -> datetime:
+    """When the CRL's issuer promises the next one (a CRL without a date: never expires)."""
+    return crl.next_update_utc or datetime.max.replace(tzinfo=UTC)
+
+
+#: A CRL whose nextUpdate is this close when it is read is warned about.
+CRL_WARNING = timedelta(days=1)
+
+
+def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevocationList, ...]:
+    """The CRLs in a PEM file (one per issuing CA); ``TlsSetupError`` when unusable or expired.
+
+    An expired list (past its ``nextUpdate``) refuses start-up and the reload: OpenSSL would
+    refuse every client certificate against it (``CRL has expired``), so it is a fault to fix
+    before it locks every master out, not a warning.
+    """
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+    except OSError as error:
+        raise TlsSetupError(f"{key} = {path!r}: cannot read: {error.strerror or error}") from None
+    blocks = [
+        b"-----BEGIN X509 CRL-----" + part for part in data.split(b"-----BEGIN X509 CRL-----")[1:]
+    ]
+    try:
+        crls = tuple(x509.load_pem_x509_crl(block) for block in blocks)
+    except ValueError:
+        crls = ()
+    if not crls:
+        raise TlsSetupError(
+            f"{key} = {path!r}: no PEM CRL in it (expected -----BEGIN X509 CRL-----; convert a DER "
+            "list with: openssl crl -inform DER -in FILE -out FILE.pem)"
+        )
+    for crl in crls:
+        if now > _next_update(crl):
+            raise TlsSetupError(
+                f"{key} = {path!r}: the CRL of {_issuer_name(crl)!r} expired on "
+                f"{_next_update(crl):%Y-%m-%d %H:%M:%S} UTC (its nextUpdate); fetch the current "
+                "one from the CA, then reload (SIGHUP)"
+            )
+        if now + CRL_WARNING > _next_update(crl):
+            log.warning(
+                "%s = %r: the CRL of %r expires on %s UTC (its nextUpdate): once it has, every "
+                "client certificate is refused; fetch the next one and reload (SIGHUP)",
+                key, path, _issuer_name(crl), f"{_next_update(crl):%Y-%m-%d %H:%M:%S}",
+            )  # fmt: skip
+    return crls
+
+
 @dataclass
 class ServerTls:
     """A listener's built TLS context and the certificates it rests on."""
@@ -142,6 +232,8 @@ class ServerTls:
     certificates: list[CertificateInfo]
     #: The CAs client certificates must chain to, for judging open connections at a reload.
     authorities: tuple[x509.Certificate, ...] = ()
+    #: The listener's revocation lists (``crl``), for the same judgement.
+    revocations: tuple[x509.CertificateRevocationList, ...] = ()
 
 
 def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
@@ -180,11 +272,79 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
                 f"{authority.not_valid_after_utc:%Y-%m-%d}",
             )  # fmt: skip
         infos.append(info)
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    revocations = read_crl(listener.crl, f"{prefix}crl", moment) if listener.crl else ()
+    context = _context(listener, ListenerContext)
+    _load_files(context, listener)
+    context.settled = _context(listener, ssl.SSLContext)
+    _load_files(context.settled, listener)
+    context._msg_callback = _observe  # type: ignore[attr-defined]
+    return ServerTls(context, infos, tuple(authorities), revocations)
+
+
+class ListenerContext(ssl.SSLContext):
+    """A listener's context: its handshakes are observed (``HandshakeNote``); a session
+    that is set up moves to ``settled``, the same settings unobserved (``role_of``), so
+    the observation costs nothing once the handshake is done."""
+
+    settled: ssl.SSLContext | None = None
+
+
+_C = TypeVar("_C", bound=ssl.SSLContext)
+
+
+def _context(listener: ListenerConfig, kind: type[_C]) -> _C:
+    """The settings of a listener's context: versions, suites, resumption (module docstring)."""
+    context = kind(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
     context.verify_mode = ssl.CERT_REQUIRED  # mutual authentication
     context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
     context.options |= ssl.OP_CIPHER_SERVER_PREFERENCE
+    context.set_ciphers(cipher_string(listener.forward_secrecy_only))
+    if not listener.session_resumption:
+        context.options |= ssl.OP_NO_TICKET  # no TLS 1.2 ticket (nor stateless 1.3 ones)
+        context.num_tickets = 0  # no TLS 1.3 ticket of any kind
+        if not session_cache_off(context):
+            log.warning(
+                "listener %s: this Python cannot turn off OpenSSL's session cache: TLS 1.2 "
+                "masters may resume sessions by id for up to 7,200 s", listener.name,
+            )  # fmt: skip
+    return context
+
+
+_SSL_CTRL_SET_SESS_CACHE_MODE = 44
+_SSL_CTRL_GET_SESS_CACHE_MODE = 45
+_SSL_SESS_CACHE_SERVER = 2  # OpenSSL's default mode for a server context
+
+
+def session_cache_off(context: ssl.SSLContext) -> bool:
+    """Turn off the server's session-id cache (TLS 1.2 resumption by id); ``True`` if done.
+
+    Python's ``ssl`` has no call for ``SSL_CTX_set_session_cache_mode``: it is reached
+    through the ``SSL_CTX`` pointer that CPython's context object holds right after its
+    object header, and libssl as ``_ssl`` loaded it. The mode is read first, and set only
+    when it is OpenSSL's documented default, so a layout this does not expect is left alone.
+    """
+    if sys.implementation.name != "cpython" or not isinstance(context, ssl.SSLContext):
+        return False
+    try:
+        control = ctypes.PyDLL(_ssl.__file__).SSL_CTX_ctrl
+    except (OSError, AttributeError):
+        return False
+    control.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_long, ctypes.c_void_p]
+    control.restype = ctypes.c_long
+    pointer = ctypes.c_void_p.from_address(id(context) + object.__basicsize__).value
+    if not pointer or control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) != (
+        _SSL_SESS_CACHE_SERVER
+    ):
+        return False
+    control(pointer, _SSL_CTRL_SET_SESS_CACHE_MODE, 0, None)
+    return bool(control(pointer, _SSL_CTRL_GET_SESS_CACHE_MODE, 0, None) == 0)
+
+
+def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:
+    """Load the key pair, the CAs and the CRL; raise ``TlsSetupError`` naming the key."""
+    assert listener.cert and listener.key and listener.ca
+    prefix = listener.key_prefix
     try:
         context.load_cert_chain(listener.cert, listener.key)
     except ssl.SSLError as error:
@@ -201,7 +361,14 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
         context.load_verify_locations(cafile=listener.ca)
     except (ssl.SSLError, OSError) as error:
         raise TlsSetupError(f"{prefix}ca = {listener.ca!r}: cannot be used: {error}") from None
-    return ServerTls(context, infos, tuple(authorities))
+    if listener.crl:
+        try:  # checked above with cryptography; OpenSSL reads the same PEM
+            context.load_verify_locations(cafile=listener.crl)
+        except (ssl.SSLError, OSError) as error:
+            raise TlsSetupError(
+                f"{prefix}crl = {listener.crl!r}: cannot be used: {error}"
+            ) from None
+        context.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
 
 
 def role_from_certificate(der: bytes | None) -> str | None:
@@ -229,11 +396,66 @@ def role_from_certificate(der: bytes | None) -> str | None:
 # --------------------------------------------------------------------------- the handshake
 
 
+@dataclass(slots=True)
+class HandshakeNote:
+    """What a handshake under way has shown: the client certificate's subject, for the log
+    line of a failure (``ssl`` does not show the certificate of a refused handshake)."""
+
+    subject: str | None = None
+
+
+#: The note of the handshake that runs in the current ``contextvars`` context.
+_HANDSHAKE: contextvars.ContextVar[HandshakeNote | None] = contextvars.ContextVar(
+    "gateway_tls_handshake", default=None
+)
+_HANDSHAKE_RECORD = 22  # TLS ContentType handshake
+_CERTIFICATE_MESSAGE = 11  # HandshakeType certificate
+_TLS13 = 0x0304
+
+
+def observed(note: HandshakeNote) -> contextvars.Context:
+    """A context to run a connection's setup in: its handshake writes into ``note``."""
+    context = contextvars.copy_context()
+    context.run(_HANDSHAKE.set, note)
+    return context
+
+
+def _observe(
+    _conn: object, direction: str, version: int, content_type: int, message: int, data: bytes
+) -> None:
+    """OpenSSL's message callback during a handshake: note the client certificate's subject."""
+    if direction != "read" or content_type != _HANDSHAKE_RECORD or message != _CERTIFICATE_MESSAGE:
+        return
+    note = _HANDSHAKE.get()
+    if note is not None and note.subject is None:
+        note.subject = certificate_message_subject(data, int(version) == _TLS13)
+
+
+def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
+    """The subject of the first certificate of a Certificate handshake message (with its
+    4-byte header); TLS 1.3 puts a request context before the list. ``None``: none."""
+    for form in (tls13, not tls13):
+        offset = 4 + (1 + message[4] if form and len(message) > 4 else 0) + 3
+        length = int.from_bytes(message[offset : offset + 3], "big")
+        try:
+            der = message[offset + 3 : offset + 3 + length]
+            return _subject(x509.load_der_x509_certificate(der)) if der else None
+        except ValueError:
+            continue
+    return None
+
+
 def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:
-    """(is TLS, role) of an accepted transport: the role read once from the client certificate."""
+    """(is TLS, role) of an accepted transport: the role read once from the client certificate.
+
+    The handshake is done: the session moves to its listener's unobserved twin context.
+    """
     ssl_object: Any = transport.get_extra_info("ssl_object")
     if ssl_object is None:
         return False, None
+    settled = getattr(ssl_object.context, "settled", None)
+    if isinstance(settled, ssl.SSLContext):
+        ssl_object.context = settled
     return True, role_from_certificate(ssl_object.getpeercert(binary_form=True))
 
 
@@ -243,19 +465,22 @@ def peer_chain(transport: asyncio.BaseTransport) -> tuple[bytes, ...]:
     Kept per connection so that a reload can judge it again against new CAs (``ssl``
     cannot verify an open session again). Python 3.13 names the call
     ``get_verified_chain``; before, the ``_ssl`` object under the ``SSLObject`` has it.
-    Without either, the leaf alone.
+    OpenSSL keeps no verified chain on a TLS 1.2 server session: then the chain the
+    client sent (which that handshake verified); without either, the leaf alone.
     """
     ssl_object: Any = transport.get_extra_info("ssl_object")
     if ssl_object is None:
         return ()
-    chain = getattr(ssl_object, "get_verified_chain", None)
-    if chain is None:
-        chain = getattr(getattr(ssl_object, "_sslobj", None), "get_verified_chain", None)
-    if chain is not None:
+    for name in ("get_verified_chain", "get_unverified_chain"):
+        chain = getattr(ssl_object, name, None)
+        if chain is None:
+            chain = getattr(getattr(ssl_object, "_sslobj", None), name, None)
         try:
-            return tuple(_der_of(certificate) for certificate in chain())
-        except (ssl.SSLError, ValueError, AttributeError):
-            pass
+            certificates = chain() if chain is not None else None
+            if certificates:
+                return tuple(_der_of(certificate) for certificate in certificates)
+        except (ssl.SSLError, ValueError, AttributeError, TypeError):
+            continue
     leaf = ssl_object.getpeercert(binary_form=True)
     return (leaf,) if leaf else ()
 
@@ -288,7 +513,9 @@ def _anchor(certificate: x509.Certificate, authorities: Sequence[x509.Certificat
 
 
 def certificate_facts(
-    chain: Sequence[bytes], authorities: Sequence[x509.Certificate] | None
+    chain: Sequence[bytes],
+    authorities: Sequence[x509.Certificate] | None,
+    revocations: Sequence[x509.CertificateRevocationList] = (),
 ) -> CertificateFacts | None:
     """What a verified chain (DER, leaf first) shows against ``authorities``; ``None``: none.
 
@@ -296,7 +523,8 @@ def certificate_facts(
     (a CA renewed with the same key still anchors it). The validity window is the
     intersection of the windows along the chain up to that CA (the CA included).
     ``authorities`` ``None`` (not known): the handshake's verdict stands, the whole
-    chain's window counts.
+    chain's window counts. Revoked: the leaf's serial is in a CRL of ``revocations``
+    signed by the leaf's issuer (the leaf alone, as the handshake checks it).
     """
     try:
         certificates = [x509.load_der_x509_certificate(der) for der in chain]
@@ -304,20 +532,46 @@ def certificate_facts(
         return None
     if not certificates:
         return None
+    revoked = _revoked(certificates, authorities or (), revocations)
     if authorities is None:
-        return _facts(certificates, trusted=True)
+        return _facts(certificates, trusted=True, revoked=revoked)
     for index, certificate in enumerate(certificates):
         anchor = _anchor(certificate, authorities)
         if anchor is not None:
-            return _facts([*certificates[: index + 1], anchor], trusted=True)
-    return _facts(certificates[:1], trusted=False)  # the leaf's own window, for the record
+            return _facts([*certificates[: index + 1], anchor], trusted=True, revoked=revoked)
+    return _facts(certificates[:1], trusted=False, revoked=revoked)  # the leaf's own window
 
 
-def _facts(path: Sequence[x509.Certificate], *, trusted: bool) -> CertificateFacts:
+def _revoked(
+    chain: Sequence[x509.Certificate],
+    authorities: Sequence[x509.Certificate],
+    revocations: Sequence[x509.CertificateRevocationList],
+) -> bool:
+    """True when a CRL of the leaf's issuer, signed by it, lists the leaf's serial."""
+    leaf = chain[0]
+    issuers = [c for c in (*chain[1:], *authorities) if c.subject == leaf.issuer]
+    for crl in revocations:
+        if crl.issuer != leaf.issuer:
+            continue
+        if crl.get_revoked_certificate_by_serial_number(leaf.serial_number) is None:
+            continue
+        for issuer in issuers:
+            try:
+                if crl.is_signature_valid(issuer.public_key()):  # type: ignore[arg-type]
+                    return True
+            except (TypeError, ValueError):
+                continue
+    return False
+
+
+def _facts(
+    path: Sequence[x509.Certificate], *, trusted: bool, revoked: bool = False
+) -> CertificateFacts:
     return CertificateFacts(
         max(c.not_valid_before_utc for c in path).timestamp(),
         min(c.not_valid_after_utc for c in path).timestamp(),
         trusted,
+        revoked,
     )
 
 

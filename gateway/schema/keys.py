@@ -5,7 +5,7 @@ The order here is the order of the example configuration and of the reference pa
 
 from __future__ import annotations
 
-from ..core.pipeline import MAX_IN_FLIGHT
+from ..core.line import MAX_IN_FLIGHT
 from .model import Flag, Key, Reload, Scope, Show, Table, Type
 
 _S, _LS, _M, _LG = Table.SERVER, Table.LISTENERS, Table.METRICS, Table.LOGGING
@@ -155,6 +155,26 @@ LISTENERS = (
         "every reload.",
         flag=Flag(name="--tls-ca", metavar="FILE", scope=Scope.TLS_LISTENER,
                   help="CA certificates client certificates must chain to, PEM")),
+    Key(table=_LS, name="crl", type=Type.FILE, only='protocol = "tls"', show=Show.BLOCK,
+        help="Certificate revocation lists (PEM, one per CA that issues client certificates): "
+        "a listed client certificate is refused at the handshake, and its open connections "
+        "close at the reload that brings the list. Read again at every reload; an unreadable "
+        "list, or one past its nextUpdate, stops start-up and rejects the reload.",
+        flag=Flag(name="--tls-crl", metavar="FILE", scope=Scope.TLS_LISTENER,
+                  help="certificate revocation lists for client certificates, PEM")),
+    Key(table=_LS, name="forward_secrecy_only", type=Type.BOOLEAN, default=False,
+        only='protocol = "tls"', show=Show.BLOCK,
+        help="false offers TLS_RSA_WITH_AES_128_CBC_SHA256 (AES128-SHA256, the suite "
+        "MB-TCP-Security R-14 requires; RSA key exchange, so an RSA server certificate) after "
+        "the ECDHE suites, which every client able to use them still gets; true offers only "
+        "suites with forward secrecy. NULL suites are always refused."),
+    Key(table=_LS, name="session_resumption", type=Type.BOOLEAN, default=False,
+        only='protocol = "tls"', show=Show.BLOCK,
+        help="true lets masters resume TLS sessions (session tickets, TLS 1.2 and 1.3) for "
+        "OpenSSL's default lifetime of 7,200 s, which Python's ssl cannot change; a resumed "
+        "session skips the certificate check (a CRL update reaches it only through the "
+        "reload's re-evaluation of open connections). false: every connection does a full "
+        "handshake."),
     Key(table=_LS, name="allow", type=Type.NETWORKS, default=[], show=Show.BLOCK,
         only='protocol = "tcp", "tls" or "rtu-over-tcp"',
         help="Source addresses or networks this listener accepts (empty: any), besides "

@@ -6,20 +6,25 @@ No key is ever committed or shipped: every run makes its own.
 server's chain (leaf + intermediate) and key, and client certificates (each
 file the client's certificate followed by the intermediate) with the role
 ``operator``, ``viewer``, no role, two role extensions, an INTEGER instead of a
-UTF8String, an expired one and one from another CA. Keys are EC P-256: quick to
-make, and what small Modbus devices use.
+UTF8String, an expired one and one from another CA. Keys are EC P-256 by default:
+quick to make, and what small Modbus devices use. ``make_pki(directory,
+KeyAlgorithm.RSA)`` makes the same PKI with RSA 2048 keys: the key exchange of
+the specification's required suite TLS_RSA_WITH_AES_128_CBC_SHA256 needs an RSA
+server certificate. ``Pki.write_crl`` writes a revocation list of the
+intermediate CA (the issuer of the clients) naming some clients.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import enum
 import ipaddress
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import ec, padding, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 ROLE_OID = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
@@ -45,11 +50,30 @@ def _name(common_name: str) -> x509.Name:
     return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
 
 
-def _key() -> ec.EllipticCurvePrivateKey:
+class KeyAlgorithm(enum.StrEnum):
+    """The kind of every key of a test PKI."""
+
+    EC = "ec"  #: P-256
+    RSA = "rsa"  #: 2048 bits
+
+
+PrivateKey = ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey
+
+
+def _key(algorithm: KeyAlgorithm = KeyAlgorithm.EC) -> PrivateKey:
+    if algorithm == KeyAlgorithm.RSA:
+        return rsa.generate_private_key(public_exponent=65537, key_size=2048)
     return ec.generate_private_key(ec.SECP256R1())
 
 
-def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+def _sign(key: PrivateKey, data: bytes) -> bytes:
+    """A SHA-256 signature of ``data`` (ECDSA, or RSA PKCS#1 v1.5 as certificates use)."""
+    if isinstance(key, rsa.RSAPrivateKey):
+        return key.sign(data, padding.PKCS1v15(), hashes.SHA256())
+    return key.sign(data, ec.ECDSA(hashes.SHA256()))
+
+
+def _key_pem(key: PrivateKey) -> bytes:
     return key.private_bytes(
         serialization.Encoding.PEM,
         serialization.PrivateFormat.PKCS8,
@@ -73,13 +97,17 @@ class Authority:
     """A CA: its certificate and key."""
 
     certificate: x509.Certificate
-    key: ec.EllipticCurvePrivateKey
+    key: PrivateKey
 
 
 def _ca(
-    common_name: str, issuer: Authority | None, now: dt.datetime, path_length: int | None
+    common_name: str,
+    issuer: Authority | None,
+    now: dt.datetime,
+    path_length: int | None,
+    algorithm: KeyAlgorithm = KeyAlgorithm.EC,
 ) -> Authority:
-    key = _key()
+    key = _key(algorithm)
     builder = (
         x509.CertificateBuilder()
         .subject_name(_name(common_name))
@@ -111,7 +139,7 @@ def _ca(
 def _leaf_builder(
     common_name: str,
     issuer: Authority,
-    key: ec.EllipticCurvePrivateKey,
+    key: PrivateKey,
     not_before: dt.datetime,
     not_after: dt.datetime,
     usage: x509.ObjectIdentifier,
@@ -181,7 +209,7 @@ def _with_duplicated_role(certificate: x509.Certificate, issuer: Authority) -> x
     tbs = der[tbs_start:tbs_end]
     assert len(old) == len(new) and tbs.count(old) == 1
     tbs = tbs.replace(old, new)
-    signature = issuer.key.sign(tbs, ec.ECDSA(hashes.SHA256()))
+    signature = _sign(issuer.key, tbs)
     bit_string = _der_header(0x03, len(signature) + 1) + b"\x00" + signature
     body = tbs + algorithm + bit_string
     patched = x509.load_der_x509_certificate(_der_header(0x30, len(body)) + body)
@@ -200,6 +228,41 @@ class Pki:
     server_chain: Path
     server_key: Path
     clients: dict[str, tuple[Path, Path]] = field(default_factory=dict)  #: name → (chain, key)
+    algorithm: KeyAlgorithm = KeyAlgorithm.EC
+
+    def serial_of(self, name: str) -> int:
+        """The serial number of client ``name``'s certificate."""
+        chain, _ = self.clients[name]
+        return x509.load_pem_x509_certificates(chain.read_bytes())[0].serial_number
+
+    def write_crl(
+        self,
+        path: Path,
+        revoked: tuple[str, ...] = (),
+        next_update: dt.timedelta = 7 * DAY,
+        last_update: dt.datetime | None = None,
+    ) -> Path:
+        """Write the intermediate CA's CRL (PEM) revoking clients ``revoked``; return ``path``.
+
+        A negative ``next_update`` makes an expired list.
+        """
+        now = last_update or dt.datetime.now(dt.UTC)
+        builder = (
+            x509.CertificateRevocationListBuilder()
+            .issuer_name(self.intermediate.certificate.subject)
+            .last_update(min(now, now + next_update) - DAY)
+            .next_update(now + next_update)
+        )
+        for name in revoked:
+            builder = builder.add_revoked_certificate(
+                x509.RevokedCertificateBuilder()
+                .serial_number(self.serial_of(name))
+                .revocation_date(now - dt.timedelta(seconds=1))
+                .build()
+            )
+        crl = builder.sign(self.intermediate.key, hashes.SHA256())
+        path.write_bytes(crl.public_bytes(serialization.Encoding.PEM))
+        return path
 
     def client(self, name: str) -> tuple[str, str]:
         """(certificate chain file, key file) of client ``name``, as strings."""
@@ -210,7 +273,7 @@ class Pki:
         self, name: str, not_before: dt.datetime, not_after: dt.datetime
     ) -> tuple[Path, Path]:
         """Another server chain and key, with the given validity (expired, not yet valid)."""
-        key = _key()
+        key = _key(self.algorithm)
         certificate = _leaf_builder(
             "modbus-gateway", self.intermediate, key, not_before, not_after,
             ExtendedKeyUsageOID.SERVER_AUTH,
@@ -235,18 +298,19 @@ CLIENTS: dict[str, bytes | str | None] = {
 }
 
 
-def make_pki(directory: Path) -> Pki:
+def make_pki(directory: Path, algorithm: KeyAlgorithm = KeyAlgorithm.EC) -> Pki:
     """Write the whole PKI under ``directory`` (see the module docstring)."""
     now = dt.datetime.now(dt.UTC)
-    root = _ca("Test Root CA", None, now, path_length=1)
-    intermediate = _ca("Test Intermediate CA", root, now, path_length=0)
-    other_root = _ca("Other Root CA", None, now, path_length=0)
+    root = _ca("Test Root CA", None, now, 1, algorithm)
+    intermediate = _ca("Test Intermediate CA", root, now, 0, algorithm)
+    other_root = _ca("Other Root CA", None, now, 0, algorithm)
     ca_file = directory / "ca.pem"
     ca_file.write_bytes(_pem(root.certificate))
     pki = Pki(directory, root, intermediate, other_root, ca_file, Path(), Path())
+    pki.algorithm = algorithm
     pki.server_chain, pki.server_key = pki.server_certificate("server", now - DAY, now + 365 * DAY)
     for name, role in CLIENTS.items():
-        key = _key()
+        key = _key(algorithm)
         issuer = other_root if name == "otherca" else intermediate
         not_before, not_after = now - DAY, now + 365 * DAY
         if name == "expired":

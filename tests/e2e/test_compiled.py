@@ -49,7 +49,10 @@ def compiled_modules() -> list[str]:
             for target in node.targets
         ):
             paths: list[str] = ast.literal_eval(node.value)
-            return [path.removesuffix(".py").replace("/", ".") for path in paths]
+            return [
+                path.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
+                for path in paths
+            ]
     raise AssertionError("setup.py has no COMPILED_MODULES")
 
 

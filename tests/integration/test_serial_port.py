@@ -7,12 +7,18 @@ import select
 import socket
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory
 
 from gateway.config import build_config
-from gateway.io.serial_port import SerialPortError, open_serial
+from gateway.io.serial_port import (
+    DeviceUnusableError,
+    SerialPortError,
+    check_device_usable,
+    open_serial,
+)
 from gateway.sim import SimulatedLine, open_pty_pair, plc
 
 READ_10 = bytes.fromhex("03 0000 000A")
@@ -41,13 +47,31 @@ def test_a_missing_device_says_what_to_check() -> None:
     assert "/dev/ttyNOSUCHUSB9" in str(caught.value) and "dialout" in str(caught.value)
 
 
-def test_a_line_that_cannot_be_opened_answers_0x0a(make_gateway: GatewayFactory) -> None:
+def test_a_line_that_cannot_be_opened_answers_0x0a(
+    make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    """A device not plugged in yet: the gateway starts, and the line answers 0x0A meanwhile.
+
+    (A device that exists but refuses a setting stops the start instead: see
+    tests/e2e/test_device_errors.py.)
+    """
+    absent = tmp_path / "ttyUSB-not-plugged-in"
+    gw = make_gateway({"lines": {"a": {"device": str(absent), "units": [1]}}})
+    with gw.connect() as master:
+        assert master.request(1, READ_10) == bytes([0x83, 0x0A])
+    ready, why = gw.call(gw.gateway.is_ready)
+    assert not ready and "a" in why
+
+
+def test_an_unsupported_setting_stops_the_start() -> None:
+    """Retrying cannot make a pty take the RS485 ioctl: the check at start says so."""
     with open_pty_pair() as pair:
-        gw = make_gateway({"lines": {"a": {"device": pair.path, "rs485": True, "units": [1]}}})
-        with gw.connect() as master:
-            assert master.request(1, READ_10) == bytes([0x83, 0x0A])
-        ready, why = gw.call(gw.gateway.is_ready)
-        assert not ready and "a" in why
+        config = build_config({"lines": {"a": {"device": pair.path, "rs485": True}}})
+        with pytest.raises(DeviceUnusableError) as caught:
+            check_device_usable(config.lines[0])
+    assert caught.value.key == "rs485"
+    assert str(caught.value).endswith("(most USB-RS485 adapters switch direction themselves: "
+                                      "leave it off).")  # fmt: skip
 
 
 class SerialServer:

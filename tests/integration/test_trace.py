@@ -34,9 +34,11 @@ def trace_log() -> Iterator[Collect]:
 
 
 def _trace(gw: RunningGateway, tracer: Tracer | None) -> None:
+    """Subscribe ``tracer`` to the gateway's frame trace (``None``: leave it unsubscribed)."""
+
     async def install() -> None:
-        assert gw.gateway.server is not None
-        gw.gateway.server.tracer = tracer
+        if tracer is not None:
+            gw.gateway.trace.subscribe(tracer)
 
     gw.run(install())
 

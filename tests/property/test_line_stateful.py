@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+from line_harness import new_core
 
 from gateway.config import CacheRule, LineConfig
 from gateway.core import pdu as fc
@@ -41,7 +42,6 @@ from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import Outcome
-from gateway.core.pipeline import new_line_core
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
 
@@ -100,7 +100,7 @@ class LineMachine(RuleBasedStateMachine):
         self.char = character_time(
             BAUD, self.config.data_bits, self.config.parity, self.config.stop_bits
         )
-        self.core = LineCore(self.config, 0.0, framing=self.framing)
+        self.core = new_core(self.config, 0.0, self.framing)
         self.now = 0.0
         self.core.port_opened(self.now)
         self.slaves = {unit: Slave() for unit in SLAVES}
@@ -575,7 +575,7 @@ class LineMachine(RuleBasedStateMachine):
         self.pump()
 
     def new_core(self) -> LineCore:
-        return LineCore(self.config, self.now, framing=self.framing)
+        return new_core(self.config, self.now, self.framing)
 
     @precondition(lambda self: len(self.requests) > 20 and not self.stopped)
     @rule(abandon=st.booleans())
@@ -687,7 +687,7 @@ class PipelinedLineMachine(LineMachine):
 
     def __init__(self) -> None:
         super().__init__()
-        self.core = new_line_core(self.config, 0.0, None, mbap_framing(), self.limit)
+        self.core = new_core(self.config, 0.0, mbap_framing(), self.limit)
         self.char = 0.0  # no serial wire behind the socket: a frame takes no time to send
         self.core.port_opened(0.0)
         self.jitters: list[float] = [0.0]
@@ -712,7 +712,7 @@ class PipelinedLineMachine(LineMachine):
             ]
             if len(outstanding) > self.limit:
                 self.problems.append(f"{len(outstanding)} attempts outstanding at {self.now}")
-        in_flight = self.core.in_flight  # type: ignore[attr-defined]
+        in_flight = self.core.in_flight
         if in_flight > self.limit:
             self.problems.append(f"the core has {in_flight} attempts outstanding")
         super().pump()
@@ -820,7 +820,7 @@ class PipelinedLineMachine(LineMachine):
     def new_core(self) -> LineCore:
         """The reopened line's core; a new connection, so the old one's answers are gone."""
         self.emissions.clear()
-        return new_line_core(self.config, self.now, None, mbap_framing(), self.limit)
+        return new_core(self.config, self.now, mbap_framing(), self.limit)
 
 
 PipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings

@@ -82,6 +82,19 @@ def test_a_chain_to_a_withdrawn_ca_is_refused() -> None:
     assert admit(TLS, ConnectionFacts(ONE, True, untrusted), 1500.0) is NotAdmitted.CA_NOT_TRUSTED
 
 
+def test_a_revoked_certificate_is_refused_after_trust_and_before_dates() -> None:
+    revoked = CertificateFacts(1000.0, 2000.0, trusted=True, revoked=True)
+    assert admit(TLS, ConnectionFacts(ONE, True, revoked), 1500.0) is (
+        NotAdmitted.CERTIFICATE_REVOKED
+    )
+    assert admit(TLS, ConnectionFacts(ONE, True, revoked), 3000.0) is (
+        NotAdmitted.CERTIFICATE_REVOKED
+    )
+    untrusted = CertificateFacts(1000.0, 2000.0, trusted=False, revoked=True)
+    assert admit(TLS, ConnectionFacts(ONE, True, untrusted), 1500.0) is NotAdmitted.CA_NOT_TRUSTED
+    assert admit(TLS, ConnectionFacts(ONE, False, revoked), 1500.0) is None  # at accept
+
+
 def test_an_established_tls_connection_without_certificate_is_refused() -> None:
     assert admit(TLS, ConnectionFacts(ONE, True, None), 1500.0) is NotAdmitted.NO_CERTIFICATE
 

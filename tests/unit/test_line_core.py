@@ -12,6 +12,7 @@ from dataclasses import replace
 from typing import Any
 
 import pytest
+from line_harness import LineHarness
 
 from gateway.config import LineConfig
 from gateway.core.framing import mbap_framing
@@ -37,61 +38,16 @@ def registers_answer(slave: int, request: bytes, first: int) -> bytes:
     return encode_rtu(slave, pdu)
 
 
-class Line:
-    """A core, the frames it sent and the answers it delivered."""
+class Line(LineHarness):
+    """A serial line's core, the frames it sent and the answers it delivered."""
 
     def __init__(self, **settings: Any) -> None:
         defaults: dict[str, Any] = {"baudrate": BAUD, "timeout": 0.5, "retries": 1}
         self.config = LineConfig(name="t", device="/dev/null", **{**defaults, **settings})
-        self.core = LineCore(self.config, -1.0)
-        self.core.port_opened(-1.0)  # quiet since long before the tests' times
-        self.answers: dict[int, list[tuple[bytes, str]]] = {}
-        self.requests: list[LineRequest] = []
-
-    def submit(self, slave: int, pdu: bytes, now: float, master: str = "m") -> LineRequest:
-        index = len(self.requests)
-
-        def reply(answer: bytes, outcome: str) -> None:
-            self.answers.setdefault(index, []).append((answer, outcome))
-
-        request = LineRequest(slave, pdu, master, reply, broadcast=slave == 0)
-        self.requests.append(request)
-        self.core.submit(request, now)
-        self.flush()
-        return request
-
-    def flush(self) -> None:
-        """Hand answers back (what the driver's pump does)."""
-        deliveries, self.core.deliveries = self.core.deliveries, []
-        for delivery in deliveries:
-            delivery.request.reply(delivery.pdu, delivery.outcome)
+        super().__init__(LineCore(self.config, -1.0))
 
     def sent(self) -> list[bytes]:
-        frames = [transmit.frame for transmit in self.core.transmits]
-        self.core.transmits.clear()
-        return frames
-
-    def notes(self, event: LineEvent) -> list[Any]:
-        found = [note for note in self.core.notes if note.event is event]
-        return found
-
-    def receive(self, frame: bytes, now: float) -> None:
-        self.core.receive(frame, now)
-        self.flush()
-
-    def timer(self, now: float | None = None) -> float:
-        """Fire the core's timer (at its own deadline unless ``now`` is given)."""
-        deadline = self.core.get_timer()
-        assert deadline is not None
-        at = deadline if now is None else now
-        self.core.handle_timer(at)
-        self.flush()
-        return at
-
-    def answer_of(self, request: LineRequest) -> tuple[bytes, str]:
-        got = self.answers[self.requests.index(request)]
-        assert len(got) == 1, got
-        return got[0]
+        return self.frames()
 
 
 def tx_time(frame: bytes) -> float:

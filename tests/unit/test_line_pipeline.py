@@ -10,14 +10,14 @@ import struct
 from typing import Any
 
 import pytest
+from line_harness import LineHarness
 
 from gateway.cli import apply_overrides, build_parser
 from gateway.config import CacheRule, ConfigError, LineConfig, build_config
 from gateway.core.framing import is_mbap, mbap_framing
-from gateway.core.line import LineCore, LineRequest
+from gateway.core.line import LineCore, PipelinedLineCore, new_line_core
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome, SlaveState
-from gateway.core.pipeline import PipelinedLineCore, new_line_core
 
 TIMEOUT = 0.5
 
@@ -38,7 +38,7 @@ def answer_to(pdu: bytes, value: int) -> bytes:
     return pdu
 
 
-class Line:
+class Line(LineHarness):
     """A pipelined core, the ADUs it sent (by TID) and the answers it delivered."""
 
     def __init__(self, max_in_flight: int = 4, **settings: Any) -> None:
@@ -49,59 +49,28 @@ class Line:
         )  # fmt: skip
         core = new_line_core(self.config, -1.0, None, mbap_framing(), max_in_flight)
         assert isinstance(core, PipelinedLineCore)
-        self.core = core
-        self.core.port_opened(-1.0)
-        self.answers: dict[int, list[tuple[bytes, str]]] = {}
-        self.requests: list[LineRequest] = []
+        super().__init__(core)
         self.wire: dict[int, tuple[int, bytes]] = {}  # TID -> (unit, PDU) of every ADU sent
-
-    def submit(self, slave: int, pdu: bytes, now: float, master: str = "m") -> LineRequest:
-        index = len(self.requests)
-
-        def reply(answer: bytes, outcome: str) -> None:
-            self.answers.setdefault(index, []).append((answer, outcome))
-
-        request = LineRequest(slave, pdu, master, reply, broadcast=slave == 0)
-        self.requests.append(request)
-        self.core.submit(request, now)
-        self.flush()
-        return request
-
-    def flush(self) -> None:
-        deliveries, self.core.deliveries = self.core.deliveries, []
-        for delivery in deliveries:
-            delivery.request.reply(delivery.pdu, delivery.outcome)
 
     def sent(self) -> list[int]:
         """TIDs of the ADUs written since the last call."""
         tids = []
-        for transmit in self.core.transmits:
-            frame = transmit.frame
+        for frame in self.frames():
             tid = (frame[0] << 8) | frame[1]
             self.wire[tid] = (frame[6], frame[7:])
             tids.append(tid)
-        self.core.transmits.clear()
         return tids
 
     def answer(self, tid: int, now: float, value: int = 0) -> None:
         unit, pdu = self.wire[tid]
-        self.core.receive(encode_mbap(tid, unit, answer_to(pdu, value)), now)
-        self.flush()
+        self.receive(encode_mbap(tid, unit, answer_to(pdu, value)), now)
 
-    def timer(self, now: float) -> None:
+    def timer(self, now: float | None = None) -> float:
+        """Fire the timer at ``now``, whether or not the core asked for one."""
+        assert now is not None
         self.core.handle_timer(now)
         self.flush()
-
-    def answer_of(self, request: LineRequest) -> tuple[bytes, str]:
-        got = self.answers[self.requests.index(request)]
-        assert len(got) == 1, got
-        return got[0]
-
-    def unanswered(self) -> list[LineRequest]:
-        return [r for i, r in enumerate(self.requests) if i not in self.answers]
-
-    def discarded(self) -> list[str]:
-        return [n.detail for n in self.core.notes if n.event is LineEvent.DISCARDED]
+        return now
 
 
 def test_up_to_max_in_flight_go_at_once_and_answers_are_taken_in_any_order() -> None:

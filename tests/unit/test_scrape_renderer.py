@@ -11,8 +11,16 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 from prometheus_client.exposition import generate_latest
 from prometheus_client.openmetrics.exposition import generate_latest as generate_openmetrics
 
+from gateway.core.outcome import CloseReason, MasterFault, Outcome, RejectReason
+from gateway.core.slave_side import FrameFault
 from gateway.io.http import SAMPLES_PER_TURN, ScrapeRenderer
-from gateway.metrics import GatewayMetrics, WithoutCreated
+from gateway.metrics import (
+    BROADCAST_OUTCOMES,
+    LINE_OUTCOMES,
+    LOCAL_OUTCOMES,
+    GatewayMetrics,
+    WithoutCreated,
+)
 
 OPENMETRICS = "application/openmetrics-text;version=1.0.0"
 
@@ -65,7 +73,7 @@ def test_scrapes_waiting_together_share_one_rendering_and_renderings_are_spaced(
 
 def test_the_exposition_has_no_created_series() -> None:
     metrics = GatewayMetrics()
-    metrics.count_request("a", "1", 3, "ok")
+    metrics.count_request("a", "1", 3, Outcome.OK)
     body = generate_latest(metrics.exposition_registry()).decode()
     assert "modbus_gateway_requests_total" in body
     assert "_created" not in body
@@ -75,10 +83,10 @@ def test_the_exposition_has_no_created_series() -> None:
 def test_requests_name_a_unit_only_once_its_slave_has_answered() -> None:
     metrics = GatewayMetrics()
     for function in range(1, 60):
-        metrics.count_request("a", "7", function, "target_failed")  # never heard: "other"
-    metrics.count_request("a", "5", 3, "ok")
-    metrics.count_request("a", "5", 3, "target_failed")
-    metrics.count_request("broadcast", "0", 6, "broadcast")
+        metrics.count_request("a", "7", function, Outcome.TARGET_FAILED)  # never heard: "other"
+    metrics.count_request("a", "5", 3, Outcome.OK)
+    metrics.count_request("a", "5", 3, Outcome.TARGET_FAILED)
+    metrics.count_request("broadcast", "0", 6, Outcome.BROADCAST)
     units = {
         sample.labels["unit"]
         for family in metrics.registry.collect()
@@ -107,3 +115,54 @@ def test_requests_name_a_unit_only_once_its_slave_has_answered() -> None:
         )
         == 1
     )
+
+
+def _series(metrics: GatewayMetrics, family: str) -> set[tuple[str, ...]]:
+    return {
+        tuple(sample.labels.values())
+        for metric in metrics.registry.collect()
+        if metric.name == family
+        for sample in metric.samples
+        if sample.name.endswith("_total")
+    }
+
+
+def test_every_series_of_a_fixed_vocabulary_exists_at_zero_from_the_start() -> None:
+    metrics = GatewayMetrics()
+    p = "modbus_gateway_"
+    assert _series(metrics, p + "connections_closed") == {(r.value,) for r in CloseReason}
+    assert _series(metrics, p + "connections_rejected") == {(r.value,) for r in RejectReason}
+    assert _series(metrics, p + "protocol_errors") == {(f.value,) for f in MasterFault}
+    assert {f.value for f in FrameFault} <= {f.value for f in MasterFault}
+    assert _series(metrics, p + "requests") == set()  # rows come with their first request
+
+
+def test_a_request_row_gets_every_outcome_it_can_take_at_zero() -> None:
+    metrics = GatewayMetrics()
+    metrics.count_request("a", "5", 3, Outcome.OK)
+    metrics.count_request("none", "other", 3, Outcome.NO_ROUTE)
+    metrics.count_request("broadcast", "0", 6, Outcome.BROADCAST)
+    rows = _series(metrics, "modbus_gateway_requests")
+    read = "read_holding_registers"
+    assert rows == (
+        {("a", "5", read, outcome.value) for outcome in LINE_OUTCOMES}
+        | {("none", "other", read, outcome.value) for outcome in LOCAL_OUTCOMES}
+        | {("broadcast", "0", "write_single_register", o.value) for o in BROADCAST_OUTCOMES}
+    )
+    value = metrics.registry.get_sample_value
+    labels = {"line": "a", "unit": "5", "function": read}
+    assert value("modbus_gateway_requests_total", {**labels, "outcome": "ok"}) == 1
+    assert value("modbus_gateway_requests_total", {**labels, "outcome": "target_failed"}) == 0
+    assert set(LINE_OUTCOMES) | set(LOCAL_OUTCOMES) | set(BROADCAST_OUTCOMES) == set(Outcome)
+
+
+def test_status_reads_the_slave_counters_as_numbers() -> None:
+    metrics = GatewayMetrics()
+    metrics.prepare_units([("a", 1), ("a", 2), ("b", 1)])
+    metrics.timeouts.labels("a", "1").inc()
+    metrics.crc_errors.labels("a", "1").inc(2)
+    metrics.crc_errors.labels("b", "1").inc()
+    metrics.trace_dropped.inc(3)
+    assert metrics.slave_errors("a") == {1: 3, 2: 0}
+    assert (metrics.crc_errors_on("a"), metrics.crc_errors_on("b")) == (2, 1)
+    assert metrics.trace_events_dropped() == 3

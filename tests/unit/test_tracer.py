@@ -10,8 +10,12 @@ import pytest
 from conftest import LogCollector
 
 from gateway.cli import build_parser
+from gateway.core.outcome import Outcome
+from gateway.live import TraceFilter, TraceHub, TraceStream
 from gateway.logs import JsonFormatter
-from gateway.trace import MAX_PENDING, Tracer, parse_function
+from gateway.metrics import GatewayMetrics
+from gateway.status import LineStatus, MasterStatus
+from gateway.trace import MAX_PENDING, FrameTrace, Tracer, parse_function, reply_outcome
 
 READ_10 = bytes.fromhex("03 0000 000A")
 READ_10_ANSWER = bytes.fromhex("03 14") + bytes(20)
@@ -41,7 +45,7 @@ def test_request_and_reply_lines_with_latency(traced: tuple[logging.Logger, LogC
     tracer = Tracer(logger=log, clock=clock)
     tracer.request("10.0.0.7:50432", 17, 5, READ_10)
     clock.now += 0.02261
-    tracer.reply("10.0.0.7:50432", 17, 5, READ_10_ANSWER, "ok")
+    tracer.reply("10.0.0.7:50432", 17, 5, READ_10_ANSWER, Outcome.OK)
     assert seen.messages == [
         "-> 10.0.0.7:50432 tid=17 unit=5 read_holding_registers(3) address=0 quantity=10",
         "<- 10.0.0.7:50432 tid=17 unit=5 read_holding_registers(3) byte_count=20 ok 22.61 ms",
@@ -64,12 +68,12 @@ def test_outcome_from_the_reply_when_the_caller_does_not_say(
     tracer.reply("m", 1, 1, bytes((0x83, 0x0A)))
     tracer.reply("m", 2, 1, bytes((0x83, 0x0B)))
     tracer.reply("m", 3, 1, bytes((0x83, 0x02)))
-    tracer.reply("m", 4, 1, bytes((0x83, 0x03)), "rejected")
+    tracer.reply("m", 4, 1, bytes((0x83, 0x03)), Outcome.REJECTED)
     tracer.reply("m", 5, 1, bytes.fromhex("06 0001 0007"))
     assert [message.split(" ", 5)[-1] for message in seen.messages] == [
         "exception=0x0A no_route",
         "exception=0x0B target_failed",
-        "exception=0x02 exception",
+        "exception=0x02 slave_exception",
         "exception=0x03 rejected",
         "address=1 value=0x0007 ok",
     ]
@@ -115,7 +119,7 @@ def test_json_lines_give_every_field(traced: tuple[logging.Logger, LogCollector]
     tracer = Tracer(logger=log, clock=clock)
     tracer.request("10.0.0.7:50432", 9, 1, READ_10)
     clock.now += 0.5
-    tracer.reply("10.0.0.7:50432", 9, 1, READ_10_ANSWER, "ok")
+    tracer.reply("10.0.0.7:50432", 9, 1, READ_10_ANSWER, Outcome.OK)
     entry = json.loads(JsonFormatter().format(seen.records[1]))
     assert {key: entry[key] for key in entry if key not in ("time", "message")} == {
         "level": "info",
@@ -155,3 +159,96 @@ def test_trace_flags_on_the_command_line() -> None:
     assert build_parser().parse_args(["--trace"]).trace
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--trace-function", "nope"])
+
+
+class Recorder:
+    """A subscriber that keeps what it hears."""
+
+    def __init__(self) -> None:
+        self.heard: list[tuple[str, int, Outcome | None]] = []
+
+    def request(
+        self,
+        peer: str,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        listener: str | None = None,
+        role: str | None = None,
+    ) -> None:
+        self.heard.append(("request", transaction_id, None))
+
+    def reply(
+        self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
+    ) -> None:
+        self.heard.append(("reply", transaction_id, outcome))
+
+    def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
+        self.heard.append(("dropped", transaction_id, Outcome.DROPPED))
+
+
+def test_the_frame_trace_reaches_its_subscribers_of_the_moment() -> None:
+    first, second = Recorder(), Recorder()
+    trace = FrameTrace(first)
+    trace.request("m", 1, 1, READ_10)
+    trace.subscribe(second)
+    trace.subscribe(second)  # once, however often
+    trace.reply("m", 1, 1, READ_10_ANSWER, Outcome.OK)
+    trace.unsubscribe(first)
+    trace.dropped("m", 2, 1, 3)
+    trace.unsubscribe(first)  # not subscribed: nothing happens
+    assert first.heard == [("request", 1, None), ("reply", 1, Outcome.OK)]
+    assert second.heard == [("reply", 1, Outcome.OK), ("dropped", 2, Outcome.DROPPED)]
+    assert trace.subscribers == (second,) and trace.active
+    trace.unsubscribe(second)
+    assert not trace.active and not FrameTrace().active  # listeners call it only when active
+
+
+@pytest.mark.parametrize(
+    ("pdu", "outcome"),
+    [
+        (b"", Outcome.BROADCAST),
+        (READ_10_ANSWER, Outcome.OK),
+        (bytes((0x83, 0x0A)), Outcome.NO_ROUTE),
+        (bytes((0x83, 0x0B)), Outcome.TARGET_FAILED),
+        (bytes((0x83, 0x02)), Outcome.SLAVE_EXCEPTION),
+        (bytes((0x83,)), Outcome.SLAVE_EXCEPTION),
+    ],
+)
+def test_a_reply_says_its_outcome_when_the_listener_does_not(pdu: bytes, outcome: Outcome) -> None:
+    assert reply_outcome(pdu) is outcome
+
+
+class NoGateway:
+    """A ``GatewayView`` with no line and no master."""
+
+    def route(self, unit: int) -> tuple[str, int] | None:
+        return ("a", unit) if unit == 1 else None
+
+    def line_states(self) -> list[LineStatus]:
+        return []
+
+    def masters(self) -> tuple[MasterStatus, ...]:
+        return ()
+
+    def listen(self) -> str:
+        return ""
+
+
+def test_the_live_hub_subscribes_while_a_stream_is_open() -> None:
+    trace, logger = FrameTrace(), Recorder()
+    trace.subscribe(logger)
+    hub = TraceHub(trace, NoGateway(), GatewayMetrics(), clock=Clock())
+    assert not hub.attached and trace.subscribers == (logger,)
+    stream = TraceStream(TraceFilter())
+    hub.add(stream)
+    assert hub.attached and trace.subscribers == (logger, hub)
+    trace.request("m", 7, 1, READ_10)
+    trace.reply("m", 7, 1, bytes((0x83, 0x0B)))
+    assert [(e.direction, e.line, e.slave, e.outcome) for e in stream.events] == [
+        ("request", "a", 1, None),
+        ("reply", "a", 1, Outcome.TARGET_FAILED),
+    ]
+    hub.remove(stream)
+    assert not hub.attached and trace.subscribers == (logger,)
+    assert [kind for kind, _tid, _outcome in logger.heard] == ["request", "reply"]

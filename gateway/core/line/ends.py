@@ -1,0 +1,276 @@
+"""The machine's transitions at the end of an attempt, and the answers it delivers.
+
+``LineCore`` (``machine.py``) is one state machine whose class body is written in three
+layers, each under 400 lines: this one (an attempt ends: the request, the slave's
+health, the late-answer window, the accounts; every delivery), ``sending.py`` (which
+request goes next, sending it) and ``machine.py`` (the masters' side, the port, the
+reload). The layers are not variants: nothing is overridden, and only the machine is
+ever built. The wire strategy (``wire.py``, ``flights.py``) calls ``complete``,
+``garbled``, ``fail``, ``discard``, ``alive``, ``late_bytes`` and ``late_frame``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from .. import pdu as fc
+from ..errors import ExceptionCode, ResponseError
+from ..framing import Framing
+from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
+from ..rtu import RtuFrame
+from .fair_queue import FairQueue
+from .health import ProbeLane, SlaveHealth, SlaveRecord
+from .late import LateWindows
+from .order import OrderRules
+from .records import (
+    BAD_CHECK,
+    Attempt,
+    Delivery,
+    LinePolicy,
+    LineRequest,
+    LineStats,
+    Note,
+    tuple_new,
+)
+from .sharing import ReadSharing
+from .wire import Wire
+
+
+class AttemptEnds:
+    """The line's state, and what the end of an attempt does to it (see the module doc)."""
+
+    policy: LinePolicy
+    framing: Framing
+    stats: LineStats
+    deliveries: list[Delivery]
+    notes: list[Note]
+    queue: FairQueue
+    health: SlaveHealth
+    lane: ProbeLane
+    late: LateWindows
+    sharing: ReadSharing
+    order: OrderRules
+    wire: Wire
+    retries: deque[LineRequest]
+    garbled_wait: float
+    _timeouts: dict[int, float]
+    _stopping: bool
+
+    def timeout_for(self, slave: int) -> float:
+        timeout = self._timeouts.get(slave)
+        if timeout is None:
+            timeout = self._timeouts[slave] = self.policy.timeout_for(slave)
+        return timeout
+
+    def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
+        """The slave answered the request on the wire (the wire has ended ``attempt``)."""
+        request = attempt.request
+        wire = now - attempt.sent_at
+        slave = request.slave
+        function = request.pdu[0]
+        self.stats.frames_received += 1
+        record = self.health.slaves.get(slave)  # ``health.record``, inline: once per answer
+        if record is None:
+            record = self.health.record(slave)
+        record.answered.add(function)
+        if record.state is SlaveState.UP:
+            record.misses = 0  # ``alive``, for a slave that was up
+        else:
+            self.alive(slave)
+        response = frame.pdu
+        if self.late.windows:
+            ends = self.late.ends_on(slave, request, response)
+            if ends is True:
+                self.late.close(slave)  # it answered something after the loss: done
+            elif ends is False:
+                # An exception cannot be told from the lost request's: this one's own
+                # answer may be the one still on its way now.
+                self._open_window(slave, record, request, now)
+        self._charge(attempt, wire, now)
+        if response[0] & fc.EXCEPTION_FLAG:
+            outcome = Outcome.SLAVE_EXCEPTION
+        elif function in fc.READ_FUNCTIONS:
+            if self.policy.cache:
+                self._store_cache(attempt, response, now)
+            outcome = Outcome.OK
+        else:
+            outcome = Outcome.OK
+        self._deliver(request, response, outcome, wire)
+
+    def garbled(self, attempt: Attempt, error: ResponseError, damaged: bool, now: float) -> None:
+        """A garbled frame: fail the attempt at once, or listen a little longer first.
+
+        A frame with the awaited unit, function and length is the answer itself,
+        damaged: no other answer is coming, the attempt fails at once. Anything else
+        may be noise in front of the real answer: the attempt fails only after the
+        line stayed quiet for ``garbled_wait``, and a valid answer meanwhile is taken.
+        """
+        slave = attempt.request.slave
+        if error.kind == BAD_CHECK:
+            self.notes.append(Note(LineEvent.CRC_ERROR, slave, error.reason))
+        else:
+            self.discard(DiscardReason(error.kind), 1, slave)
+        attempt.garbled = error
+        if damaged:
+            self.fail(attempt, error, now, damaged=True)
+        else:
+            attempt.garbled_at = now + self.garbled_wait
+
+    def fail(
+        self, attempt: Attempt, error: ResponseError | None, now: float, damaged: bool = False
+    ) -> None:
+        """An attempt ended without an answer: window, isolation, then retry or 0x0B."""
+        self.wire.end(attempt)
+        request = attempt.request
+        slave = request.slave
+        wire = now - attempt.sent_at
+        record = self.health.record(slave)
+        if not damaged:
+            self._open_window(slave, record, request, now)
+        before = record.state
+        if error is None:
+            timeout = self.timeout_for(slave)
+            self.notes.append(Note(LineEvent.TIMEOUT, slave, f"no answer within {timeout:g} s"))
+            state = self.health.count_timeout(record, request.pdu[0], now, self.policy)
+            if state is not None:
+                self._set_state(slave, record, state)
+        elif error.kind != BAD_CHECK:  # a CRC error was noted when it arrived
+            self.notes.append(Note(LineEvent.GARBLED, slave, error.reason))
+        if before is SlaveState.UP and record.state is not SlaveState.UP:
+            self.lane.spend(wire, now)  # the loss that made it suspect is paid from its share
+        self._charge(attempt, wire, now)
+        self._retry_or_answer(request, record, now)
+        if before is not record.state:
+            keep = (
+                1 if record.state is SlaveState.SUSPECT and slave not in self.lane.requests else 0
+            )
+            self._isolate(slave, keep)
+
+    def _retry_or_answer(self, request: LineRequest, record: SlaveRecord, now: float) -> None:
+        """Only requests without side effects go again, and not to a down slave."""
+        policy = self.policy
+        retryable = (
+            not self._stopping
+            and not request.single
+            and request.attempts <= policy.retries
+            and request.wanted
+            and (policy.retry_unsafe or fc.is_safe_to_retry(request.pdu))
+            and record.state is not SlaveState.DOWN
+        )
+        if retryable and record.state is SlaveState.UP:
+            self.retries.append(request)
+            self.queue.count_waiting(request, +1)
+        elif retryable and request.slave not in self.lane.requests:
+            self._lane_put(request, now)
+        else:
+            self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+
+    def _isolate(self, slave: int, keep: int) -> None:
+        """Answer the slave's waiting requests 0x0B, keeping the oldest ``keep`` in the lane."""
+        lane_request = self.lane.requests.get(slave)
+        if lane_request is not None and self.health.slaves[slave].state is SlaveState.DOWN:
+            self._lane_remove(lane_request)
+            self._answer(lane_request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+        for index, request in enumerate(self.queue.isolated(slave)):
+            if index < keep:
+                self._lane_put(request, request.enqueued_at)
+            else:
+                self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+
+    def _charge(self, attempt: Attempt, wire: float, now: float) -> None:
+        """Account the wire time to the master who used it (or to the isolated share)."""
+        queue = self.queue
+        master = queue.masters.get(attempt.request.master)
+        if attempt.from_credit:
+            self.lane.spend(wire, now)
+        elif master is not None:
+            queue.charge(master, wire, attempt.charged)
+        if master is not None and (master.gone or (master.queue and master.heap_seq < 0)):
+            queue.reschedule(master)  # back in the fair order, or forgotten
+
+    def alive(self, slave: int) -> None:
+        """The slave answered: no missed answers in a row, and back in the fair order."""
+        record = self.health.record(slave)
+        record.misses = 0
+        if record.state is not SlaveState.UP:
+            self._set_state(slave, record, SlaveState.UP)
+            waiting = self.lane.requests.get(slave)
+            if waiting is not None:
+                self._lane_remove(waiting)
+                self._queue_at_front(waiting)
+
+    def late_bytes(self, data: bytes) -> None:
+        """Bytes while nothing is on the wire: a lost answer shows its slave alive, slow."""
+        for slave in self.late.watch(data):
+            self.alive(slave)
+
+    def late_frame(self, frame: bytes) -> None:
+        """An intact frame the attempt on the wire discarded: is it a lost answer?"""
+        slave = self.late.is_lost_answer(frame)
+        if slave is not None:
+            self.alive(slave)
+
+    def _open_window(
+        self, slave: int, record: SlaveRecord, request: LineRequest, now: float
+    ) -> None:
+        """The slave's answer to ``request`` may still come: nothing that could be taken for
+        it goes to this slave until the window ends or the slave shows it is done. A line
+        whose answers carry transaction ids needs no window (the id names the answer)."""
+        if not self.wire.quiet_line:
+            return
+        window = self.policy.late_window_for(slave)
+        self.late.open(slave, request, now + window)
+        self.notes.append(Note(LineEvent.LATE_WINDOW, slave, f"{window:g} s"))
+
+    def _set_state(self, slave: int, record: SlaveRecord, state: SlaveState) -> None:
+        record.state = state
+        if state is SlaveState.UP:
+            record.misses = 0
+        self.notes.append(Note(LineEvent.SLAVE_STATE, slave, state=state, amount=record.misses))
+
+    def _store_cache(self, attempt: Attempt, response: bytes, now: float) -> None:
+        request = attempt.request
+        rules = self.policy.cache
+        if not rules or not self.wire.may_cache(attempt):
+            return  # a write was submitted after this read went: its answer may be older
+        if self.order.change_waits_for(request.slave):
+            return  # the answer is older than a write still to run: kept, it would be stale
+        self.sharing.store(request, response, now, rules)
+
+    def _lane_put(self, request: LineRequest, now: float) -> None:
+        """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
+        self.lane.put(request, now + self.timeout_for(request.slave))
+        self.queue.master(request.master)
+        self.queue.count_waiting(request, +1)
+
+    def _lane_remove(self, request: LineRequest) -> None:
+        self.lane.remove(request)
+        self.queue.dequeued(self.queue.masters.get(request.master), request)
+
+    def _queue_at_front(self, request: LineRequest) -> None:
+        if request.followers:  # still waited for by the reads that joined it
+            self.sharing.joined[request] = None
+        self.queue.queue_at_front(request)
+
+    def discard(self, reason: DiscardReason, count: int, slave: int = 0) -> None:
+        self.notes.append(Note(LineEvent.DISCARDED, slave, reason, count))
+
+    def _answer(self, request: LineRequest, code: ExceptionCode, outcome: Outcome) -> None:
+        self.sharing.close(request)
+        self._deliver(request, fc.exception_pdu(request.pdu[0], code), outcome, -1.0)
+
+    def _deliver(self, request: LineRequest, pdu: bytes, outcome: Outcome, wire: float) -> None:
+        """Deliver exactly once, to ``request`` and every read that joined it."""
+        if self.wire.orders_outstanding:
+            self.wire.released(request)
+        deliveries = self.deliveries
+        if request.followers:
+            self.sharing.joined.pop(request, None)
+        if not request.answered:
+            request.answered = True
+            deliveries.append(tuple_new(Delivery, (request, pdu, outcome, wire)))
+        for follower in request.followers:
+            if not follower.answered:
+                follower.answered = True
+                deliveries.append(Delivery(follower, pdu, outcome, -1.0))
+        request.followers.clear()

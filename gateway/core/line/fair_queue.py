@@ -1,0 +1,228 @@
+"""The masters' fair queue and its bounds: whose request goes next, by wire time used.
+
+Theory of operation. Each master has its own queue and an account of the wire time its
+transactions took (start-time fair queuing): the master with the smallest virtual time
+goes next, and its account is charged with what its transaction actually cost
+(timeouts included), so a master provoking timeouts spends its own share. A master
+that waited while others used the line starts from the line's virtual clock, never
+below it (no banked credit). A master with nothing waiting or on the wire goes next
+after the transaction on the wire (behind others that came so before it), unless its
+account is ahead of every waiting master's: it cannot become the heaviest user that
+way. Each master has its own queue bound (0x06 beyond it); the
+line-wide bound pushes out the longest queue's newest request before refusing a master
+with a shorter queue.
+
+This part keeps the order and the counts; it answers questions and never emits an
+action: the machine (``machine.LineCore``) decides what becomes of a request.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import deque
+from collections.abc import Callable, Hashable, Iterator
+from dataclasses import dataclass, field
+
+from .records import LineRequest, LineStats
+
+
+@dataclass(slots=True, eq=False)
+class Master:
+    """One master's queue and its account of wire time (start-time fair queuing)."""
+
+    key: Hashable
+    queue: deque[LineRequest] = field(default_factory=deque)
+    vtime: float = 0.0
+    heap_seq: int = -1  # the sequence number of its live heap entry, -1 when not in the heap
+    queued: int = 0  # requests waiting (its queue, the lane, the retry slot)
+    gone: bool = False
+
+
+class FairQueue:
+    """The masters' queues in start-time fair order, with the line's waiting count."""
+
+    def __init__(self, stats: LineStats) -> None:
+        self.stats = stats
+        self.masters: dict[Hashable, Master] = {}
+        #: Masters by (start time, 0 for the head of the line or 1, sequence): see ``enqueue``.
+        self.heap: list[tuple[float, int, int, Master]] = []
+        self.seq = 0
+        self.vclock = 0.0
+        self.vmax = 0.0  # the furthest account of a master that waited (``push``)
+        self.queued = 0  # requests waiting for the line, wherever they wait
+
+    def master(self, key: Hashable) -> Master:
+        """``key``'s account, created on first need."""
+        master = self.masters.get(key)
+        if master is None:
+            master = self.masters[key] = Master(key)
+        return master
+
+    def over_master_bound(self, master: Master, on_wire: int, bound: int) -> bool:
+        """True when ``master`` already has ``bound`` requests waiting or on the wire."""
+        return master.queued + on_wire >= bound
+
+    def push_out(self, master: Master) -> LineRequest | None:
+        """The line is full: take the newest request of the longest queue if that is not
+        ``master``'s (the caller answers it), else ``None`` (refuse ``master``)."""
+        longest = max(self.masters.values(), key=lambda m: len(m.queue), default=None)
+        if longest is None or longest is master or len(longest.queue) <= len(master.queue) + 1:
+            return None
+        victim = longest.queue.pop()
+        self.dequeued(longest, victim)
+        return victim
+
+    def enqueue(self, master: Master, request: LineRequest, idle: bool) -> None:
+        """Queue ``request``; a master that was ``idle`` (nothing waiting or on the wire)
+        goes to the head of the fair order unless its account is ahead of every waiting
+        master's.
+
+        Start times alone would put it behind every master whose start time equals the
+        line's virtual time (a whole round of deep queues), and, once served, behind the rest
+        of that round: the virtual time moves one transaction per round. Its account is
+        still charged, so it takes no more than the heaviest user: past that it waits its
+        turn.
+        """
+        master.queue.append(request)
+        master.queued += 1
+        self.queued += 1
+        self.stats.queue_depth = self.queued
+        if master.heap_seq < 0:
+            if master.vtime < self.vclock:
+                master.vtime = self.vclock
+            self.push(master, idle and master.vtime <= self.vmax)
+
+    def queue_at_front(self, request: LineRequest) -> None:
+        """Back from the lane: first, but behind its master's earlier broadcasts."""
+        master = self.master(request.master)
+        place = 0
+        for index, queued in enumerate(master.queue):
+            if queued.broadcast and queued.order < request.order:
+                place = index + 1
+        master.queue.insert(place, request)
+        master.queued += 1
+        self.queued += 1
+        self.stats.queue_depth = self.queued
+        if master.heap_seq < 0:
+            self.push(master)
+
+    def count_waiting(self, request: LineRequest, delta: int) -> None:
+        """A request enters (+1) or leaves (-1) the waiting set outside its master's queue."""
+        master = self.masters.get(request.master)
+        if master is not None:
+            master.queued += delta
+        self.queued += delta
+        self.stats.queue_depth = self.queued
+
+    def push(self, master: Master, head: bool = False) -> None:
+        """Into the fair order at its account, or (``head``) before every master at the
+        line's virtual time, in arrival order."""
+        self.seq += 1
+        master.heap_seq = self.seq
+        if head:
+            heapq.heappush(self.heap, (self.vclock, 0, self.seq, master))
+            return
+        vtime = master.vtime
+        if vtime > self.vmax:
+            self.vmax = vtime
+        heapq.heappush(self.heap, (vtime, 1, self.seq, master))
+
+    def reschedule(self, master: Master) -> None:
+        """Put ``master`` back in the fair order after its transaction (or forget it)."""
+        if master.queue:
+            if master.heap_seq < 0:
+                self.push(master)
+        elif master.queued == 0 and master.gone:
+            self.masters.pop(master.key, None)
+
+    def dequeued(self, master: Master | None, request: LineRequest) -> None:
+        if master is not None:
+            master.queued -= 1
+        self.queued -= 1
+        self.stats.queue_depth = self.queued
+
+    def remove(self, request: LineRequest) -> None:
+        """Take ``request`` out of its master's queue."""
+        owner = self.masters[request.master]
+        owner.queue.remove(request)
+        self.dequeued(owner, request)
+        self.reschedule(owner)
+
+    def pop(
+        self, now: float, first_eligible: Callable[[Master, float], LineRequest | None]
+    ) -> tuple[LineRequest, Master] | None:
+        """The fairest master's first request that may go now (``first_eligible`` says
+        which), taken from its queue; masters with nothing eligible keep their place."""
+        heap = self.heap
+        skipped: list[tuple[Master, bool]] = []
+        chosen: tuple[LineRequest, Master] | None = None
+        while heap:
+            vtime, rank, seq, master = heapq.heappop(heap)
+            if master.heap_seq != seq:
+                continue  # stale entry
+            if rank == 0 and len(master.queue) > 1:
+                self.push(master)  # no longer a single request: its fair turn
+                continue
+            master.heap_seq = -1
+            request = first_eligible(master, now)
+            if request is None:
+                if master.queue:
+                    skipped.append((master, rank == 0))
+                continue
+            master.queue.remove(request)
+            master.queued -= 1  # ``dequeued``
+            self.queued -= 1
+            self.stats.queue_depth = self.queued
+            if vtime > self.vclock:
+                self.vclock = vtime
+            chosen = request, master
+            break
+        for master, head in skipped:
+            self.push(master, head)
+        return chosen
+
+    def charge(self, master: Master, wire: float, charged: float) -> None:
+        """``master``'s transaction took ``wire`` seconds, of which ``charged`` were charged
+        when it was sent (an estimate, on a pipelined line)."""
+        if charged:
+            master.vtime += wire - charged
+        else:
+            master.vtime = max(master.vtime, self.vclock) + wire
+        if master.heap_seq >= 0:
+            self.push(master)  # its old entry goes stale
+
+    def charge_ahead(self, master: Master, amount: float) -> None:
+        """Charge ``amount`` now (a broadcast's turnaround, a pipelined send's estimate)."""
+        master.vtime = max(master.vtime, self.vclock) + amount
+
+    def isolated(self, slave: int) -> list[LineRequest]:
+        """Take every waiting request for ``slave`` from the queues, oldest first."""
+        doomed: list[tuple[Master, LineRequest]] = []
+        for master in self.masters.values():
+            for request in master.queue:
+                if request.slave == slave and not request.broadcast:
+                    doomed.append((master, request))
+        doomed.sort(key=lambda pair: pair[1].enqueued_at)
+        for master, request in doomed:
+            master.queue.remove(request)
+            self.dequeued(master, request)
+        return [request for _, request in doomed]
+
+    def waiting(self) -> Iterator[LineRequest]:
+        """Every request in the masters' queues."""
+        for master in self.masters.values():
+            yield from master.queue
+
+    def take_all(self) -> list[LineRequest]:
+        """Empty every queue (the caller takes the lane and the retries with it)."""
+        taken: list[LineRequest] = []
+        for master in self.masters.values():
+            taken.extend(master.queue)
+            master.queue.clear()
+            master.queued = 0
+            master.heap_seq = -1
+        self.heap.clear()
+        self.masters = {k: m for k, m in self.masters.items() if not m.gone}
+        self.queued = 0
+        self.stats.queue_depth = 0
+        return taken

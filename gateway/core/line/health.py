@@ -1,0 +1,155 @@
+"""Slave health and the probe lane: who is up, suspect or down, and their share of time.
+
+Theory of operation. A timeout counts against a slave only for a function it has
+answered before (or when it never answered anything), so a master sending a code the
+slave ignores cannot isolate it. After a counted timeout the slave is *suspect*; after
+``dead_after`` counted timeouts in a row it is *down*, probed once per back-off
+interval (doubling up to ``probe_max_interval``). Requests for suspect and down slaves
+wait in the *lane*, one per slave, and share ``probe_share`` of the line's time: a
+credit banked at that rate (at most one second's share) pays for their wire time.
+
+These parts answer questions and keep counts; the machine (``machine.LineCore``)
+makes the transitions and emits the notes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from ..outcome import SlaveState
+from .records import INFINITY, LinePolicy, LineRequest
+
+
+@dataclass(slots=True)
+class SlaveRecord:
+    """What the line knows of one slave address."""
+
+    state: SlaveState = SlaveState.UP
+    misses: int = 0  # counted timeouts in a row
+    answered: set[int] = field(default_factory=set)  # functions it has answered
+    backoff: float = 0.0
+    next_probe_at: float = 0.0
+
+
+class SlaveHealth:
+    """Every slave the line has heard from or given up on."""
+
+    def __init__(self) -> None:
+        self.slaves: dict[int, SlaveRecord] = {}
+
+    def record(self, slave: int) -> SlaveRecord:
+        """What the line knows of ``slave``, created on first need."""
+        record = self.slaves.get(slave)
+        if record is None:
+            record = self.slaves[slave] = SlaveRecord()
+        return record
+
+    def state(self, slave: int) -> SlaveState:
+        record = self.slaves.get(slave)
+        return record.state if record is not None else SlaveState.UP
+
+    def states(self) -> dict[int, SlaveState]:
+        return {slave: record.state for slave, record in self.slaves.items()}
+
+    def not_up(self) -> list[tuple[int, SlaveRecord]]:
+        return [(s, r) for s, r in self.slaves.items() if r.state is not SlaveState.UP]
+
+    @staticmethod
+    def refused_at_once(record: SlaveRecord, now: float) -> bool:
+        """True for a down slave whose next probe is not due yet."""
+        return record.state is SlaveState.DOWN and now < record.next_probe_at
+
+    @staticmethod
+    def count_timeout(
+        record: SlaveRecord, function: int, now: float, policy: LinePolicy
+    ) -> SlaveState | None:
+        """Count a timeout against the slave's health, unless it may just ignore the code;
+        the state it moves to, if it changes."""
+        if policy.dead_after <= 0:
+            return None
+        if record.answered and function not in record.answered:
+            return None  # a code it never answered: it may ignore it, no sign of death
+        record.misses += 1
+        if record.state is SlaveState.DOWN:
+            record.backoff = min(record.backoff * 2, policy.probe_max_interval)
+            record.next_probe_at = now + record.backoff
+        elif record.misses >= policy.dead_after:
+            record.backoff = policy.probe_interval
+            record.next_probe_at = now + record.backoff
+            return SlaveState.DOWN
+        elif record.state is SlaveState.UP:
+            return SlaveState.SUSPECT
+        return None
+
+
+class ProbeLane:
+    """One waiting request per suspect or down slave, and their banked share of time."""
+
+    def __init__(self, now: float) -> None:
+        self.requests: dict[int, LineRequest] = {}
+        self.credit = 0.0
+        self.credit_at = now
+        self.share = 0.0
+        self.cap = 0.0
+
+    def configure(self, share: float) -> None:
+        self.share = share
+        self.cap = share  # at most one second's share banked
+
+    def put(self, request: LineRequest, deadline: float) -> None:
+        """Wait here: one attempt, answered 0x0B if not sent by ``deadline``."""
+        request.single = True
+        request.lane_deadline = deadline
+        self.requests[request.slave] = request
+
+    def remove(self, request: LineRequest) -> None:
+        del self.requests[request.slave]
+        request.lane_deadline = INFINITY
+
+    def holds(self, request: LineRequest) -> bool:
+        return self.requests.get(request.slave) is request
+
+    def candidate(self, may_go: Callable[[LineRequest], bool]) -> LineRequest | None:
+        """The oldest request ``may_go`` lets go, taken from the lane."""
+        best: LineRequest | None = None
+        for request in self.requests.values():
+            if not may_go(request):
+                continue
+            if best is None or request.enqueued_at < best.enqueued_at:
+                best = request
+        if best is not None:
+            self.remove(best)
+        return best
+
+    def expired(self, now: float) -> list[LineRequest]:
+        return [r for r in self.requests.values() if now >= r.lane_deadline]
+
+    def earliest(self) -> float:
+        when = INFINITY
+        for request in self.requests.values():
+            when = min(when, request.lane_deadline)
+        return when
+
+    def credit_now(self, now: float) -> float:
+        """The lane's share of line time banked so far (negative: in debt)."""
+        if now > self.credit_at:
+            banked = self.credit + self.share * (now - self.credit_at)
+            if banked > -1e-9:  # paid off: rounding must not leave a debt too small to wait for
+                banked = max(banked, 0.0)
+            self.credit = min(banked, self.cap)
+            self.credit_at = now
+        return self.credit
+
+    def spend(self, wire: float, now: float) -> None:
+        """Pay ``wire`` seconds from the share."""
+        self.credit_now(now)
+        self.credit -= wire
+
+    def credit_time(self) -> float:
+        """When the banked share reaches zero again."""
+        if self.credit >= 0.0:
+            return self.credit_at
+        if self.share <= 0.0:
+            return INFINITY
+        return self.credit_at - self.credit / self.share

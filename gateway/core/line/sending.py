@@ -1,0 +1,190 @@
+"""Choosing and sending: which request goes next, and putting it on the wire.
+
+The middle layer of ``LineCore``'s class body (see ``ends.py`` for the layering).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from ..errors import ExceptionCode
+from ..outcome import LineEvent, Outcome
+from .ends import AttemptEnds
+from .fair_queue import Master
+from .records import FRAME_CACHE_SIZE, INFINITY, LineRequest, Note, Transmit, tuple_new
+
+
+class Sending(AttemptEnds):
+    """Which request goes next, and sending it (see the module doc)."""
+
+    transmits: list[Transmit]
+    quiet_since: float
+    char_time: float
+    echo: bool
+    encode: Callable[[int, bytes], bytes]
+    _frames: dict[tuple[int, bytes], bytes] | None
+    _send_at: float
+    _wanting_since: float | None
+    _noisy: bool
+    _noisy_after: float
+    _up: bool
+    _paused: bool
+    _gap: float
+
+    def service(self, now: float) -> None:
+        """Put the next requests on the wire while they may go now."""
+        self._send_at = INFINITY
+        wire = self.wire
+        if (
+            wire.outstanding >= wire.capacity
+            or not self._up
+            or not self.queue.queued
+            or self._paused
+        ):
+            self._wanting_since = None
+            return
+        if wire.draining:  # a broadcast waits for the attempts outstanding
+            if wire.outstanding:
+                return
+            wire.draining = False
+        ready_at = self.quiet_since + self._gap
+        if now < ready_at:
+            self._send_at = ready_at
+            if self._wanting_since is None:
+                self._wanting_since = now
+            elif now >= self._wanting_since + self._noisy_after:
+                self._go_noisy()
+            return
+        self._wanting_since = None
+        while self.queue.queued and wire.outstanding < wire.capacity:
+            picked = self._pick(now)
+            if picked is None:
+                return
+            request, master, from_credit = picked
+            if request.broadcast:
+                wire.draining = False
+                self._send_broadcast(request, master, now)
+                self._send_at = self.quiet_since + self._gap  # after the turnaround
+                return
+            if request.cancelled and not request.wanted:
+                self.sharing.close(request)
+                self._deliver(request, b"", Outcome.DROPPED, -1.0)
+                if master is not None:
+                    self.queue.reschedule(master)
+                continue
+            self._send(request, master, now, from_credit)
+            if wire.draining:
+                return
+
+    def _pick(self, now: float) -> tuple[LineRequest, Master | None, bool] | None:
+        """The next request: a retry, the lane on credit, the fairest master, the lane free."""
+        retries = self.retries
+        if retries:
+            retry = retries.popleft()
+            self.queue.count_waiting(retry, -1)
+            return retry, None, False
+        lane = self.lane
+        if lane.requests and lane.credit_now(now) >= 0.0:
+            request = self._lane_candidate(now)
+            if request is not None:
+                return request, None, True
+        picked = self.queue.pop(now, self.wire.first_eligible)
+        if picked is not None:
+            return picked[0], picked[1], False
+        if lane.requests:
+            request = self._lane_candidate(now)
+            if request is not None:
+                return request, None, False
+        return None
+
+    def _lane_candidate(self, now: float) -> LineRequest | None:
+        wire = self.wire
+        order = self.order
+        best = self.lane.candidate(lambda r: wire.may_go(r, now) and not order.behind_broadcast(r))
+        if best is not None:
+            self.queue.dequeued(self.queue.masters.get(best.master), best)
+        return best
+
+    def _send(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> None:
+        retry = request.attempts > 0
+        request.attempts += 1
+        if not request.sent:
+            request.sent = True
+            self.sharing.close(request)
+        frame = self.wire.start(request, master, now, credit)
+        stats = self.stats
+        stats.frames_sent += 1
+        stats.bytes_written += len(frame)
+        if retry:
+            self.notes.append(Note(LineEvent.RETRY, request.slave))
+        self.transmits.append(
+            tuple_new(Transmit, (frame, request, now - request.enqueued_at, retry))
+        )
+
+    def frame(self, slave: int, pdu: bytes) -> bytes:
+        """The request frame for ``pdu`` to ``slave``, encoded once per distinct request."""
+        frames = self._frames
+        if frames is None:
+            return self.encode(slave, pdu)
+        key = (slave, pdu)
+        frame = frames.get(key)
+        if frame is None:
+            frame = self.encode(slave, pdu)
+            if len(frames) >= FRAME_CACHE_SIZE:
+                frames.clear()  # a bound, not an LRU: polling refills it with what is used
+            frames[key] = frame
+        return frame
+
+    def _send_broadcast(self, request: LineRequest, master: Master | None, now: float) -> None:
+        frame = self.frame(0, request.pdu)
+        transmit_time = len(frame) * self.char_time
+        self.quiet_since = now + transmit_time + self.policy.broadcast_turnaround
+        self.stats.frames_sent += 1
+        self.stats.bytes_written += len(frame)
+        self.sharing.cache.clear()  # what was read while it waited in the queue is stale now
+        self.wire.expect_echo(frame)
+        self.transmits.append(Transmit(frame, request, now - request.enqueued_at, False))
+        self._deliver(request, b"", Outcome.BROADCAST, -1.0)
+        if master is not None:
+            self.queue.charge_ahead(master, self.quiet_since - now)
+            self.queue.reschedule(master)
+
+    def _go_noisy(self) -> None:
+        self._noisy = True
+        self._wanting_since = None
+        self.notes.append(Note(LineEvent.LINE_NOISY, 0, f"no gap for {self._noisy_after:g} s"))
+        self._fail_all(ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+
+    def _fail_all(self, code: ExceptionCode, outcome: Outcome) -> None:
+        for request in self.take_queued():
+            self._answer(request, code, outcome)
+
+    def take_queued(self) -> list[LineRequest]:
+        """Remove every waiting request unanswered (a reload moves them to a reopened line),
+        in the order they were submitted, each read that joined one of them a request of
+        its own again, with no attempts made. Requests whose master left are answered
+        ``DROPPED`` here, as ``cancel`` would have: nobody waits for them."""
+        taken = list(self.retries)
+        for request in taken:
+            self.wire.forget(request)
+        self.retries.clear()
+        taken.extend(self.queue.take_all())
+        taken.extend(self.lane.requests.values())
+        self.lane.requests.clear()
+        self.sharing.forget_open()
+        handed: list[LineRequest] = []
+        for request in taken:
+            handed.append(request)
+            handed.extend(request.followers)
+            request.followers.clear()
+        handed.sort(key=lambda request: request.order)
+        kept: list[LineRequest] = []
+        for request in handed:
+            if request.cancelled:
+                self._deliver(request, b"", Outcome.DROPPED, -1.0)
+                continue
+            request.attempts = 0
+            request.single = False
+            request.lane_deadline = INFINITY
+            kept.append(request)
+        return kept

@@ -1,0 +1,116 @@
+"""What a line's notes mean for metrics and logs: the event side of a ``Bus``.
+
+The line core notes events (timeouts, CRC errors, discarded input, slave states, a
+noisy line); this collaborator counts them and logs each fault once, then counts
+repeats (``RateLimitedLogger``). It decides nothing about the line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+from ..core.line import Note
+from ..core.outcome import DiscardReason, LineEvent, SlaveState
+from ..logs import RateLimitedLogger
+from ..metrics import UNIT_LABELS, GatewayMetrics
+
+if TYPE_CHECKING:
+    from .bus import Bus
+
+log = logging.getLogger("gateway.bus")
+
+
+class LineNotes:
+    """One bus's notes, counted and logged."""
+
+    def __init__(self, bus: Bus, metrics: GatewayMetrics, loop: asyncio.AbstractEventLoop):
+        self._bus = bus
+        self._metrics = metrics
+        self._loop = loop
+        self._m_coalesced = metrics.coalesced.labels(bus.name)
+        self._m_noisy = metrics.line_noisy.labels(bus.name)
+        self._m_noisy.set(0)
+        self.fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
+
+    def flush(self) -> None:
+        """Log the repeats counted so far (the line closes)."""
+        self.fault_log.flush()
+
+    def note(self, note: Note) -> None:
+        """Count ``note`` and log it when it is news."""
+        event = note.event
+        if event is LineEvent.COALESCED:  # the only note on the hot path
+            self._m_coalesced.inc()
+            return
+        metrics = self._metrics
+        unit = UNIT_LABELS[note.slave]
+        subject = f"unit {unit} on line {self._bus.name}"
+        if event is LineEvent.TIMEOUT:
+            metrics.timeouts.labels(self._bus.name, unit).inc()
+            self.fault_log.note(subject, "timeout", note.detail)
+        elif event is LineEvent.CRC_ERROR:
+            metrics.crc_errors.labels(self._bus.name, unit).inc()
+            self.fault_log.note(subject, "CRC error", note.detail)
+        elif event is LineEvent.GARBLED:
+            self.fault_log.note(subject, "garbled answer", note.detail)
+        elif event is LineEvent.RETRY:
+            metrics.retries.labels(self._bus.name, unit).inc()
+        elif event is LineEvent.DISCARDED:
+            metrics.discarded_frames.labels(self._bus.name, note.detail).inc()
+            if (
+                note.detail == DiscardReason.BAD_HEADER
+            ):  # a Modbus TCP stream out of step: reconnect
+                self._loop.call_soon(self._bus.resync)
+            self.fault_log.note(
+                f"line {self._bus.name}",
+                "discarded input",
+                f"{note.amount} {note.detail} byte(s) or frame(s)",
+                level=logging.INFO,
+            )
+        elif event is LineEvent.LATE_WINDOW:
+            metrics.late_windows.labels(self._bus.name).inc()
+        elif event is LineEvent.SLAVE_STATE:
+            self._slave_state(note)
+        elif event is LineEvent.LINE_NOISY:
+            self._m_noisy.set(1)
+            metrics.line_noisy_total.labels(self._bus.name).inc()
+            self.fault_log.note(
+                f"line {self._bus.name}",
+                "noisy line",
+                f"{note.detail}; waiting requests answered 0x0B until a gap appears",
+            )
+        elif event is LineEvent.LINE_QUIET:
+            self._m_noisy.set(0)
+            log.info("line %s: quiet again, serving requests", self._bus.name)
+
+    def _slave_state(self, note: Note) -> None:
+        unit = UNIT_LABELS[note.slave]
+        state = note.state
+        metrics = self._metrics
+        states = list(self._bus.slave_states().values())
+        for counted in (SlaveState.SUSPECT, SlaveState.DOWN):
+            metrics.slaves_isolated.labels(self._bus.name, counted.value).set(states.count(counted))
+        # Per-slave series only for slaves that have answered: a scan of every routed
+        # address (all 247 with --serial) must not add two series per absent unit.
+        if metrics.heard(self._bus.name, unit):
+            metrics.slave_up.labels(self._bus.name, unit).set(0 if state is SlaveState.DOWN else 1)
+            metrics.slave_suspect.labels(self._bus.name, unit).set(
+                1 if state is SlaveState.SUSPECT else 0
+            )
+        if state is SlaveState.DOWN:
+            log.warning(
+                "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
+                "probing every %.1f s or more",
+                self._bus.name, note.slave, note.amount, self._bus.config.probe_interval,
+            )  # fmt: skip
+        elif state is SlaveState.SUSPECT:
+            self.fault_log.note(
+                f"unit {unit} on line {self._bus.name}",
+                "suspect slave",
+                "missed an answer; its requests wait behind the others, one at a time",
+                level=logging.INFO,
+            )
+        else:
+            log.info("line %s: slave %d answers again", self._bus.name, note.slave)

@@ -1,0 +1,140 @@
+"""No import cycle inside ``gateway/``: each module can be read knowing only what it imports.
+
+The graph holds the imports a module makes when it is loaded: those at module level,
+including inside ``try``/``if`` blocks, but not those under ``if TYPE_CHECKING:`` (types
+only) nor those inside a function (run later, on demand).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import gateway
+
+PACKAGE = Path(gateway.__file__).parent
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _load_time_imports(body: list[ast.stmt]) -> Iterator[ast.Import | ast.ImportFrom]:
+    """The import statements run when the module loads (not in functions, not type-only)."""
+    for node in body:
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            yield node
+        elif isinstance(node, ast.If):
+            if not _is_type_checking(node.test):
+                yield from _load_time_imports(node.body)
+            yield from _load_time_imports(node.orelse)
+        elif isinstance(node, ast.Try):
+            for block in (node.body, node.orelse, node.finalbody):
+                yield from _load_time_imports(block)
+            for handler in node.handlers:
+                yield from _load_time_imports(handler.body)
+        elif isinstance(node, ast.With):
+            yield from _load_time_imports(node.body)
+
+
+def _targets(module: str, is_package: bool, node: ast.Import | ast.ImportFrom) -> set[str]:
+    """The ``gateway`` modules an import statement loads (a package or a module in it)."""
+    if isinstance(node, ast.Import):
+        return {alias.name for alias in node.names}
+    if node.level:
+        package = module if is_package else module.rpartition(".")[0]
+        for _ in range(node.level - 1):
+            package = package.rpartition(".")[0]
+        base = f"{package}.{node.module}" if node.module else package
+    else:
+        base = node.module or ""
+    return {base} | {f"{base}.{alias.name}" for alias in node.names}
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module → the ``gateway`` modules it imports at load time."""
+    paths = {_module_name(path): path for path in PACKAGE.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        tree = ast.parse(path.read_text(), str(path))
+        is_package = path.name == "__init__.py"
+        edges: set[str] = set()
+        for node in _load_time_imports(tree.body):
+            edges |= {name for name in _targets(module, is_package, node) if name in paths}
+        edges.discard(module)
+        graph[module] = edges
+    return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected group of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    groups: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for successor in sorted(graph.get(node, ())):
+            if successor not in index:
+                visit(successor)
+                low[node] = min(low[node], low[successor])
+            elif successor in on_stack:
+                low[node] = min(low[node], index[successor])
+        if low[node] == index[node]:
+            group = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                group.append(member)
+                if member == node:
+                    break
+            if len(group) > 1:
+                groups.append(sorted(group))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return groups
+
+
+def test_the_graph_sees_the_package() -> None:
+    graph = import_graph()
+    assert "gateway.app" in graph and "gateway.core.pdu" in graph
+    assert "gateway.metrics" in graph["gateway.app"]
+
+
+def test_cycles_are_found_when_present() -> None:
+    assert find_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert find_cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycle_inside_the_package() -> None:
+    assert find_cycles(import_graph()) == []
+
+
+def _every_import(module: str) -> set[str]:
+    """What ``module`` imports anywhere, type-only and function-level imports included."""
+    path = PACKAGE.parent.joinpath(*module.split(".")).with_suffix(".py")
+    targets: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            targets |= _targets(module, False, node)
+    return targets
+
+
+def test_status_and_trace_do_not_know_the_application() -> None:
+    """They read the narrow ``GatewayView`` the app provides, not the app, even for types."""
+    for module in ("gateway.live", "gateway.status", "gateway.trace", "gateway.metrics"):
+        assert "gateway.app" not in _every_import(module), module
