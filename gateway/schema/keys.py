@@ -9,6 +9,7 @@ from ..core.line import MAX_IN_FLIGHT
 from .model import Flag, Key, Reload, Scope, Show, Table, Type
 
 _S, _LS, _M, _LG = Table.SERVER, Table.LISTENERS, Table.METRICS, Table.LOGGING
+_A = Table.AUDIT
 _L, _C, _RT, _P, _R = Table.LINES, Table.CACHE, Table.ROUTES, Table.POLICIES, Table.RULES
 _LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
 _NETWORK = 'kind = "rtu-over-tcp", "tcp" or "tls"'
@@ -225,6 +226,17 @@ LOGGING = (
         reload=Reload.RESTART, help='"text", or "json": one JSON object per line.',
         flag=Flag(name="--log-format", choices=("text", "json"),
                   help="text, or json: one JSON object per line")),
+)  # fmt: skip
+
+AUDIT = (
+    Key(table=_A, name="path", type=Type.TEXT, show=Show.COMMENTED, reload=Reload.RESTART,
+        example='"/var/log/modbus-gateway/audit.jsonl"',
+        help="The audit log (docs/audit.md): every request that is not a read and reached a "
+        "slave or was denied, every configuration load or reload and every connection an "
+        'allow list refused, one hash-chained JSON line each; "-" is standard error. '
+        "SIGHUP reopens it (logrotate). None: no audit log.",
+        flag=Flag(name="--audit-log", metavar="PATH", help="write the audit log (writes, "
+                  "denials, reloads, refused connections) to PATH; - for standard error")),
 )  # fmt: skip
 
 LINES = (
@@ -455,4 +467,4 @@ RULES = (
         help="What the rule grants: reads, writes, or both."),
 )  # fmt: skip
 
-KEYS = (*SERVER, *LISTENERS, *METRICS, *LOGGING, *LINES, *CACHE, *ROUTES, *POLICIES, *RULES)
+KEYS = (*SERVER, *LISTENERS, *METRICS, *LOGGING, *AUDIT, *LINES, *CACHE, *ROUTES, *POLICIES, *RULES)

@@ -31,6 +31,7 @@ _EXAMPLE_TABLES = (
     (Table.SERVER, "[server]", ""),
     (Table.METRICS, "[metrics]", ""),
     (Table.LOGGING, "[logging]", ""),
+    (Table.AUDIT, "[audit]", ""),
     (Table.LINES, "[lines.a]", 'One table per line. The name ("a") is used in logs, metrics '
      "and routes."),
     (Table.ROUTES, "", ""),
@@ -125,6 +126,8 @@ _REFERENCE_INTROS = {
     Table.LISTENERS: "More listeners besides the `[server] listen` shorthand (named `tcp`).",
     Table.METRICS: "The HTTP endpoint for /metrics, /healthz and /readyz.",
     Table.LOGGING: "Log level and format.",
+    Table.AUDIT: "The audit log: one hash-chained JSON line per write, denial, configuration "
+    "change and refused connection (docs/audit.md).",
     Table.LINES: "One table per line; the name is used in logs, metrics and routes.",
     Table.CACHE: "Read cache rules of a line (see `cache`).",
     Table.ROUTES: "Remapping: a TCP unit id to a slave address on a line.",
