@@ -40,7 +40,8 @@ SERVER = (
         high=100_000,
         help="Connections from one source address at once (0 = no cap); more are refused "
         "at accept. Without a cap, at max_connections the address holding the most "
-        "connections yields its longest-idle one (README: \"Hostile masters and networks\")."),
+        "connections yields its longest-idle one (docs/listeners-and-security.md, "
+        "\"Hostile masters and networks\")."),
     Key(table=_S, name="idle_timeout", type=Type.SECONDS, default=300.0, low=0.0, high=86_400.0,
         help="Seconds without a complete request after which a master with nothing in flight "
         "is disconnected (0 = never). Stray bytes that do not complete a request do not "

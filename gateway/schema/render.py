@@ -111,8 +111,8 @@ schema, not this page. tests/unit/test_schema.py fails when it drifts. -->
 
 The gateway reads one TOML file (`--config FILE`). `modbus-gateway check-config FILE` lists
 every problem with its key and the fix (unknown keys get a "did you mean"), and
-`modbus-gateway example-config` prints [the example](../conf/gateway.example.toml), every key
-with its default. Flags override the file ([below](#command-line-flags)).
+`modbus-gateway example-config` prints the example (`conf/gateway.example.toml` in the
+source tree), every key with its default. Flags override the file ([below](#command-line-flags)).
 
 *On reload* says what SIGHUP does when the key's value changed: **applied** (from the next
 request or connection on), **reopens the line** (its queue and the transaction on the wire are
