@@ -24,6 +24,7 @@ from prometheus_client import CollectorRegistry
 
 from . import __version__, build
 from .config import (
+    LINE_PORT_SETTINGS,
     ConfigError,
     GatewayConfig,
     LineConfig,
@@ -34,6 +35,7 @@ from .config import (
 from .core.line import Handover
 from .core.policy import Policy
 from .core.reasons import CloseReason
+from .io.audit import AuditLog, note_config, start_audit
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
@@ -50,16 +52,10 @@ from .trace import FrameTrace, Tracer
 
 log = logging.getLogger("gateway")
 
-#: Line settings that need the port reopened when they change.
-_PORT_SETTINGS = ("device", "kind", "baudrate", "data_bits", "parity", "stop_bits", "rs485",
-                  "rs485_rts_level_for_tx", "rs485_rts_level_for_rx",
-                  "rs485_delay_before_tx", "rs485_delay_after_tx", "kind",
-                  "cert", "key", "ca", "server_name", "check_server_name",
-                  "max_in_flight")  # fmt: skip
-
 
 def _port_changed(old: LineConfig, new: LineConfig) -> bool:
-    return any(getattr(old, key) != getattr(new, key) for key in _PORT_SETTINGS)
+    """True when a setting whose change reopens the port differs (the schema says which)."""
+    return any(getattr(old, key) != getattr(new, key) for key in LINE_PORT_SETTINGS)
 
 
 #: File descriptors needed besides one per master and per HTTP connection: lines, timers,
@@ -147,6 +143,7 @@ class Gateway:
         self._http: HttpEndpoint | None = None
         self.live: LiveView | None = None  # trace stream, /status and the status page
         self._stopping = False
+        self.audit: AuditLog | None = None  #: the audit log (``[audit] path``)
 
     # -- addresses ---------------------------------------------------------------------
 
@@ -211,6 +208,8 @@ class Gateway:
             ListenerConfig("tcp", host=config.server.host, port=config.server.port),
         )
         tls = self._build_tls(config)  # before anything opens: a bad certificate stops here
+        self.audit = start_audit(config.audit.path, self.metrics.audit_records_dropped.inc)
+        note_config(self.audit, "load", config.source, config)
         self._line_tls = self._build_line_tls(config)
         http_connections = config.metrics.max_connections if config.metrics.enabled else 0
         ensure_file_descriptors(
@@ -240,7 +239,7 @@ class Gateway:
                 self.config.server, router, self.metrics, listener,
                 self._policy(self.config, listener), built.context if built else None,
             )  # fmt: skip
-            server.tracer = self.trace
+            server.tracer, server.audit = self.trace, self.audit
             self.servers.append(server)
         self.server = self.servers[0]
 
@@ -251,7 +250,7 @@ class Gateway:
                 check_device_free(listener.serial)
                 slave = SerialSlave(listener, router, self.metrics,
                                     self._policy(self.config, listener), loop)  # fmt: skip
-                slave.tracer = self.trace
+                slave.tracer, slave.audit = self.trace, self.audit
                 self.serial_slaves.append(slave)
                 slave.start()
 
@@ -332,6 +331,8 @@ class Gateway:
         for clock in self._clocks.values():
             clock.close()
         self._clocks.clear()
+        if self.audit is not None:
+            await asyncio.to_thread(self.audit.close)  # what is queued is written first
         log.info("stopped")
         self.stopped.set()
 
@@ -345,6 +346,8 @@ class Gateway:
                 )
                 return
             await self._apply(config)
+            applied = config if self.config is config else None
+            note_config(self.audit, "reload", config.source, applied, "TLS files refused (see log)")
 
     async def _apply(self, config: GatewayConfig) -> None:
         """Certificates first (a bad one rejects the reload), then lines, then listeners."""
@@ -554,11 +557,14 @@ class _Signals:
             log.warning("SIGHUP: no configuration file to reload")
             return
         log.info("SIGHUP received: reloading the configuration file")
+        if self._gateway.audit is not None:
+            self._gateway.audit.reopen()  # logrotate: even when the reload is rejected
         self._notifier.reloading()
         try:
             config = self._reload_source()
         except ConfigError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
+            note_config(self._gateway.audit, "reload", error.source, None, str(error))
             self._notifier.ready("reload rejected: " + self.serving())
             return
         task = self._loop.create_task(self._gateway.reload(config))

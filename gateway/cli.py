@@ -379,10 +379,27 @@ def _file_log_format(raw: dict[str, Any]) -> object:
     return table.get("format") if isinstance(table, dict) else None
 
 
+def _audit(argv: list[str]) -> int:
+    """``audit verify FILE...``: check an audit log's hash chain; 1 names the first bad line."""
+    parser = argparse.ArgumentParser(prog="modbus-gateway audit", description=_audit.__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    verify = commands.add_parser("verify", help="check the hash chain of audit log files")
+    verify.add_argument("files", nargs="+", metavar="FILE",
+                        help="audit log files, oldest first (rotated files in order)")  # fmt: skip
+    args = parser.parse_args(argv)
+    from .io.audit import verify_files
+
+    ok, message = verify_files(args.files)
+    print(f"modbus-gateway audit verify: {message}", file=sys.stdout if ok else sys.stderr)
+    return 0 if ok else 1
+
+
 def _subcommand(argv: list[str]) -> int | None:
-    """Run ``check-config``, ``scan``, ``example-config`` or ``trace --url``; None: none."""
+    """Run ``check-config``, ``audit``, ``scan``, ``example-config`` or ``trace --url``."""
     if argv and argv[0] == "check-config":
         return _check_config(argv[1:])
+    if argv and argv[0] == "audit":
+        return _audit(argv[1:])
     if argv and argv[0] == "scan":
         from .scan import main as scan
 

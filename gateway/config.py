@@ -152,6 +152,13 @@ class LoggingConfig:
 
 
 @dataclass(frozen=True)
+class AuditConfig:
+    """Where the audit log goes (``None``: no audit log; ``-``: standard error)."""
+
+    path: str | None = None
+
+
+@dataclass(frozen=True)
 class CacheRule:
     """Reads of ``unit`` in a range, answered from a response at most ``max_age`` seconds old."""
 
@@ -315,6 +322,7 @@ class GatewayConfig:
     policies: Mapping[str, tuple[Rule, ...]] = field(default_factory=dict)
     #: Keys written under a former name: one warning each, naming the new key.
     renamed: tuple[str, ...] = ()
+    audit: AuditConfig = field(default_factory=AuditConfig)
 
     def line(self, name: str) -> LineConfig:
         """The line called ``name``."""
@@ -1441,6 +1449,16 @@ def _build_logging(check: _Checker, raw: Mapping[str, Any]) -> LoggingConfig:
     return LoggingConfig(**_scalars(check, Table.LOGGING, table, prefix, ()))
 
 
+def _build_audit(check: _Checker, raw: Mapping[str, Any]) -> AuditConfig:
+    prefix = "audit."
+    table = check.entry(Table.AUDIT, check.table(raw, "audit"), prefix)
+    path = table.get("path")
+    if path is not None and (not isinstance(path, str) or not path):
+        check.fail(f"{prefix}path", 'write a file path, as a string ("-": standard error)')
+        path = None
+    return AuditConfig(path)
+
+
 def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
     """Validate raw tables into a ``GatewayConfig``; raise ``ConfigError`` listing every fault."""
     check = _Checker()
@@ -1448,6 +1466,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     server = _build_server(check, raw)
     metrics = _build_metrics(check, raw)
     log = _build_logging(check, raw)
+    audit = _build_audit(check, raw)
     lines_table = check.table(raw, "lines")
     lines = tuple(
         line
@@ -1468,7 +1487,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     if check.problems:
         raise ConfigError(source, check.problems)
     return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies,
-                         tuple(check.renamed))  # fmt: skip
+                         tuple(check.renamed), audit)  # fmt: skip
 
 
 def policy_warnings(config: GatewayConfig) -> list[str]:

@@ -450,6 +450,11 @@ class GatewayMetrics:
             "function; role is one the rules name, none (NULL role or plain TCP) or other.",
             ["listener", "role", "function"], registry=r,
         )  # fmt: skip
+        self.audit_records_dropped = Counter(
+            p + "audit_records_dropped",
+            "Audit records lost: the audit queue was full (a slow file) or a write failed.",
+            registry=r,
+        )  # fmt: skip
         self.connections_denied = Counter(
             p + "connections_denied",
             "Connections closed at accept: the source is outside the listener's allow list.",

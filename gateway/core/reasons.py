@@ -27,7 +27,7 @@ class CloseReason(StrEnum):
 class RejectReason(StrEnum):
     """Why a connection was refused at accept: ``connections_rejected_total``'s ``reason``."""
 
-    MAX_CONNECTIONS = "max_connections"  # full, and no master idle long enough to evict
+    MAX_CONNECTIONS = "max_connections"  # full, and the fair share found nothing to evict
     MAX_PER_SOURCE = "max_per_source"  # that source address has all it may have
 
 

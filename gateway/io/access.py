@@ -19,6 +19,7 @@ from ..core.connection_admission import Door, NotAdmitted
 from ..core.policy import IPAddress, IPNetwork
 from ..logs import RateLimitedLogger
 from ..metrics import GatewayMetrics
+from .audit import AuditLog
 from .tls import HandshakeFailure
 
 log = logging.getLogger("gateway.access")
@@ -79,9 +80,11 @@ class SourceScreen:
             reason.value, _REASON_TEXT.get(reason, ""),
         )  # fmt: skip
 
-    def refuse(self, source: IPAddress | None) -> None:
-        """Count and log a connection closed at accept."""
+    def refuse(self, source: IPAddress | None, audit: AuditLog | None = None) -> None:
+        """Count, log (and audit, when configured) a connection closed at accept."""
         self._metrics.connections_denied.labels(self.listener).inc()
+        if audit is not None:
+            audit.refused(self.listener, str(source), NotAdmitted.SOURCE_NOT_ALLOWED.value)
         if self._log is not None:
             self._log.note(
                 f"listener {self.listener}",

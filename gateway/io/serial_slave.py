@@ -44,6 +44,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 
 from ..config import ListenerConfig
 from ..core import pdu as fc
@@ -61,6 +62,7 @@ from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
 from ..trace import FrameTrace
+from .audit import AuditLog, AuditTicket
 from .bus import Request
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
@@ -122,6 +124,7 @@ class SerialSlave:
         self.ignored = 0  #: frames ignored in silence (not for us, bad CRC, not a request)
         self.echoes = 0  #: bytes of our own answers dropped as their echo (``echo = true``)
         self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
+        self.audit: AuditLog | None = None  #: the audit log, when configured (``Gateway``)
         self._sequence = 0  # numbers the requests for the trace (no transaction id on a line)
         self._faults = RateLimitedLogger(log, loop)
 
@@ -280,9 +283,14 @@ class SerialSlave:
         # A new request: whatever the master asked before, it no longer waits for.
         self._drop_pending()
         result = self.router.admitter.admit(_NO_ONE, unit, pdu, self.policy, self._serves)
+        audit = self.audit  # the audit log: None unless configured
+        device = self._serial.device
+        ticket = (
+            None if audit is None else audit.admitted(self.name, device, None, unit, pdu, result)
+        )
         if unit == 0:  # executed or not, a broadcast is never answered
             if isinstance(result, Broadcast):
-                self._broadcast(pdu, result)
+                self._broadcast(pdu, result, ticket)
             else:
                 self.ignored += 1
             return
@@ -295,19 +303,23 @@ class SerialSlave:
         if self.tracer.active:
             self.tracer.request(self._serial.device, number, unit, pdu, self.name)
         if isinstance(result, Submit):
-            self._submit(number, unit, pdu, result.target)
+            self._submit(number, unit, pdu, result.target, ticket)
         elif isinstance(result, AnswerLocally):
             function = pdu[0]
             self._answer(number, unit, fc.exception_pdu(function, result.code), result.outcome)
             count_local_answer(self._metrics, self.name, self.policy, None, function, result)
 
-    def _submit(self, number: int, unit: int, pdu: bytes, target: CoreTarget) -> None:
+    def _submit(
+        self, number: int, unit: int, pdu: bytes, target: CoreTarget, ticket: AuditTicket | None
+    ) -> None:
         """Queue the request on its line; only the latest request of the master is answered."""
         peer = self._serial.device
         function = pdu[0]
         line, unit_label = target.line, UNIT_LABELS[target.slave]
 
         def reply(response: bytes, outcome: Outcome) -> None:
+            if ticket is not None:  # an audited write: what became of it
+                ticket.settle(request.sent, response, outcome)
             if self._pending is request:
                 self._pending = None
                 self._answer(number, unit, response, outcome)
@@ -321,16 +333,17 @@ class SerialSlave:
         self._pending = request
         self.router.bus(line).submit(request)
 
-    def _broadcast(self, pdu: bytes, result: Broadcast) -> None:
+    def _broadcast(self, pdu: bytes, result: Broadcast, ticket: AuditTicket | None) -> None:
         """Executed on every line that takes broadcasts and is up; never answered."""
         if self.tracer.active:
             number = self._sequence
             self._sequence = (number + 1) & 0xFFFF
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
+        reply = no_reply if ticket is None else _settle_once(ticket)
         for line in result.lines:
             bus = self.router.bus(line)
             if bus.up:
-                bus.submit(Request(0, pdu, self, no_reply, broadcast=True))
+                bus.submit(Request(0, pdu, self, reply, broadcast=True))
 
     def _answer(self, number: int, unit: int, pdu: bytes, outcome: Outcome) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
@@ -372,6 +385,19 @@ class SerialSlave:
         self._metrics.protocol_errors.labels(fault.value).inc()
         detail = what if what is not None else _FAULT_TEXT[fault]
         self._faults.note(f"listener {self.name}", "ignored frame", detail, level=logging.INFO)
+
+
+def _settle_once(ticket: AuditTicket) -> Callable[[bytes, str], None]:
+    """A broadcast's reply callback: its first line to send it settles the audit record."""
+    settled = False
+
+    def reply(response: bytes, outcome: str) -> None:
+        nonlocal settled
+        if not settled and outcome == Outcome.BROADCAST:
+            settled = True
+            ticket.settle(True, response, outcome)
+
+    return reply
 
 
 #: What the log says about a damaged ASCII frame.

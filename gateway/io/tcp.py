@@ -86,6 +86,7 @@ from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
 from ..status import MasterStatus
 from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
+from .audit import AuditLog, AuditTicket
 from .bus import Bus, Request
 from .tls import (
     HandshakeFailure,
@@ -374,17 +375,24 @@ class MasterConnection(asyncio.BufferedProtocol):
             tracer.request(self.peer, transaction_id, unit, pdu, server.name, self.role_text)
         router = server.router
         result = router.admitter.admit(self.principal, unit, pdu, server.policy)
+        audit = server.audit  # the audit log: None unless configured
+        ticket = (
+            None
+            if audit is None
+            else audit.admitted(server.name, self.peer, self.role_text, unit, pdu, result)
+        )
         if isinstance(result, Submit):
             target = result.target
-            self._submit(transaction_id, unit, pdu, router.bus(target.line), target.slave, arrived)
+            bus = router.bus(target.line)
+            self._submit(transaction_id, unit, pdu, bus, target.slave, arrived, ticket)
         elif isinstance(result, Broadcast):
-            self._broadcast(transaction_id, pdu, [router.bus(line) for line in result.lines])
+            buses = [router.bus(line) for line in result.lines]
+            self._broadcast(transaction_id, pdu, buses, ticket)
         else:
             self._answer_locally(transaction_id, unit, pdu, result)
 
-    def _submit(
-        self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int, arrived: float
-    ) -> None:
+    def _submit(self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int,
+                arrived: float, ticket: AuditTicket | None = None) -> None:  # fmt: skip
         """Queue the request on ``bus``; the reply goes out under its own transaction id."""
         server = self._server
         function = pdu[0]
@@ -393,6 +401,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         duration = bus.request_duration
 
         def reply(response: bytes, outcome: Outcome) -> None:
+            if ticket is not None:  # an audited write: what became of it
+                ticket.settle(request.sent, response, outcome)
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
@@ -430,7 +440,8 @@ class MasterConnection(asyncio.BufferedProtocol):
             log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
                       fc.function_name(function), answer.denied)  # fmt: skip
 
-    def _broadcast(self, transaction_id: int, pdu: bytes, lines: list[Bus]) -> None:
+    def _broadcast(self, transaction_id: int, pdu: bytes, lines: list[Bus],
+                   ticket: AuditTicket | None) -> None:  # fmt: skip
         """Send a write to every line that takes broadcasts and is up; 0x0A when none is."""
         server = self._server
         buses = [bus for bus in lines if bus.up]
@@ -446,6 +457,8 @@ class MasterConnection(asyncio.BufferedProtocol):
             remaining -= 1
             if remaining:
                 return
+            if ticket is not None:  # an audited broadcast: sent, or refused by every line
+                ticket.settle(outcome == Outcome.BROADCAST, _response, outcome)
             if server.config.broadcast_reply and not self._closed:
                 # What a single slave would have answered to the write.
                 self._send(transaction_id, 0, fc.write_response(pdu))
@@ -618,6 +631,7 @@ class ModbusTcpServer:
         #: Chains full handshakes verified, by leaf: a resumed session shows only its leaf.
         self._chains: dict[bytes, tuple[bytes, ...]] = {}
         self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
+        self.audit: AuditLog | None = None  #: the audit log, when configured (``Gateway``)
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []
@@ -730,7 +744,7 @@ class ModbusTcpServer:
         ip = peer_address_of(address)
         door = self.screen.door(self.listener.tls)  # the source only: no byte read yet
         if admit(door, ConnectionFacts(ip), time.time()) is not None:  # counted and logged
-            self.screen.refuse(ip)
+            self.screen.refuse(ip, self.audit)
             sock.close()
             return
         refusal = self._admit(source, peer)

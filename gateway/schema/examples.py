@@ -124,10 +124,10 @@ units = [30, 31]
     ),
     Example(
         Table.LINES,
-        'A Modbus/TCP Security slave (README "Modbus/TCP Security slaves"): the frames of a '
-        '"tcp" line over TLS 1.2 or newer, with the gateway\'s client certificate. The '
-        "slave's certificate must chain to ca and carry server_name; check_server_name = "
-        "false skips the name only (warned).",
+        'A Modbus/TCP Security slave (docs/line-kinds.md, "Modbus/TCP Security slaves"): '
+        'the frames of a "tcp" line over TLS 1.2 or newer, with the gateway\'s client '
+        "certificate. The slave's certificate must chain to ca and carry server_name; "
+        "check_server_name = false skips the name only (warned).",
         """\
 [lines.plc7]
 kind = "tls"
@@ -152,7 +152,7 @@ address = "10.0.0.20:502"
 max_in_flight = 1       # requests outstanding at once on the connection (1..64; MBAP lines
                         # only). Many devices take one at a time: raise it only for those
                         # that answer several. One master's requests to one unit keep
-                        # read-after-write order (README, "Line kinds").
+                        # read-after-write order (docs/line-kinds.md).
 units = [40]
 """,
     ),

@@ -9,6 +9,7 @@ from ..core.line import MAX_IN_FLIGHT
 from .model import Flag, Key, Reload, Scope, Show, Table, Type
 
 _S, _LS, _M, _LG = Table.SERVER, Table.LISTENERS, Table.METRICS, Table.LOGGING
+_A = Table.AUDIT
 _L, _C, _RT, _P, _R = Table.LINES, Table.CACHE, Table.ROUTES, Table.POLICIES, Table.RULES
 _LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
 _NETWORK = 'kind = "rtu-over-tcp", "tcp" or "tls"'
@@ -39,7 +40,8 @@ SERVER = (
         high=100_000,
         help="Connections from one source address at once (0 = no cap); more are refused "
         "at accept. Without a cap, at max_connections the address holding the most "
-        "connections yields its longest-idle one (README: \"Hostile masters and networks\")."),
+        "connections yields its longest-idle one (docs/listeners-and-security.md, "
+        "\"Hostile masters and networks\")."),
     Key(table=_S, name="idle_timeout", type=Type.SECONDS, default=300.0, low=0.0, high=86_400.0,
         help="Seconds without a complete request after which a master with nothing in flight "
         "is disconnected (0 = never). Stray bytes that do not complete a request do not "
@@ -255,6 +257,17 @@ LOGGING = (
         reload=Reload.RESTART, help='"text", or "json": one JSON object per line.',
         flag=Flag(name="--log-format", choices=("text", "json"),
                   help="text, or json: one JSON object per line")),
+)  # fmt: skip
+
+AUDIT = (
+    Key(table=_A, name="path", type=Type.TEXT, show=Show.COMMENTED, reload=Reload.RESTART,
+        example='"/var/log/modbus-gateway/audit.jsonl"',
+        help="The audit log (docs/audit.md): every request that is not a read and reached a "
+        "slave or was denied, every configuration load or reload and every connection an "
+        'allow list refused, one hash-chained JSON line each; "-" is standard error. '
+        "SIGHUP reopens it (logrotate). None: no audit log.",
+        flag=Flag(name="--audit-log", metavar="PATH", help="write the audit log (writes, "
+                  "denials, reloads, refused connections) to PATH; - for standard error")),
 )  # fmt: skip
 
 LINES = (
@@ -485,4 +498,4 @@ RULES = (
         help="What the rule grants: reads, writes, or both."),
 )  # fmt: skip
 
-KEYS = (*SERVER, *LISTENERS, *METRICS, *LOGGING, *LINES, *CACHE, *ROUTES, *POLICIES, *RULES)
+KEYS = (*SERVER, *LISTENERS, *METRICS, *LOGGING, *AUDIT, *LINES, *CACHE, *ROUTES, *POLICIES, *RULES)

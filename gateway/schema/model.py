@@ -13,6 +13,7 @@ class Table(enum.Enum):
     LISTENERS = "listeners"
     METRICS = "metrics"
     LOGGING = "logging"
+    AUDIT = "audit"
     LINES = "lines"
     CACHE = "cache"
     ROUTES = "routes"
@@ -35,6 +36,7 @@ _HEADINGS = {
     Table.LISTENERS: "[[listeners]]",
     Table.METRICS: "[metrics]",
     Table.LOGGING: "[logging]",
+    Table.AUDIT: "[audit]",
     Table.LINES: "[lines.NAME]",
     Table.CACHE: "[[lines.NAME.cache]]",
     Table.ROUTES: "[[routes]]",
@@ -46,6 +48,7 @@ _PREFIXES = {
     Table.LISTENERS: "listeners[N].",
     Table.METRICS: "metrics.",
     Table.LOGGING: "logging.",
+    Table.AUDIT: "audit.",
     Table.LINES: "lines.NAME.",
     Table.CACHE: "lines.NAME.cache[N].",
     Table.ROUTES: "routes[N].",
@@ -54,7 +57,7 @@ _PREFIXES = {
 }
 
 #: The tables at the top of the file, in the order the parser reads them.
-TOP_LEVEL = ("server", "metrics", "logging", "lines", "routes", "listeners", "policies")
+TOP_LEVEL = ("server", "metrics", "logging", "audit", "lines", "routes", "listeners", "policies")
 
 
 class Type(enum.Enum):

@@ -31,6 +31,7 @@ _EXAMPLE_TABLES = (
     (Table.SERVER, "[server]", ""),
     (Table.METRICS, "[metrics]", ""),
     (Table.LOGGING, "[logging]", ""),
+    (Table.AUDIT, "[audit]", ""),
     (Table.LINES, "[lines.a]", 'One table per line. The name ("a") is used in logs, metrics '
      "and routes."),
     (Table.ROUTES, "", ""),
@@ -110,8 +111,8 @@ schema, not this page. tests/unit/test_schema.py fails when it drifts. -->
 
 The gateway reads one TOML file (`--config FILE`). `modbus-gateway check-config FILE` lists
 every problem with its key and the fix (unknown keys get a "did you mean"), and
-`modbus-gateway example-config` prints [the example](../conf/gateway.example.toml), every key
-with its default. Flags override the file ([below](#command-line-flags)).
+`modbus-gateway example-config` prints the example (`conf/gateway.example.toml` in the
+source tree), every key with its default. Flags override the file ([below](#command-line-flags)).
 
 *On reload* says what SIGHUP does when the key's value changed: **applied** (from the next
 request or connection on), **reopens the line** (its queue and the transaction on the wire are
@@ -125,6 +126,8 @@ _REFERENCE_INTROS = {
     Table.LISTENERS: "More listeners besides the `[server] listen` shorthand (named `tcp`).",
     Table.METRICS: "The HTTP endpoint for /metrics, /healthz and /readyz.",
     Table.LOGGING: "Log level and format.",
+    Table.AUDIT: "The audit log: one hash-chained JSON line per write, denial, configuration "
+    "change and refused connection (docs/audit.md).",
     Table.LINES: "One table per line; the name is used in logs, metrics and routes.",
     Table.CACHE: "Read cache rules of a line (see `cache`).",
     Table.ROUTES: "Remapping: a TCP unit id to a slave address on a line.",

@@ -254,19 +254,20 @@ access = "read"
     assert f"listeners[0].key = '{tmp_path / 'gone.key'}': cannot read" in checked.stderr
 
 
-def readme_block(marker: str) -> str:
-    """The first ```sh block after ``marker`` in the README."""
-    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+def docs_block(marker: str) -> str:
+    """The first ```sh block after ``marker`` in the manual's security page."""
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    text = (docs / "listeners-and-security.md").read_text(encoding="utf-8")
     after = text[text.index(marker) :]
     start = after.index("```sh\n") + len("```sh\n")
     return after[start : after.index("```", start)]
 
 
-def test_the_readmes_tls_setup_works(tmp_path: Path) -> None:
-    """The README's openssl commands make a PKI the gateway, Python and s_client accept."""
+def test_the_manuals_tls_setup_works(tmp_path: Path) -> None:
+    """The manual's openssl commands make a PKI the gateway, Python and s_client accept."""
     openssl = require_tool("openssl")
     made = subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", readme_block("<!-- tls-setup -->")],
+        ["bash", "-euo", "pipefail", "-c", docs_block("<!-- tls-setup -->")],
         cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert made.returncode == 0, made.stderr

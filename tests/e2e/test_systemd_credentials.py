@@ -4,8 +4,8 @@ No systemd runs the service here, so the test does what systemd does for it: it 
 ``LoadCredential=`` file into a credentials directory readable only by the service's user,
 sets ``CREDENTIALS_DIRECTORY``, expands ``%d`` and ``%i`` in the drop-in's ``ExecStart=``,
 and runs that command line (as ``nobody`` when the test runs as root, like the unit's
-transient user, with the original keys out of its reach). Then the README's pymodbus TLS
-example reads registers through it.
+transient user, with the original keys out of its reach). Then the manual's pymodbus TLS
+example (docs/listeners-and-security.md) reads registers through it.
 """
 
 from __future__ import annotations
@@ -35,8 +35,9 @@ def _directives(text: str, name: str) -> list[str]:
     return [line.partition("=")[2] for line in text.splitlines() if line.startswith(f"{name}=")]
 
 
-def _readme_block(marker: str, language: str) -> str:
-    text = (REPO / "README.md").read_text(encoding="utf-8")
+def _docs_block(marker: str, language: str) -> str:
+    """The first ``language`` block after ``marker`` in the manual's security page."""
+    text = (REPO / "docs" / "listeners-and-security.md").read_text(encoding="utf-8")
     after = text[text.index(marker) :]
     start = after.index(f"```{language}\n") + len(f"```{language}\n")
     return after[start : after.index("```", start)]
@@ -81,7 +82,7 @@ def test_tls_keys_reach_the_gateway_through_load_credential(
 ) -> None:
     require_tool("openssl")
     made = subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", _readme_block("<!-- tls-setup -->", "sh")],
+        ["bash", "-euo", "pipefail", "-c", _docs_block("<!-- tls-setup -->", "sh")],
         cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert made.returncode == 0, made.stderr
@@ -106,7 +107,7 @@ def test_tls_keys_reach_the_gateway_through_load_credential(
                       prefix=prefix, env={"CREDENTIALS_DIRECTORY": str(credentials)})  # fmt: skip
     try:
         port = gateway.wait_for(r"listening on 127\.0\.0\.1:(\d+) \(Modbus/TCP Security\)")[1]
-        example = _readme_block("<!-- tls-python -->", "python")
+        example = _docs_block("<!-- tls-python -->", "python")
         assert "port=802" in example
         read = subprocess.run(
             [sys.executable, "-c", example.replace("port=802", f"port={port}")],

@@ -52,7 +52,7 @@ SLAVES = (1, 2, 3, 4)
 PER_MASTER = 6
 #: The slaves answer at most 4 x TIMEOUT late (``behave``), and an attempt may fail early
 #: (noise, garbage): the late-answer window covers them from the failure on. A slave later
-#: than its window is outside what the line promises (the README's residual risk).
+#: than its window is outside what the line promises (docs/protecting-the-line.md's residual risk).
 LATE_WINDOW = 5 * TIMEOUT
 
 
