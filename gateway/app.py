@@ -294,9 +294,8 @@ class Gateway:
 
     async def _start_http(self) -> HttpEndpoint:
         routes = self.live.routes if self.live is not None else None
-        return await start_http(
-            self.config.metrics, self.metrics.exposition_registry(), self.is_ready, routes
-        )
+        return await start_http(self.config.metrics, self.metrics.exposition_registry(),
+                                self.is_ready, routes, self.metrics.http_refusals)  # fmt: skip
 
     def is_ready(self) -> tuple[bool, str]:
         """Readiness for /readyz: the listener is up and every line is open."""

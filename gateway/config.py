@@ -15,6 +15,7 @@ import difflib
 import ipaddress
 import math
 import os
+import string
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -133,6 +134,13 @@ class MetricsConfig:
     port: int = 9502
     max_connections: int = 32
     header_timeout: float = 5.0
+    max_connections_per_source: int = 8
+    allowed_hosts: tuple[str, ...] = ()
+    status_token: str | None = None
+    trace_token: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    tls_ca: str | None = None
 
 
 @dataclass(frozen=True)
@@ -1387,10 +1395,48 @@ def _build_listeners(
     return tuple(listeners)
 
 
+#: What a token may hold: it travels unencoded in a header, a cookie and a link.
+_TOKEN_CHARACTERS = frozenset(string.ascii_letters + string.digits + "-._~")
+#: The ``[metrics]`` keys that hold text: host names, tokens, file paths.
+_METRICS_TEXT = (
+    "allowed_hosts", "status_token", "trace_token", "tls_cert", "tls_key", "tls_ca",
+)  # fmt: skip
+
+
+def _metrics_text(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """The endpoint's host names, tokens and TLS files, checked."""
+    values: dict[str, Any] = {}
+    hosts = table.get("allowed_hosts", [])
+    if not isinstance(hosts, list) or not all(isinstance(h, str) and h for h in hosts):
+        check.fail(f"{prefix}allowed_hosts", 'write a list of host names, like ["gw.example"]')
+        hosts = []
+    values["allowed_hosts"] = tuple(h.lower().rstrip(".") for h in hosts)
+    for name in _METRICS_TEXT[1:]:
+        value = table.get(name)
+        if value is not None and (not isinstance(value, str) or not value):
+            check.fail(f"{prefix}{name}", "write a non-empty string")
+            value = None
+        values[name] = value
+    for name in ("status_token", "trace_token"):
+        token = values[name]
+        if token is not None and not all(c in _TOKEN_CHARACTERS for c in token):
+            check.fail(f"{prefix}{name}", "use letters, digits and - . _ ~ only (it travels "
+                       "in a header, a cookie and a link unencoded)")  # fmt: skip
+        elif token is not None and len(token) < 16:
+            check.fail(f"{prefix}{name}", "too short to resist guessing; use 16 characters "
+                       "or more, like the output of: openssl rand -hex 16")  # fmt: skip
+    if (values["tls_cert"] is None) != (values["tls_key"] is None):
+        check.fail(f"{prefix}tls_cert", "HTTPS needs both tls_cert and tls_key")
+    if values["tls_ca"] is not None and values["tls_cert"] is None:
+        check.fail(f"{prefix}tls_ca", "client certificates need HTTPS: set tls_cert and tls_key")
+    return values
+
+
 def _build_metrics(check: _Checker, raw: Mapping[str, Any]) -> MetricsConfig:
     prefix = "metrics."
     table = check.entry(Table.METRICS, check.table(raw, "metrics"), prefix)
-    values = _scalars(check, Table.METRICS, table, prefix, ("listen",))
+    values = _scalars(check, Table.METRICS, table, prefix, ("listen", *_METRICS_TEXT))
+    values.update(_metrics_text(check, table, prefix))
     address = check.read(schema.key(Table.METRICS, "listen"), table, prefix)
     if address is None:  # "off"
         return MetricsConfig(False, **values)

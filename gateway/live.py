@@ -5,12 +5,18 @@ the moment it is built; ``TraceHub`` subscribes to it (beside the ``--trace``
 logging tracer, if any) only while somebody watches: a trace stream is open, or
 the status page asked for ``/status`` in the last ``WATCH_S`` seconds. Nobody
 watching costs the frame path one attribute test (the trace is not active).
-Each event is matched against each stream's filters and appended to that
-stream's own bounded queue; a stream whose client reads too slowly loses
-events (counted in ``trace_dropped_events_total`` and announced to the client
-as a gap) rather than slowing the gateway: the frame path never waits for a
-socket. Serialising to JSON happens in the stream's writer task, off the
-frame path.
+Each event is matched against each stream's filters (sets compiled once per
+stream, at most ``MAX_FILTER_VALUES`` values: a set lookup per event whatever
+the filter) and appended to that stream's own bounded queue; a stream whose
+client reads too slowly loses events (counted in ``trace_dropped_events_total``
+and announced to the client as a gap) rather than slowing the gateway: the frame
+path never waits for a socket. Serialising to JSON happens in the streams'
+writer tasks, off the frame path, once per event however many streams send it.
+A stream whose client reads nothing for ``STALL_S`` (its socket's buffers stay
+full) is closed and counted (``trace_streams_closed_total{reason="stalled"}``),
+so streams that never read cannot hold every stream slot. ``GET /status`` is
+rendered for the requests waiting for it together, at most ``STATUS_LOOP_SHARE``
+of the loop's time however many clients poll.
 
 A request event carries its PDU in hex and, looked up in the router at that
 moment, the line and slave address it goes to (so a remapped unit shows where
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import enum
 import json
 import logging
 import socket
@@ -40,7 +47,8 @@ from urllib.parse import parse_qs
 from . import __version__
 from .core import pdu as fc
 from .core.outcome import Outcome
-from .io.http import Route, respond
+from .io.http import GuardedRoute, PacedRenderer, extra_headers, respond
+from .io.http_guard import Access
 from .metrics import GatewayMetrics
 from .status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
 from .trace import FrameTrace, parse_function, reply_outcome
@@ -61,6 +69,23 @@ MAX_PENDING = 4096
 STREAM_BUFFER = 64 * 1024
 #: A comment line keeps idle event streams (and proxies) from timing out.
 HEARTBEAT_S = 15.0
+#: A stream whose client has read nothing for this long (its buffers stay full) is closed.
+STALL_S = 10.0
+#: Values one stream's filters may hold, all parameters together: more is answered 400.
+MAX_FILTER_VALUES = 64
+#: Events that come within this long of the first are written to a stream together: one
+#: wake-up and one write for many, however fast the frames come (a person reads the trace).
+BATCH_S = 0.05
+#: Share of the event loop's time that rendering /status may take, however often it is asked.
+STATUS_LOOP_SHARE = 0.05
+
+
+class StreamEnd(enum.StrEnum):
+    """Why the gateway ended a trace stream (``trace_streams_closed_total``'s reason)."""
+
+    STALLED = "stalled"  #: the client read nothing for STALL_S
+    STOPPING = "stopping"  #: the gateway stops
+
 
 #: Outcomes of a reply that came from the slave, used for its latency.
 _ANSWERED = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION})
@@ -83,6 +108,18 @@ class TraceEvent:
     latency_ms: float | None = None
     listener: str | None = None  # requests: the listener it came in on
     role: str | None = None  # requests on a tls listener: the client's role ("NULL" for none)
+    ndjson: bytes | None = None  # as NDJSON, made by the first stream that sends it
+    sse_frame: bytes | None = None  # as a server-sent event, the same
+
+    def encoded(self, sse: bool) -> bytes:
+        """The event as a stream sends it, serialised once for every stream that does."""
+        if self.ndjson is None:
+            self.ndjson = json.dumps(self.to_json(), separators=(",", ":")).encode() + b"\n"
+        if not sse:
+            return self.ndjson
+        if self.sse_frame is None:
+            self.sse_frame = b"data: " + self.ndjson + b"\n"
+        return self.sse_frame
 
     def to_json(self) -> dict[str, Any]:
         """The event as the stream sends it."""
@@ -122,7 +159,9 @@ class TraceFilter:
     units: frozenset[int] = frozenset()
     functions: frozenset[int] = frozenset()
     outcomes: frozenset[Outcome] = frozenset()
-    masters: tuple[str, ...] = ()
+    #: ``host:port`` peers (one connection each) and bare hosts (every port), compiled once.
+    peers: frozenset[str] = frozenset()
+    hosts: frozenset[str] = frozenset()
 
     @classmethod
     def from_query(cls, query: Mapping[str, list[str]]) -> TraceFilter:
@@ -134,6 +173,13 @@ class TraceFilter:
 
         def values(name: str) -> list[str]:
             return [v.strip() for raw in query.get(name, ()) for v in raw.split(",") if v.strip()]
+
+        given = sum(len(values(name)) for name in ("line", "unit", "function", "outcome", "master"))
+        if given > MAX_FILTER_VALUES:
+            raise ValueError(
+                f"{given} filter values: at most {MAX_FILTER_VALUES} per stream; open the "
+                "stream with fewer, or with none and filter on your side"
+            )
 
         units: set[int] = set()
         for text in values("unit"):
@@ -156,8 +202,10 @@ class TraceFilter:
             known = ", ".join(sorted(Outcome))
             raise ValueError(f"outcome={','.join(sorted(unknown))}: expected one of {known}")
         outcomes = {Outcome(value) for value in wanted}
+        masters = values("master")
         return cls(frozenset(values("line")), frozenset(units), frozenset(functions),
-                   frozenset(outcomes), tuple(values("master")))  # fmt: skip
+                   frozenset(outcomes), frozenset(masters),
+                   frozenset(m.strip("[]") for m in masters))  # fmt: skip
 
     def matches(self, event: TraceEvent) -> bool:
         """True when ``event`` passes every filter (an outcome filter passes replies only)."""
@@ -166,13 +214,12 @@ class TraceFilter:
             and (not self.functions or (event.function & 0x7F) in self.functions)
             and (not self.lines or event.line in self.lines)
             and (not self.outcomes or event.outcome in self.outcomes)
-            and (not self.masters or any(_master_matches(m, event.master) for m in self.masters))
+            and (not self.hosts or self._master_matches(event.master))
         )
 
-
-def _master_matches(wanted: str, peer: str) -> bool:
-    """``10.0.0.5`` matches every port of that host; ``10.0.0.5:4711`` one connection."""
-    return peer == wanted or peer.rpartition(":")[0].strip("[]") == wanted.strip("[]")
+    def _master_matches(self, peer: str) -> bool:
+        """``10.0.0.5`` matches every port of that host; ``10.0.0.5:4711`` one connection."""
+        return peer in self.peers or peer.rpartition(":")[0].strip("[]") in self.hosts
 
 
 class TraceStream:
@@ -217,6 +264,7 @@ class TraceHub:
         self._unwatch: asyncio.TimerHandle | None = None
         self._m_dropped = metrics.trace_dropped.labels()
         self._m_streams = metrics.trace_streams
+        self._m_ended = {end: metrics.trace_streams_closed.labels(end) for end in StreamEnd}
 
     # -- who watches ---------------------------------------------------------------------
 
@@ -246,8 +294,10 @@ class TraceHub:
         self._m_streams.set(len(self.streams))
         self._update()
 
-    def remove(self, stream: TraceStream) -> None:
-        """Stop sending events to ``stream``."""
+    def remove(self, stream: TraceStream, end: StreamEnd | None = None) -> None:
+        """Stop sending events to ``stream`` (the gateway ended it for ``end``)."""
+        if end is not None and stream in self.streams:
+            self._m_ended[end].inc()
         stream.closed = True
         stream.ready.set()
         self.streams.discard(stream)
@@ -334,7 +384,7 @@ class TraceHub:
     def close(self) -> None:
         """End every stream (the gateway stops)."""
         for stream in list(self.streams):
-            self.remove(stream)
+            self.remove(stream, StreamEnd.STOPPING)
         if self._unwatch is not None:
             self._unwatch.cancel()
             self._unwatch = None
@@ -429,11 +479,16 @@ class LiveView:
         self.status = StatusView(view, metrics, self.hub)
         self._page = status_page()
         self._tasks: set[asyncio.Task[None]] = set()
+        self.status_renderer = PacedRenderer(STATUS_LOOP_SHARE)
 
     @property
-    def routes(self) -> dict[str, Route]:
-        """Path → handler, for the HTTP endpoint."""
-        return {"/": self._index, "/status": self._status, "/trace": self._trace}
+    def routes(self) -> dict[str, GuardedRoute]:
+        """Path → handler and what guards it, for the HTTP endpoint."""
+        return {
+            "/": (self._index, Access.STATUS),
+            "/status": (self._status, Access.STATUS),
+            "/trace": (self._trace, Access.TRACE),
+        }
 
     def close(self) -> None:
         """End every trace stream."""
@@ -458,8 +513,14 @@ class LiveView:
         writer: asyncio.StreamWriter,
     ) -> None:
         self.hub.watch()
-        body = json.dumps(to_json(self.status.snapshot()), separators=(",", ":")).encode()
+        body = await self.status_renderer.shared("status", self._render_status)
         await respond(writer, 200, "application/json", body, method)
+
+    async def _render_status(self) -> tuple[bytes, float]:
+        """The /status body now, and what it cost the loop."""
+        started = time.perf_counter()
+        body = json.dumps(to_json(self.status.snapshot()), separators=(",", ":")).encode()
+        return body, time.perf_counter() - started
 
     async def _trace(
         self,
@@ -483,7 +544,7 @@ class LiveView:
         content_type = "text/event-stream" if sse else "application/x-ndjson"
         head = (
             f"HTTP/1.1 200 OK\r\nContent-Type: {content_type}\r\nCache-Control: no-store\r\n"
-            "Connection: close\r\nX-Accel-Buffering: no\r\n\r\n"
+            f"Connection: close\r\nX-Accel-Buffering: no\r\n{extra_headers()}\r\n"
         ).encode()
         if method == "HEAD":
             writer.write(head)
@@ -499,12 +560,22 @@ class LiveView:
                 writer.write(b": modbus-gateway trace\n\n")
             await writer.drain()
             await _pump(stream, writer, sse)
+        except TimeoutError:  # the client read nothing for STALL_S: its slot is freed
+            self.hub.remove(stream, StreamEnd.STALLED)
+            log.info("trace stream to %s closed: it read nothing for %g s",
+                     _peer(writer), STALL_S)  # fmt: skip
+            writer.transport.abort()  # close() would wait for a buffer nobody reads
         except (ConnectionError, OSError):
             pass
         finally:
             self.hub.remove(stream)
             watcher.cancel()
             writer.close()
+
+
+def _peer(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    return f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "?"
 
 
 def _bound_buffers(writer: asyncio.StreamWriter) -> None:
@@ -530,6 +601,8 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
     while True:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stream.ready.wait(), HEARTBEAT_S)
+        if stream.events and len(stream.events) < QUEUE_LIMIT // 4 and not stream.closed:
+            await asyncio.sleep(BATCH_S)  # gather what comes next: one write for many
         stream.ready.clear()
         if stream.closed:
             return
@@ -539,11 +612,16 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
             stream.dropped = 0
         events = stream.events
         while events:
-            chunks.append(_encode(events.popleft().to_json(), sse))
+            chunks.append(events.popleft().encoded(sse))
         if not chunks:  # quiet for HEARTBEAT_S: show the client (and proxies) we are alive
             chunks.append(b": keep-alive\n\n" if sse else b'{"type":"heartbeat"}\n')
         writer.write(b"".join(chunks))
-        await writer.drain()  # a slow client holds only its own writer; its queue fills
+        # A slow client holds only its own writer; its queue fills. One that reads nothing
+        # for STALL_S (the buffer stays above its mark) ends with TimeoutError.
+        if writer.transport.get_write_buffer_size() > STREAM_BUFFER:
+            await asyncio.wait_for(writer.drain(), STALL_S)
+        else:
+            await writer.drain()  # returns at once, or raises if the client has gone
 
 
 def _encode(event: Mapping[str, Any], sse: bool) -> bytes:

@@ -397,8 +397,9 @@ class GatewayMetrics:
     def _connection_families(self) -> None:
         r, p = self.registry, "modbus_gateway_"
         self.connections_open = Gauge(
-            p + "connections_open", "TCP connections from masters open now.", registry=r
-        )
+            p + "connections_open", "TCP connections from masters open now, by listener.",
+            ["listener"], registry=r,
+        )  # fmt: skip
         self.connections_accepted = Counter(
             p + "connections_accepted", "TCP connections accepted.", registry=r
         )
@@ -421,6 +422,18 @@ class GatewayMetrics:
         self.trace_streams = Gauge(
             p + "trace_streams", "Live trace streams open now (GET /trace).", registry=r
         )
+        self.trace_streams_closed = Counter(
+            p + "trace_streams_closed",
+            "Live trace streams the gateway ended, by reason: stalled (the client read "
+            "nothing for several seconds) or stopping (the gateway stops).",
+            ["reason"], registry=r,
+        )  # fmt: skip
+        self.http_refusals = Counter(
+            p + "http_refusals",
+            "HTTP connections closed at accept and requests refused, by reason: "
+            "max_connections, max_per_source, host (421), no_token (401), wrong_token (403).",
+            ["reason"], registry=r,
+        )  # fmt: skip
         for close in CloseReason:
             self.connections_closed.labels(close)
         for reject in RejectReason:

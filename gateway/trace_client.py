@@ -5,6 +5,9 @@ nothing is restarted and no serial port or TCP port is taken. Prints one line
 per frame (or the JSON itself with ``--json``) and, with ``--pcap FILE``,
 writes a pcapng capture Wireshark opens as it is (see ``gateway.pcap``).
 Filters are applied by the gateway, so a busy gateway sends only what is asked.
+An ``https://`` URL is checked against ``--cacert`` (else the system's CAs); the
+endpoint's ``trace_token`` is read from ``MODBUS_GATEWAY_TRACE_TOKEN`` (an
+environment variable, so that it does not show in the process list).
 """
 
 from __future__ import annotations
@@ -13,8 +16,10 @@ import argparse
 import http.client
 import ipaddress
 import json
+import os
 import signal
 import socket
+import ssl
 import sys
 import time
 from collections.abc import Sequence
@@ -41,7 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--url, 'trace' runs a gateway with the trace logged instead (see modbus-gateway -h).",
     )
     parser.add_argument("--url", required=True, metavar="http://HOST:PORT",
-                        help="the gateway's HTTP endpoint ([metrics] listen)")  # fmt: skip
+                        help="the gateway's HTTP endpoint ([metrics] listen; https:// when it "
+                        "has tls_cert); its trace_token, if any, in "
+                        "MODBUS_GATEWAY_TRACE_TOKEN")  # fmt: skip
+    parser.add_argument("--cacert", metavar="FILE",
+                        help="CA certificates an https:// endpoint's certificate chains "
+                        "to")  # fmt: skip
     parser.add_argument("--line", action="append", default=[], help="only this line (repeatable)")
     parser.add_argument("--unit", action="append", type=int, default=[], metavar="N",
                         help="only TCP unit id N (repeatable)")  # fmt: skip
@@ -139,6 +149,34 @@ class TraceCapture:
             self.writer.rtu(event["time"], line, False, slave, pdu)
 
 
+def _trace_path(base: str, args: argparse.Namespace) -> str:
+    """``/trace`` under the URL's path, with the filters as its query."""
+    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
+    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
+    query += [("master", v) for v in args.master]
+    return (base.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+
+
+def _connection(
+    scheme: str, host: str, port: int | None, args: argparse.Namespace
+) -> http.client.HTTPConnection:
+    """An HTTP or HTTPS connection to the endpoint (not opened yet)."""
+    if scheme == "https":
+        context = ssl.create_default_context(cafile=args.cacert)
+        return http.client.HTTPSConnection(host, port or 443, timeout=args.connect_timeout,
+                                           context=context)  # fmt: skip
+    return http.client.HTTPConnection(host, port or 80, timeout=args.connect_timeout)
+
+
+def _headers() -> dict[str, str]:
+    """The request's headers: the trace token from the environment, when given."""
+    headers = {"Accept": "application/x-ndjson"}
+    token = os.environ.get("MODBUS_GATEWAY_TRACE_TOKEN")
+    if token:
+        headers["Authorization"] = f"Bearer {token}"
+    return headers
+
+
 _STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
 
 
@@ -154,23 +192,19 @@ def main(argv: Sequence[str]) -> int:
     """Run the client; 0 on a clean stop, 1 when the gateway went away, 2 on bad input."""
     args = build_parser().parse_args(argv)
     url = urlsplit(args.url)
-    if url.scheme != "http" or not url.hostname:
-        print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT",
+    if url.scheme not in ("http", "https") or not url.hostname:
+        print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT or https://HOST:PORT",
               file=sys.stderr)  # fmt: skip
         return 2
-    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
-    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
-    query += [("master", v) for v in args.master]
-    path = (url.path.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+    path = _trace_path(url.path, args)
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
-    connection = http.client.HTTPConnection(url.hostname, url.port or 80,
-                                            timeout=args.connect_timeout)  # fmt: skip
+    connection = _connection(url.scheme, url.hostname, url.port, args)
     pcap_file = None
     seen = 0
     try:
         try:
-            connection.request("GET", path, headers={"Accept": "application/x-ndjson"})
+            connection.request("GET", path, headers=_headers())
             response = connection.getresponse()
         except OSError as error:
             print(f"modbus-gateway trace: cannot reach {args.url}: {error}; is the gateway "

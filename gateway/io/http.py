@@ -20,6 +20,13 @@ spaced so that rendering takes at most 5 % of the loop's time, however
 many clients scrape in a loop. Scrapes waiting at the same time share one
 rendering.
 
+Who may read what is ``http_guard``'s: ``/metrics``, ``/healthz`` and ``/readyz``
+are open; the page, ``/status`` and ``/trace`` check the Host (421) and, when
+configured, a token (401/403). One source address holds at most
+``max_connections_per_source`` connections. With ``tls_cert`` the endpoint
+speaks HTTPS only (TLS 1.2 or newer, forward-secret suites), and with ``tls_ca``
+every client must present a certificate.
+
 ``/healthz`` answers 200 while the event loop runs (liveness: restart me if
 this fails); a missing or noisy serial device does not change it, because a
 restart cannot fix hardware and the gateway reopens the device by itself.
@@ -32,23 +39,35 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import copy
 import logging
+import socket
+import ssl
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from http import HTTPStatus
+from typing import Protocol
 
+from prometheus_client import Counter
 from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import Metric
 from prometheus_client.registry import Collector
 
 from ..config import MetricsConfig
 from ..logs import RateLimitedLogger
+from .http_guard import Access, Guard, HttpRefusal
+from .tls import TlsSetupError, cipher_string
 
 log = logging.getLogger("gateway.http")
 
 _MAX_REQUEST_HEAD = 8192
+#: Headers every answer of the current request carries (cookies a ``?token=`` set, ...);
+#: each connection is served in a task of its own, so this is per request.
+_EXTRA_HEADERS: contextvars.ContextVar[str] = contextvars.ContextVar("extra", default="")
+#: Sent with every answer: a ``?token=`` link's token does not leak through a Referer.
+_ALWAYS = "Referrer-Policy: no-referrer\r\n"
 _INDEX = b"modbus-gateway: /metrics /healthz /readyz\n"
 _OPENMETRICS_EOF = b"# EOF\n"
 #: Share of the event loop's time that rendering /metrics may take, however often it is asked.
@@ -62,10 +81,22 @@ SAMPLES_PER_TURN = 32
 Route = Callable[
     [str, str, Mapping[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]
 ]
+#: A route and what guards it.
+GuardedRoute = tuple[Route, Access]
+
+
+def extra_headers() -> str:
+    """Header lines (each ending in CRLF) that a route's own response head must carry."""
+    return _ALWAYS + _EXTRA_HEADERS.get()
 
 
 async def respond(
-    writer: asyncio.StreamWriter, status: int, content_type: str, body: bytes, method: str = "GET"
+    writer: asyncio.StreamWriter,
+    status: int,
+    content_type: str,
+    body: bytes,
+    method: str = "GET",
+    headers: str = "",
 ) -> None:
     """Write a whole response (head only for HEAD) and close the connection.
 
@@ -74,7 +105,8 @@ async def respond(
     reason = HTTPStatus(status).phrase
     head = (
         f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
-        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n"
+        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nConnection: close\r\n"
+        f"{extra_headers()}{headers}\r\n"
     ).encode()
     try:
         writer.write(head if method == "HEAD" else head + body)
@@ -95,21 +127,17 @@ class _Single(Collector):
         yield self._metric
 
 
-class ScrapeRenderer:
-    """Renders /metrics fresh for each scrape at a bounded cost to the event loop.
+class PacedRenderer:
+    """Answers rendered fresh for the requests that wait for them, at a bounded share of the loop.
 
-    Rendering the exposition is the one thing on the Modbus loop whose cost
-    grows with the number of series. Each slice of a family's samples is encoded
-    in a turn of its own, so a master's reply waits for one slice at most; the next
-    rendering starts no sooner than ``(1 / share - 1)`` times the last one's
-    cost after it, so scraping in a loop takes at most ``share`` of the loop.
-    Scrapes that arrive before a rendering starts all get that rendering.
+    Requests that arrive before a rendering starts all get that rendering (one per
+    ``key``); the next rendering starts no sooner than ``(1 / share - 1)`` times the
+    last one's cost after it, so asking in a loop takes at most ``share`` of the loop.
     """
 
-    def __init__(self, registry: Collector, share: float = SCRAPE_LOOP_SHARE) -> None:
-        self._registry = registry
+    def __init__(self, share: float = SCRAPE_LOOP_SHARE) -> None:
         self._share = share
-        self._next: dict[str, asyncio.Future[bytes]] = {}  # by content type, not started yet
+        self._next: dict[str, asyncio.Future[bytes]] = {}  # by key, not started yet
         self._lock = asyncio.Lock()
         self._not_before = 0.0
         self.last_cost = 0.0  #: seconds the last rendering held the loop, all turns together
@@ -120,21 +148,22 @@ class ScrapeRenderer:
         """The loop time before which the next rendering does not start."""
         return self._not_before
 
-    async def render(self, accept: str) -> tuple[bytes, str]:
-        """The exposition for a scraper's Accept header, rendered after this call: body, type."""
-        encoder, content_type = choose_encoder(accept)
-        future = self._next.get(content_type)
+    async def shared(
+        self, key: str, produce: Callable[[], Awaitable[tuple[bytes, float]]]
+    ) -> bytes:
+        """The body ``produce`` (body, cost in seconds) renders after this call for ``key``."""
+        future = self._next.get(key)
         if future is None:
             loop = asyncio.get_running_loop()
-            future = self._next[content_type] = loop.create_future()
-            task = loop.create_task(self._run(content_type, encoder, future))
+            future = self._next[key] = loop.create_future()
+            task = loop.create_task(self._run(key, produce, future))
             task.add_done_callback(_log_failure)
-        return await asyncio.shield(future), content_type
+        return await asyncio.shield(future)
 
     async def _run(
         self,
-        content_type: str,
-        encoder: Callable[[Collector], bytes],
+        key: str,
+        produce: Callable[[], Awaitable[tuple[bytes, float]]],
         future: asyncio.Future[bytes],
     ) -> None:
         loop = asyncio.get_running_loop()
@@ -142,16 +171,39 @@ class ScrapeRenderer:
             delay = self._not_before - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
-            del self._next[content_type]  # scrapes from now on wait for the next rendering
+            del self._next[key]  # requests from now on wait for the next rendering
             try:
-                body = await self._render(encoder, content_type)
-            except Exception as error:  # a collector's bug must not hang every scraper
+                body, self.last_cost = await produce()
+            except Exception as error:  # a renderer's bug must not hang every client
                 future.set_exception(error)
                 raise
+            self.renderings += 1
             future.set_result(body)
             self._not_before = loop.time() + self.last_cost * (1.0 / self._share - 1.0)
 
-    async def _render(self, encoder: Callable[[Collector], bytes], content_type: str) -> bytes:
+
+class ScrapeRenderer(PacedRenderer):
+    """Renders /metrics fresh for each scrape at a bounded cost to the event loop.
+
+    Rendering the exposition is the one thing on the Modbus loop whose cost
+    grows with the number of series. Each slice of a family's samples is encoded
+    in a turn of its own, so a master's reply waits for one slice at most; scrapes
+    are shared and spaced as ``PacedRenderer`` says.
+    """
+
+    def __init__(self, registry: Collector, share: float = SCRAPE_LOOP_SHARE) -> None:
+        super().__init__(share)
+        self._registry = registry
+
+    async def render(self, accept: str) -> tuple[bytes, str]:
+        """The exposition for a scraper's Accept header, rendered after this call: body, type."""
+        encoder, content_type = choose_encoder(accept)
+        body = await self.shared(content_type, lambda: self._render(encoder, content_type))
+        return body, content_type
+
+    async def _render(
+        self, encoder: Callable[[Collector], bytes], content_type: str
+    ) -> tuple[bytes, float]:
         openmetrics = content_type.startswith("application/openmetrics-text")
         parts: list[bytes] = []
         cost = 0.0
@@ -175,9 +227,7 @@ class ScrapeRenderer:
                 cost += time.perf_counter() - started
         if openmetrics:
             parts.append(_OPENMETRICS_EOF)
-        self.last_cost = cost
-        self.renderings += 1
-        return b"".join(parts)
+        return b"".join(parts), cost
 
 
 def _slice(metric: Metric, first: int) -> Metric:
@@ -199,14 +249,117 @@ def _without_comments(text: bytes) -> bytes:
 
 def _log_failure(task: asyncio.Task[None]) -> None:
     if not task.cancelled() and (error := task.exception()) is not None:
-        log.error("rendering /metrics failed: %r", error, exc_info=error)
+        log.error("rendering an HTTP answer failed: %r", error, exc_info=error)
 
 
 @dataclass(eq=False, slots=True)
 class _Connection:
-    writer: asyncio.StreamWriter
+    transport: _Abortable  #: a transport, or an HTTPS connection's pending handshake
     opened: float
+    source: str
     reading_head: bool = True
+
+
+def endpoint_tls(config: MetricsConfig) -> ssl.SSLContext | None:
+    """The endpoint's HTTPS context (``None`` without ``tls_cert``); ``TlsSetupError`` names
+    the key at fault."""
+    if config.tls_cert is None or config.tls_key is None:
+        return None
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
+    context.options |= ssl.OP_CIPHER_SERVER_PREFERENCE
+    context.set_ciphers(cipher_string(forward_secrecy_only=True))  # browsers have ECDHE
+    try:
+        context.load_cert_chain(config.tls_cert, config.tls_key)
+    except (ssl.SSLError, OSError) as error:
+        raise TlsSetupError(
+            f"metrics.tls_cert = {config.tls_cert!r}, metrics.tls_key = {config.tls_key!r}: "
+            f"cannot be used ({error}); give a PEM chain (leaf first) and its unencrypted key"
+        ) from None
+    if config.tls_ca is not None:
+        try:
+            context.load_verify_locations(cafile=config.tls_ca)
+        except (ssl.SSLError, OSError) as error:
+            raise TlsSetupError(
+                f"metrics.tls_ca = {config.tls_ca!r}: cannot be used ({error})"
+            ) from None
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context
+
+
+class _Abortable(Protocol):
+    """What a connection is closed through: its transport, or its pending handshake."""
+
+    def abort(self) -> None: ...
+
+
+class _Handshake:
+    """An HTTPS connection admitted, its handshake under way: aborting cancels it."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.task: asyncio.Task[None] | None = None
+
+    def abort(self) -> None:
+        if self.task is not None:
+            self.task.cancel()  # its finally closes the socket
+        else:
+            self.sock.close()
+
+
+class _TlsListener:
+    """The HTTPS endpoint's listening socket, accepted by hand: a connection is admitted
+    before its handshake (the caps hold handshakes too), and the TLS layer gets the socket
+    before any byte of it is read."""
+
+    BATCH = 32  #: connections accepted per turn of the loop
+
+    def __init__(self, accepted: Callable[[socket.socket, str], None]) -> None:
+        self._accepted = accepted
+        self.sock: socket.socket | None = None
+
+    async def start(self, host: str, port: int) -> None:
+        loop = asyncio.get_running_loop()
+        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        family, kind, proto, _, address = infos[0]
+        sock = socket.socket(family, kind, proto)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+            sock.listen(128)
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self.sock = sock
+        loop.add_reader(sock.fileno(), self._ready)
+
+    def _ready(self) -> None:
+        assert self.sock is not None
+        for _ in range(self.BATCH):
+            try:
+                conn, peer = self.sock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as error:  # out of descriptors: the next turn tries again
+                log.debug("HTTPS accept failed: %s", error)
+                return
+            self._accepted(conn, str(peer[0]))
+
+    def close(self) -> None:
+        if self.sock is not None:
+            asyncio.get_running_loop().remove_reader(self.sock.fileno())
+            self.sock.close()
+
+
+@dataclass(frozen=True, slots=True)
+class EndpointLimits:
+    """How much of the endpoint one client, and all of them, may hold."""
+
+    max_connections: int = 32
+    header_timeout: float = 5.0
+    max_per_source: int = 8  #: 0: no cap
 
 
 class HttpEndpoint:
@@ -216,33 +369,47 @@ class HttpEndpoint:
         self,
         registry: Collector,
         readiness: Callable[[], tuple[bool, str]],
-        routes: Mapping[str, Route] | None = None,
-        max_connections: int = 32,
-        header_timeout: float = 5.0,
+        routes: Mapping[str, GuardedRoute] | None = None,
+        limits: EndpointLimits | None = None,
+        guard: Guard | None = None,
+        refusals: Counter | None = None,
     ) -> None:
         self._readiness = readiness
-        self.max_connections = max_connections
-        self.header_timeout = header_timeout
+        self.limits = limits or EndpointLimits()
+        self.max_connections = self.limits.max_connections
+        self.header_timeout = self.limits.header_timeout
+        self.guard = guard or Guard(MetricsConfig())
+        self._refusals = refusals
+        if refusals is not None:
+            for reason in HttpRefusal:
+                refusals.labels(reason)
         self.renderer = ScrapeRenderer(registry)
         self._server: asyncio.Server | None = None
+        self._tls: ssl.SSLContext | None = None
+        self._tls_listener: _TlsListener | None = None
         self._open: dict[_Connection, None] = {}  # in opening order
+        self._per_source: dict[str, int] = {}
         self.refused = 0  #: connections closed at once at the cap
         self._faults: RateLimitedLogger | None = None  # bound to the loop in start()
-        self._routes: dict[str, Route] = {
-            "/metrics": self._metrics,
-            "/healthz": self._healthz,
-            "/readyz": self._readyz,
-            "/": self._index,
+        self._routes: dict[str, GuardedRoute] = {
+            "/metrics": (self._metrics, Access.OPEN),
+            "/healthz": (self._healthz, Access.OPEN),
+            "/readyz": (self._readyz, Access.OPEN),
+            "/": (self._index, Access.OPEN),
         }
         self._routes.update(routes or {})
 
-    def add_route(self, path: str, route: Route) -> None:
-        """Serve ``path`` (without query) with ``route``, under the endpoint's limits."""
-        self._routes[path] = route
+    def add_route(self, path: str, route: Route, access: Access = Access.STATUS) -> None:
+        """Serve ``path`` (without query) with ``route``, under the endpoint's limits and
+        guarded as ``access`` says (by default as the status page)."""
+        self._routes[path] = (route, access)
 
     @property
     def address(self) -> tuple[str, int]:
         """The bound address."""
+        if self._tls_listener is not None and self._tls_listener.sock is not None:
+            host, port = self._tls_listener.sock.getsockname()[:2]
+            return str(host), int(port)
         assert self._server is not None
         host, port = self._server.sockets[0].getsockname()[:2]
         return str(host), int(port)
@@ -252,56 +419,124 @@ class HttpEndpoint:
         """HTTP connections open now."""
         return len(self._open)
 
-    async def start(self, host: str, port: int) -> None:
-        """Bind and serve."""
+    async def start(self, host: str, port: int, tls: ssl.SSLContext | None = None) -> None:
+        """Bind and serve (HTTPS with ``tls``)."""
         self._faults = RateLimitedLogger(log, asyncio.get_running_loop())
-        self._server = await asyncio.start_server(
-            self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD
-        )
+        if tls is None:
+            self._server = await asyncio.start_server(
+                self._serve, host, port, reuse_address=True, limit=_MAX_REQUEST_HEAD
+            )
+            return
+        self._tls = tls
+        self._tls_listener = _TlsListener(self._accepted_tls)
+        await self._tls_listener.start(host, port)
 
     async def close(self) -> None:
         """Stop serving."""
+        if self._tls_listener is not None:
+            self._tls_listener.close()
+            for connection in list(self._open):
+                connection.transport.abort()
         if self._server is not None:
             self._server.close()
             for connection in list(self._open):
-                connection.writer.transport.abort()
+                connection.transport.abort()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
 
     # -- admission ---------------------------------------------------------------------
 
-    def _admit(self, writer: asyncio.StreamWriter) -> _Connection | None:
+    def _note(self, what: str, detail: str) -> None:
+        if self._faults is not None:
+            self._faults.note("HTTP endpoint", what, detail, plural="connections past the limit")
+
+    def _admit(self, transport: _Abortable, source: str) -> _Connection | None:
         """Register a new connection, making room at the cap; ``None`` when it is refused."""
+        cap = self.limits.max_per_source
+        if cap and self._per_source.get(source, 0) >= cap:
+            self._note("source limit", f"{source} holds {cap} connections "
+                       "(metrics.max_connections_per_source); refusing more")  # fmt: skip
+            self._refuse(transport, HttpRefusal.MAX_PER_SOURCE)
+            return None
         if len(self._open) >= self.max_connections:
             waiting = next((c for c in self._open if c.reading_head), None)
-            if self._faults is not None:
-                self._faults.note(
-                    "HTTP endpoint", "connection limit",
-                    f"{self.max_connections} connections open (metrics.max_connections); "
-                    + ("closing the oldest still sending its request"
-                       if waiting is not None else "refusing new ones"),
-                    plural="connections past the limit",
-                )  # fmt: skip
+            self._note("connection limit",
+                       f"{self.max_connections} connections open (metrics.max_connections); "
+                       + ("closing the oldest still sending its request"
+                          if waiting is not None else "refusing new ones"))  # fmt: skip
             if waiting is None:
-                self.refused += 1
-                writer.transport.abort()
+                self._refuse(transport, HttpRefusal.MAX_CONNECTIONS)
                 return None
-            waiting.writer.transport.abort()  # its _serve forgets it
-            self._open.pop(waiting, None)
-        connection = _Connection(writer, time.monotonic())
+            waiting.transport.abort()  # its _serve forgets it
+            self._forget(waiting)
+        connection = _Connection(transport, time.monotonic(), source)
         self._open[connection] = None
+        self._per_source[source] = self._per_source.get(source, 0) + 1
         return connection
 
+    def _refused(self, reason: HttpRefusal) -> None:
+        if self._refusals is not None:
+            self._refusals.labels(reason).inc()
+
+    def _refuse(self, transport: _Abortable, reason: HttpRefusal) -> None:
+        self.refused += 1
+        self._refused(reason)
+        transport.abort()
+
+    def _forget(self, connection: _Connection) -> None:
+        if self._open.pop(connection, False) is None:
+            remaining = self._per_source.get(connection.source, 1) - 1
+            if remaining > 0:
+                self._per_source[connection.source] = remaining
+            else:
+                self._per_source.pop(connection.source, None)
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        connection = self._admit(writer)
-        if connection is None:
-            return
+        peer = writer.get_extra_info("peername")
+        connection = self._admit(writer.transport, str(peer[0]) if peer else "")
+        if connection is not None:
+            await self._serve_connection(connection, reader, writer)
+
+    async def _serve_connection(
+        self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
         try:
             await self._serve_admitted(connection, reader, writer)
         finally:
-            self._open.pop(connection, None)
+            self._forget(connection)
             if not writer.transport.is_closing():
                 writer.close()
+
+    def _accepted_tls(self, sock: socket.socket, source: str) -> None:
+        """An HTTPS connection: admitted first, then its handshake in a task of its own."""
+        pending = _Handshake(sock)
+        connection = self._admit(pending, source)
+        if connection is not None:
+            task = asyncio.get_running_loop().create_task(self._serve_tls(connection, sock))
+            pending.task = task
+
+    async def _serve_tls(self, connection: _Connection, sock: socket.socket) -> None:
+        """The handshake within the header timeout, then the request as over HTTP."""
+        assert self._tls is not None
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader(_MAX_REQUEST_HEAD, loop)
+        protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+        transport = None
+        try:
+            transport, _ = await loop.connect_accepted_socket(
+                lambda: protocol, sock, ssl=self._tls, ssl_handshake_timeout=self.header_timeout
+            )
+        except (ssl.SSLError, OSError) as error:  # ConnectionError and TimeoutError too
+            log.debug("HTTPS handshake with %s failed: %s", connection.source, error)
+        finally:
+            if transport is None:  # failed, or cancelled to make room
+                self._forget(connection)
+                sock.close()
+        if transport is None:
+            return
+        connection.transport = transport
+        writer = asyncio.StreamWriter(transport, protocol, reader, loop)
+        await self._serve_connection(connection, reader, writer)
 
     async def _serve_admitted(
         self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
@@ -312,7 +547,7 @@ class HttpEndpoint:
             connection.reading_head = False
             await respond(writer, 431, "text/plain", b"request header too large\n")
             return
-        except (asyncio.IncompleteReadError, TimeoutError, ConnectionError):
+        except (asyncio.IncompleteReadError, TimeoutError, ConnectionError, ssl.SSLError):
             return
         connection.reading_head = False
         lines = head.decode("latin-1").split("\r\n")
@@ -325,10 +560,19 @@ class HttpEndpoint:
             await respond(writer, 405, "text/plain", b"only GET is served\n")
             return
         method, target = parts[0], parts[1]
-        route = self._routes.get(target.split("?", 1)[0])
-        if route is None:
+        served = self._routes.get(target.split("?", 1)[0])
+        if served is None:
             await respond(writer, 404, "text/plain", b"not found\n", method)
             return
+        route, access = served
+        local = writer.get_extra_info("sockname")
+        verdict = self.guard.judge(access, target, headers, str(local[0]) if local else "")
+        if verdict.refusal is not None:
+            self._refused(verdict.refusal)
+            await respond(writer, verdict.status, "text/plain", verdict.message, method,
+                          verdict.challenge)  # fmt: skip
+            return
+        _EXTRA_HEADERS.set("".join(f"Set-Cookie: {c}\r\n" for c in verdict.set_cookies))
         with contextlib.suppress(ConnectionError):
             await route(method, target, headers, reader, writer)
 
@@ -365,11 +609,13 @@ async def start_http(
     config: MetricsConfig,
     registry: Collector,
     readiness: Callable[[], tuple[bool, str]],
-    routes: Mapping[str, Route] | None = None,
+    routes: Mapping[str, GuardedRoute] | None = None,
+    refusals: Counter | None = None,
 ) -> HttpEndpoint:
-    """Start the endpoint on the configured address."""
-    endpoint = HttpEndpoint(
-        registry, readiness, routes, config.max_connections, config.header_timeout
+    """Start the endpoint on the configured address (HTTPS with ``tls_cert``)."""
+    limits = EndpointLimits(
+        config.max_connections, config.header_timeout, config.max_connections_per_source
     )
-    await endpoint.start(config.host, config.port)
+    endpoint = HttpEndpoint(registry, readiness, routes, limits, Guard(config), refusals)
+    await endpoint.start(config.host, config.port, endpoint_tls(config))
     return endpoint

@@ -622,6 +622,7 @@ class ModbusTcpServer:
         self.policy = policy or Policy()  #: replaced as a whole on reload
         self.ssl_context = ssl_context  #: replaced on reload; new connections use the new one
         self.screen = SourceScreen(self.name, (config.allow, self.listener.allow), metrics)
+        metrics.connections_open.labels(self.name).set(0)  # the series exists from the start
         self.epoch = 0  #: reloads seen: a connection accepted before one is judged again
         #: The CAs of a tls listener as of the last reload (``reevaluate``); ``None`` until
         #: then: the handshake's verdict on the chain stands.
@@ -758,7 +759,7 @@ class ModbusTcpServer:
         self._connections[connection] = None
         self._per_source[source] = self._per_source.get(source, 0) + 1
         self.metrics.connections_accepted.inc()
-        self.metrics.connections_open.set(len(self._connections))
+        self.metrics.connections_open.labels(self.name).set(len(self._connections))
         self.events.note("opened", source)
         log.debug("master %s connected", peer)
         if self.ssl_context is None:
@@ -899,7 +900,7 @@ class ModbusTcpServer:
             else:
                 self._per_source.pop(source, None)
             self.metrics.connections_closed.labels(reason).inc()
-            self.metrics.connections_open.set(len(self._connections))
+            self.metrics.connections_open.labels(self.name).set(len(self._connections))
             self.events.note("closed", source)
             log.debug("master %s disconnected (%s)", connection.peer, reason)
 

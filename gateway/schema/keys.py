@@ -216,6 +216,36 @@ METRICS = (
         reload=Reload.RESTART,
         help="Seconds a client has to send its request head before the connection is "
         "closed."),
+    Key(table=_M, name="max_connections_per_source", type=Type.INTEGER, default=8, low=0,
+        high=1024, reload=Reload.RESTART,
+        help="HTTP connections one source address may hold at once, streams included (0 = "
+        "no cap); more are closed at accept, so one client cannot take every stream slot."),
+    Key(table=_M, name="allowed_hosts", type=Type.TEXT, default=[], reload=Reload.RESTART,
+        show=Show.COMMENTED, example='["gateway.plant.example"]',
+        help="Host names (a list) the status page, /status and /trace answer to, besides "
+        "loopback names and the endpoint's own address; another Host header gets 421, so a "
+        "web page cannot reach them through DNS rebinding. /metrics, /healthz and /readyz "
+        "answer whatever the Host."),
+    Key(table=_M, name="status_token", type=Type.TEXT, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"a long random string"',
+        help="A token the status page and /status ask for: \"Authorization: Bearer TOKEN\", "
+        "or a cookie set by opening /?token=TOKEN once (docs/http-endpoint.md). None: no "
+        "token."),
+    Key(table=_M, name="trace_token", type=Type.TEXT, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"another long random string"',
+        help="A token /trace asks for (it carries register values), given as status_token "
+        "is. None: no token."),
+    Key(table=_M, name="tls_cert", type=Type.FILE, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"/etc/modbus-gateway/http.crt"',
+        help="Serve the endpoint over TLS (HTTPS) with this certificate chain (PEM, leaf "
+        "first); needs tls_key."),
+    Key(table=_M, name="tls_key", type=Type.FILE, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"/etc/modbus-gateway/http.key"',
+        help="The private key of tls_cert (PEM)."),
+    Key(table=_M, name="tls_ca", type=Type.FILE, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"/etc/modbus-gateway/http-clients.pem"',
+        help="With tls_cert: every HTTPS client must present a certificate chaining to "
+        "these CAs (PEM), scrapers included."),
 )  # fmt: skip
 
 LOGGING = (

@@ -39,7 +39,7 @@ class Stream:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
         self.sock.settimeout(DEADLINE_S)
         self.sock.connect(metrics_address(gw))
-        self.sock.sendall(f"GET /trace{query} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+        self.sock.sendall(f"GET /trace{query} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
         self.buffer = b""
         head = self._until(b"\r\n\r\n")
         self.status = int(head.split()[1])

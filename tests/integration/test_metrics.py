@@ -198,7 +198,7 @@ def test_connections_accepted_refused_and_closed_by_reason(gateway_with: Gateway
     _sim, gw = gateway_with({1: plc(1)}, server={"max_connections": 1, "when_full": "refuse"})
     first = gw.connect()
     first.request(1, READ_10)
-    assert samples(gw)[series("modbus_gateway_connections_open")] == 1
+    assert samples(gw)[series("modbus_gateway_connections_open", listener="tcp")] == 1
     with gw.connect() as second:
         assert second.is_closed_by_peer()
     # A broken MBAP header (protocol id 1) closes that master's connection only.
@@ -213,7 +213,7 @@ def test_connections_accepted_refused_and_closed_by_reason(gateway_with: Gateway
     assert after[series("modbus_gateway_connections_accepted_total")] == 2
     rejected = series("modbus_gateway_connections_rejected_total", reason="max_connections")
     assert after[rejected] == 1
-    assert after[series("modbus_gateway_connections_open")] == 0
+    assert after[series("modbus_gateway_connections_open", listener="tcp")] == 0
     reason = series("modbus_gateway_connections_closed_total", reason="protocol_error")
     assert after[reason] == 1
     assert after[series("modbus_gateway_protocol_errors_total", kind="bad_protocol_id")] == 1

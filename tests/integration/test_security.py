@@ -473,7 +473,7 @@ def test_silent_tls_clients_are_cut_off_at_the_handshake_timeout(
             sock.close()
     labels = {"listener": "tls", "reason": "timeout"}
     wait_for_sample(gw, "modbus_gateway_tls_handshake_failures_total", labels, 8)
-    assert sample(gw, "modbus_gateway_connections_open") == 0
+    assert sample(gw, "modbus_gateway_connections_open", {"listener": "tls"}) == 0
 
 
 def test_force_listen_only_mode_is_refused_on_a_listener_without_rules(
