@@ -150,6 +150,38 @@ def _on_signal(_signum: int, _frame: FrameType | None) -> None:
     raise _StopRequestedError
 
 
+def _trace_path(args: argparse.Namespace, base: str) -> str:
+    """The ``/trace`` request path under ``base`` with the filters as its query."""
+    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
+    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
+    query += [("master", v) for v in args.master]
+    return (base.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+
+
+def _follow(response: http.client.HTTPResponse, args: argparse.Namespace,
+            capture: TraceCapture | None) -> int:  # fmt: skip
+    """Print (and capture) events until ``--count`` is reached (0) or the stream ends (1)."""
+    seen = 0
+    while args.count is None or seen < args.count:
+        raw = response.readline()
+        if not raw:
+            print("modbus-gateway trace: the gateway closed the stream", file=sys.stderr)
+            return 1
+        if not raw.strip():
+            continue
+        event = json.loads(raw)
+        if event.get("type") == "heartbeat":
+            continue
+        # A stop signal lands between events, never inside a capture block.
+        signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        seen += 1
+        if capture is not None:
+            capture.add(event)
+        print(json.dumps(event) if args.json else format_event(event), flush=True)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    return 0
+
+
 def main(argv: Sequence[str]) -> int:
     """Run the client; 0 on a clean stop, 1 when the gateway went away, 2 on bad input."""
     args = build_parser().parse_args(argv)
@@ -158,16 +190,12 @@ def main(argv: Sequence[str]) -> int:
         print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT",
               file=sys.stderr)  # fmt: skip
         return 2
-    query = [("line", v) for v in args.line] + [("unit", str(v)) for v in args.unit]
-    query += [("function", v) for v in args.function] + [("outcome", v) for v in args.outcome]
-    query += [("master", v) for v in args.master]
-    path = (url.path.rstrip("/") or "") + "/trace" + ("?" + urlencode(query) if query else "")
+    path = _trace_path(args, url.path)
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
     connection = http.client.HTTPConnection(url.hostname, url.port or 80,
                                             timeout=args.connect_timeout)  # fmt: skip
     pcap_file = None
-    seen = 0
     try:
         try:
             connection.request("GET", path, headers={"Accept": "application/x-ndjson"})
@@ -189,23 +217,7 @@ def main(argv: Sequence[str]) -> int:
             pcap_file = open(args.pcap, "wb")  # noqa: SIM115 - closed in the finally below
             capture = TraceCapture(PcapngWriter(pcap_file, _gateway_address(url.hostname)))
         print(f"tracing {args.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        while args.count is None or seen < args.count:
-            raw = response.readline()
-            if not raw:
-                print("modbus-gateway trace: the gateway closed the stream", file=sys.stderr)
-                return 1
-            if not raw.strip():
-                continue
-            event = json.loads(raw)
-            if event.get("type") == "heartbeat":
-                continue
-            # A stop signal lands between events, never inside a capture block.
-            signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-            seen += 1
-            if capture is not None:
-                capture.add(event)
-            print(json.dumps(event) if args.json else format_event(event), flush=True)
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+        return _follow(response, args, capture)
     except _StopRequestedError:
         pass
     finally:
