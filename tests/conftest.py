@@ -46,6 +46,22 @@ DEADLINE_S = 10.0
 UNPACED_BAUDRATE = 115200
 
 
+# --------------------------------------------------------------------------- test tiers
+
+#: Every test under this directory is marked ``e2e`` (see ``pytest_collection_modifyitems``).
+E2E_DIRECTORY = Path(__file__).resolve().parent / "e2e"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the tests under tests/e2e ``e2e`` before ``-m`` selects, so that a new file
+    there cannot join the fast tier by forgetting its marker."""
+    e2e = pytest.mark.e2e
+    for item in items:
+        if item.path.resolve().is_relative_to(E2E_DIRECTORY):
+            item.add_marker(e2e)
+
+
 def wait_until(condition: Callable[[], bool], what: str = "", timeout: float = DEADLINE_S) -> None:
     """Poll ``condition`` (a state the gateway reaches by itself) until it holds; fail naming
     ``what`` after ``timeout`` seconds."""
