@@ -188,6 +188,30 @@ def _on_signal(_signum: int, _frame: FrameType | None) -> None:
     raise _StopRequestedError
 
 
+def _follow(response: http.client.HTTPResponse, args: argparse.Namespace,
+            capture: TraceCapture | None) -> int:  # fmt: skip
+    """Print (and capture) events until ``--count`` is reached (0) or the stream ends (1)."""
+    seen = 0
+    while args.count is None or seen < args.count:
+        raw = response.readline()
+        if not raw:
+            print("modbus-gateway trace: the gateway closed the stream", file=sys.stderr)
+            return 1
+        if not raw.strip():
+            continue
+        event = json.loads(raw)
+        if event.get("type") == "heartbeat":
+            continue
+        # A stop signal lands between events, never inside a capture block.
+        signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        seen += 1
+        if capture is not None:
+            capture.add(event)
+        print(json.dumps(event) if args.json else format_event(event), flush=True)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    return 0
+
+
 def main(argv: Sequence[str]) -> int:
     """Run the client; 0 on a clean stop, 1 when the gateway went away, 2 on bad input."""
     args = build_parser().parse_args(argv)
@@ -201,7 +225,6 @@ def main(argv: Sequence[str]) -> int:
     signal.signal(signal.SIGINT, _on_signal)
     connection = _connection(url.scheme, url.hostname, url.port, args)
     pcap_file = None
-    seen = 0
     try:
         try:
             connection.request("GET", path, headers=_headers())
@@ -223,23 +246,7 @@ def main(argv: Sequence[str]) -> int:
             pcap_file = open(args.pcap, "wb")  # noqa: SIM115 - closed in the finally below
             capture = TraceCapture(PcapngWriter(pcap_file, _gateway_address(url.hostname)))
         print(f"tracing {args.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        while args.count is None or seen < args.count:
-            raw = response.readline()
-            if not raw:
-                print("modbus-gateway trace: the gateway closed the stream", file=sys.stderr)
-                return 1
-            if not raw.strip():
-                continue
-            event = json.loads(raw)
-            if event.get("type") == "heartbeat":
-                continue
-            # A stop signal lands between events, never inside a capture block.
-            signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-            seen += 1
-            if capture is not None:
-                capture.add(event)
-            print(json.dumps(event) if args.json else format_event(event), flush=True)
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+        return _follow(response, args, capture)
     except _StopRequestedError:
         pass
     finally:

@@ -12,6 +12,7 @@ Helpers are importable by test modules (``from conftest import RawClient``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import shutil
@@ -46,6 +47,22 @@ DEADLINE_S = 10.0
 UNPACED_BAUDRATE = 115200
 
 
+# --------------------------------------------------------------------------- test tiers
+
+#: Every test under this directory is marked ``e2e`` (see ``pytest_collection_modifyitems``).
+E2E_DIRECTORY = Path(__file__).resolve().parent / "e2e"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the tests under tests/e2e ``e2e`` before ``-m`` selects, so that a new file
+    there cannot join the fast tier by forgetting its marker."""
+    e2e = pytest.mark.e2e
+    for item in items:
+        if item.path.resolve().is_relative_to(E2E_DIRECTORY):
+            item.add_marker(e2e)
+
+
 def wait_until(condition: Callable[[], bool], what: str = "", timeout: float = DEADLINE_S) -> None:
     """Poll ``condition`` (a state the gateway reaches by itself) until it holds; fail naming
     ``what`` after ``timeout`` seconds."""
@@ -54,6 +71,22 @@ def wait_until(condition: Callable[[], bool], what: str = "", timeout: float = D
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what or condition}")
         time.sleep(0.002)
+
+
+def release(process: subprocess.Popen[Any], *readers: threading.Thread) -> None:
+    """Wait for ``process`` (stopped or about to stop) and close its pipes, once the
+    ``readers`` (threads that read them to their end) are done: a pipe left to the garbage
+    collector is a ResourceWarning, which fails the tests."""
+    process.wait(DEADLINE_S)
+    for reader in readers:
+        reader.join(DEADLINE_S)
+        assert not reader.is_alive(), f"{reader.name} still reads a pipe of pid {process.pid}"
+    for pipe in (process.stdout, process.stderr):
+        if pipe is not None:
+            pipe.close()
+    if process.stdin is not None:
+        with contextlib.suppress(BrokenPipeError):
+            process.stdin.close()
 
 
 # --------------------------------------------------------------------------- log records

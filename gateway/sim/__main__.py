@@ -51,6 +51,22 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m gateway.sim",
         description="Serve simulated Modbus RTU or ASCII devices on a pty, or a Modbus TCP slave.",
     )
+    _add_tcp_options(parser)
+    parser.add_argument(
+        "--profile",
+        action="append",
+        type=_profile,
+        required=True,
+        metavar="NAME:UNIT",
+        help=f"a device to simulate ({', '.join(sorted(PROFILES))}); repeat for more",
+    )
+    _add_line_options(parser)
+    _add_fault_options(parser)
+    return parser
+
+
+def _add_tcp_options(parser: argparse.ArgumentParser) -> None:
+    """Options of the Modbus TCP (and Modbus/TCP Security) slave, instead of a pty."""
     parser.add_argument(
         "--modbus-tcp-listen",
         type=_listen_address,
@@ -71,14 +87,10 @@ def _parser() -> argparse.ArgumentParser:
         help="require client certificates issued by this CA (Modbus/TCP Security's mutual "
         "authentication)",
     )
-    parser.add_argument(
-        "--profile",
-        action="append",
-        type=_profile,
-        required=True,
-        metavar="NAME:UNIT",
-        help=f"a device to simulate ({', '.join(sorted(PROFILES))}); repeat for more",
-    )
+
+
+def _add_line_options(parser: argparse.ArgumentParser) -> None:
+    """Options of the simulated serial line: pacing, framing, the device path."""
     parser.add_argument("--baudrate", type=int, help="pace answers like a line at this speed")
     parser.add_argument(
         "--turnaround",
@@ -105,6 +117,10 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="echo every byte the master sends (a half-duplex adapter without echo suppression)",
     )
+
+
+def _add_fault_options(parser: argparse.ArgumentParser) -> None:
+    """Fault injection: dead units and corrupted answers."""
     parser.add_argument("--seed", type=int, default=0, help="seed of the fault injection")
     parser.add_argument(
         "--silent",
@@ -122,7 +138,6 @@ def _parser() -> argparse.ArgumentParser:
         metavar="UNIT:RATE",
         help="send this fraction of the unit's answers with a bad CRC; repeat for more",
     )
-    return parser
 
 
 def _listen_address(text: str) -> tuple[str, int]:

@@ -221,7 +221,11 @@ class SimulatedDevice:
         self.fifos: dict[int, list[int]] = {k: list(v) for k, v in (fifos or {}).items()}
         self.counters = DeviceCounters()
         self.event_log: deque[int] = deque(maxlen=_EVENT_LOG_SIZE)
-        self._handlers: dict[int, Callable[[bytes], bytes]] = {
+        self._handlers = self._handler_table()
+
+    def _handler_table(self) -> dict[int, Callable[[bytes], bytes]]:
+        """Each function code's handler, looked up once per request by ``handle``."""
+        return {
             fc.READ_COILS: self._read_coils,
             fc.READ_DISCRETE_INPUTS: self._read_discrete_inputs,
             fc.READ_HOLDING_REGISTERS: self._read_holding,

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, RawClient, Reply, SimFactory
+from conftest import DEADLINE_S, RawClient, Reply, SimFactory, release
 
 from gateway import __version__, build
 from gateway.core.ascii import encode_ascii
@@ -90,9 +90,10 @@ class GatewayProcess:
         return self.process.wait(DEADLINE_S)
 
     def kill(self) -> None:
+        """Kill it if it still runs; close its pipes."""
         if self.process.poll() is None:
             self.process.kill()
-            self.process.wait(DEADLINE_S)
+        release(self.process, self._reader)
 
 
 RunGateway = Callable[..., GatewayProcess]

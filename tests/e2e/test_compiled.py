@@ -22,6 +22,8 @@ from typing import NamedTuple
 import pytest
 from conftest import environment_with_our_dependencies
 
+pytestmark = pytest.mark.compiled
+
 ROOT = Path(__file__).resolve().parents[2]
 
 #: Run again on the compiled build: the core with literal times and its state machines,
@@ -150,13 +152,14 @@ def test_every_listed_module_is_compiled_and_says_so(compiled: CompiledInstall) 
 
 def test_the_compiled_build_passes_the_line_tests(compiled: CompiledInstall) -> None:
     """The same tests, on the compiled modules (the gateways they start included)."""
+    # `-m ''`: every tier of these tests, the slow stateful machines included.
     run_them = (
         "import sys, gateway, pytest\n"
         "assert gateway.build() == 'compiled', gateway.__file__\n"
         "sys.exit(pytest.main(sys.argv[1:]))\n"
     )
     done = subprocess.run(
-        [compiled.python, "-c", run_them, "-q", "-p", "no:cacheprovider", "-x", *AGAIN],
+        [compiled.python, "-c", run_them, "-q", "-p", "no:cacheprovider", "-x", "-m", "", *AGAIN],
         cwd=compiled.tests_tree, env={**from_the_venv(compiled), "LINE_MACHINE_EXAMPLES": "50"},
         capture_output=True, text=True, timeout=900, check=False,
     )  # fmt: skip

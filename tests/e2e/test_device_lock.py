@@ -22,7 +22,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, UNPACED_BAUDRATE, GatewayFactory, RawClient, SimFactory
+from conftest import (
+    DEADLINE_S,
+    UNPACED_BAUDRATE,
+    GatewayFactory,
+    RawClient,
+    SimFactory,
+    release,
+)
 from test_cli import GatewayProcess, RunGateway, gateway_command
 
 from gateway.config import build_config
@@ -65,7 +72,7 @@ class FlockHolder:
         if self.process.poll() is None:
             assert self.process.stdin is not None
             self.process.stdin.close()
-            self.process.wait(DEADLINE_S)
+        release(self.process)
 
 
 @pytest.fixture

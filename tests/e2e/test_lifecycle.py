@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import wait_until
+from conftest import release, wait_until
 
 from gateway.config import build_config
 from gateway.io.serial_port import SerialLink, SerialPortError, open_serial
@@ -194,8 +194,7 @@ class GatewayProcess:
         """Kill the process if it still runs; collect the rest of its log."""
         if self.proc.poll() is None:
             self.proc.kill()
-        self.proc.wait(DEADLINE_S)
-        self._reader.join(DEADLINE_S)
+        release(self.proc, self._reader)
 
 
 # --------------------------------------------------------------------------- masters

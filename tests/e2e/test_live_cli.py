@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, RawClient, SimFactory, require_tool
+from conftest import DEADLINE_S, RawClient, SimFactory, release, require_tool
 
 from gateway.sim import plc, zl69x
 
@@ -32,8 +32,12 @@ class Process:
         self.out: queue.Queue[str] = queue.Queue()
         self.err: queue.Queue[str] = queue.Queue()
         self.seen: list[str] = []
-        for pipe, into in ((self.popen.stdout, self.out), (self.popen.stderr, self.err)):
-            threading.Thread(target=self._lines, args=(pipe, into), daemon=True).start()
+        self._readers = [
+            threading.Thread(target=self._lines, args=(pipe, into), daemon=True)
+            for pipe, into in ((self.popen.stdout, self.out), (self.popen.stderr, self.err))
+        ]
+        for reader in self._readers:
+            reader.start()
 
     @staticmethod
     def _lines(pipe: object, into: queue.Queue[str]) -> None:
@@ -55,9 +59,11 @@ class Process:
         raise AssertionError(f"no line matching {pattern!r} in:\n" + "\n".join(self.seen))
 
     def stop(self) -> int:
+        """SIGTERM if it still runs; close its pipes; the exit code."""
         if self.popen.poll() is None:
             self.popen.send_signal(signal.SIGTERM)
-        return self.popen.wait(DEADLINE_S)
+        release(self.popen, *self._readers)
+        return self.popen.returncode
 
 
 @pytest.fixture
@@ -109,9 +115,11 @@ def test_trace_refuses_a_bad_filter_and_an_unreachable_gateway(
     bad = Process("trace", "--url", url, "--outcome", "fine")
     assert bad.popen.wait(DEADLINE_S) == 2
     bad.wait_for(r"answered 400: outcome=fine: expected one of")
+    bad.stop()
     nobody = Process("trace", "--url", "http://127.0.0.1:1")
     assert nobody.popen.wait(DEADLINE_S) == 1
     nobody.wait_for(r"cannot reach http://127.0.0.1:1")
+    nobody.stop()
 
 
 def test_the_pcap_decodes_as_modbus_tcp_and_modbus_rtu(

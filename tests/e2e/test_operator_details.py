@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, SimFactory, require_tool
+from conftest import DEADLINE_S, SimFactory, release, require_tool
 
 from gateway.sim import plc
 
@@ -65,7 +65,7 @@ def test_a_silent_slave_is_0x0b_before_the_masters_1s_timeout_at_9600_baud(
         assert "timed out" not in output.lower(), output
     finally:
         process.terminate()
-        process.wait(DEADLINE_S)
+        release(process)
 
 
 def _without_bind_capability() -> list[str]:

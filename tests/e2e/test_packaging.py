@@ -1,4 +1,5 @@
-"""Packaging checks: the systemd unit, the Dockerfile, the compose file, the smoke test.
+"""Packaging checks: the systemd unit, the Dockerfile, the compose file, the smoke test, CI's
+test tiers.
 
 Static and fast (no container is built, no systemd needs to run). A checker that is
 not installed is a skip on a developer's machine and a failure in CI (CI set), so CI
@@ -8,8 +9,11 @@ The image itself is exercised by docker/smoke-test.sh, outside pytest.
 
 from __future__ import annotations
 
+import ast
+import itertools
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -273,16 +277,96 @@ def _readme_command(comment: str) -> str:
 def test_ci_runs_exactly_the_readme_test_command_in_a_fresh_venv() -> None:
     command = _readme_command("Install and run the tests:")
     assert command.startswith("python3 -m venv .venv && "), command
-    script = [
-        line.strip()
-        for line in (REPO / ".ci" / "run").read_text(encoding="utf-8").splitlines()
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
+    script = _ci_script()
     assert command in script
     assert script.index("rm -rf .venv") < script.index(command)
     after = script[script.index(command) + 1 :]
     for check in (".venv/bin/ruff check .", ".venv/bin/ruff format --check .", ".venv/bin/mypy"):
         assert check in after, f".ci/run must run {check!r} after the tests"
+
+
+#: The markers that set tests aside from the fast tier (registered in pyproject.toml).
+TIER_MARKERS = ("slow", "e2e", "compiled")
+
+
+def _pytest_settings() -> dict[str, Any]:
+    settings: dict[str, Any] = tomllib.loads((REPO / "pyproject.toml").read_text("utf-8"))
+    return settings["tool"]["pytest"]["ini_options"]  # type: ignore[no-any-return]
+
+
+def _selects(expression: str, markers: set[str]) -> bool:
+    """Whether ``-m expression`` selects a test carrying ``markers`` (names, and, or, not)."""
+    tree = ast.parse(expression, mode="eval")
+    allowed = (ast.Expression, ast.BoolOp, ast.And, ast.Or, ast.UnaryOp, ast.Not, ast.Name,
+               ast.Load)  # fmt: skip
+    assert all(isinstance(node, allowed) for node in ast.walk(tree)), expression
+
+    def value(node: ast.expr) -> bool:
+        if isinstance(node, ast.Name):
+            return node.id in markers
+        if isinstance(node, ast.UnaryOp):
+            return not value(node.operand)
+        assert isinstance(node, ast.BoolOp)
+        results = [value(operand) for operand in node.values]
+        return all(results) if isinstance(node.op, ast.And) else any(results)
+
+    return value(tree.body)
+
+
+def _ci_script() -> list[str]:
+    """.ci/run's commands: lines stripped, comments and blank lines dropped."""
+    return [
+        line.strip()
+        for line in (REPO / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+
+
+def test_the_fast_tier_is_the_default_and_warnings_are_errors() -> None:
+    settings = _pytest_settings()
+    registered = {marker.split(":", 1)[0].strip() for marker in settings["markers"]}
+    assert set(TIER_MARKERS) <= registered
+    options = shlex.split(settings["addopts"])
+    assert "--strict-markers" in options
+    default = options[options.index("-m") + 1]
+    assert _selects(default, set())  # unmarked tests are the fast tier
+    assert settings["filterwarnings"][0] == "error"
+
+
+def test_ci_runs_the_marked_tiers_after_the_fast_tier() -> None:
+    """Every test runs in CI exactly once: in the README's command or in the marked tiers."""
+    script = _ci_script()
+    fast = script.index(_readme_command("Install and run the tests:"))
+    prefix = ".venv/bin/python -m pytest -q -m "
+    tiers = [i for i, line in enumerate(script) if line.startswith(prefix)]
+    assert len(tiers) == 1 and tiers[0] > fast, f".ci/run must run {prefix}'...' after the tests"
+    assert tiers[0] < script.index(".venv/bin/ruff check .")
+    (marked,) = shlex.split(script[tiers[0]].removeprefix(prefix))
+    options = shlex.split(_pytest_settings()["addopts"])
+    default = options[options.index("-m") + 1]
+    for size in range(len(TIER_MARKERS) + 1):
+        for markers in itertools.combinations(TIER_MARKERS, size):
+            runs = [_selects(default, set(markers)), _selects(marked, set(markers))]
+            assert runs.count(True) == 1, f"a test marked {markers or 'nothing'} runs {runs}"
+
+
+def _collect(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+         *args],
+        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("marker", "where"), [("e2e", "tests/e2e"), ("compiled", "tests/e2e/test_compiled.py")]
+)
+def test_every_test_here_carries_its_tier_marker(marker: str, where: str) -> None:
+    """Nothing here joins the fast tier: without the marker, no test is left (pytest exit 5)."""
+    left = _collect("-m", f"not {marker}", where)
+    assert left.returncode == pytest.ExitCode.NO_TESTS_COLLECTED, left.stdout[-3000:]
+    deselected = re.search(r"\((\d+) deselected\)", left.stdout)
+    assert deselected and int(deselected.group(1)) > 0, left.stdout[-3000:]
 
 
 def test_the_run_command_needs_only_python3_and_venv() -> None:

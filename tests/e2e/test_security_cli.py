@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import require_tool
+from conftest import release, require_tool
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
@@ -46,7 +46,8 @@ class Gateway:
             command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             text=True,
         )  # fmt: skip
-        threading.Thread(target=self._read, daemon=True).start()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
@@ -79,9 +80,11 @@ class Gateway:
                 self._changed.wait(remaining)
 
     def close(self) -> int:
+        """SIGTERM if it still runs; close its pipe; the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
-        return self.proc.wait(DEADLINE_S)
+        release(self.proc, self._reader)
+        return self.proc.returncode
 
 
 @pytest.fixture
@@ -215,6 +218,7 @@ def test_an_expired_server_certificate_stops_the_start(tmp_path: Path, pki: Pki)
     assert gateway.proc.wait(DEADLINE_S) == 1
     gateway.wait_for(rf"cannot start: .*cert = '{re.escape(str(chain))}'.* expired on")
     assert not [line for line in gateway.lines if "listening on" in line]
+    assert gateway.close() == 1
 
 
 def test_check_config_validates_tls_files_and_warns_about_rules(tmp_path: Path, pki: Pki) -> None:

@@ -12,6 +12,8 @@ import sys
 import threading
 import time
 
+from conftest import release
+
 DEADLINE_S = 10.0
 
 
@@ -45,7 +47,8 @@ def test_trace_subcommand_prints_requests_and_replies_decoded() -> None:
     )  # fmt: skip
     lines: queue.Queue[str] = queue.Queue()
     seen: list[str] = []
-    threading.Thread(target=_lines, args=(process.stderr, lines), daemon=True).start()
+    reader = threading.Thread(target=_lines, args=(process.stderr, lines), daemon=True)
+    reader.start()
     try:
         match = _wait_for(lines, r"listening on ([\d.]+):(\d+) \(Modbus TCP\)", seen)
         with socket.create_connection((match[1], int(match[2])), timeout=DEADLINE_S) as sock:
@@ -67,5 +70,5 @@ def test_trace_subcommand_prints_requests_and_replies_decoded() -> None:
         assert not [line for line in seen if "tid=41" in line or "tid=42" in line]
     finally:
         process.send_signal(signal.SIGTERM)
-        process.wait(DEADLINE_S)
+        release(process, reader)
     assert process.returncode == 0

@@ -137,6 +137,7 @@ def test_a_bad_filter_is_refused_with_the_reason(gateway_with: GatewayOnSim) -> 
     assert code == 400 and b"expected one of" in body and b"target_failed" in body
 
 
+@pytest.mark.slow  # fills a stalled client's socket buffers under load, ~4 s
 def test_a_client_that_does_not_read_loses_events_not_the_gateways_time(
     gateway_with: GatewayOnSim,
 ) -> None:

@@ -214,6 +214,7 @@ def make_prometheus(prometheus_binary: str, tmp_path: Path) -> Iterator[Any]:
         server.stop()
 
 
+@pytest.mark.slow  # Prometheus queries its first scrape after ~5 s
 def test_prometheus_scrapes_the_gateway_under_load(
     gateway_with: GatewayOnSim, make_prometheus: Any
 ) -> None:

@@ -401,8 +401,8 @@ def test_a_handshake_under_way_at_the_reload_is_judged_when_it_ends(
         listener["ca"] = str(only_b)
         reload(gw, tables)
         assert gw.call(lambda: server.connections) == 1  # its certificate is not known yet
-        tls = client_context(pki, "operator").wrap_socket(raw, server_hostname="localhost")
-        assert closed_by_peer(tls)  # the handshake succeeded (old CAs); then the door shut
+        with client_context(pki, "operator").wrap_socket(raw, server_hostname="localhost") as tls:
+            assert closed_by_peer(tls)  # the handshake succeeded (old CAs); then the door shut
     assert closed_at_reload(gw) == 1
 
 

@@ -67,6 +67,7 @@ class Socat:
         self.port = port
         self.path = path
         self.process: subprocess.Popen[bytes] | None = None
+        self._drainer: threading.Thread | None = None
 
     def start(self) -> None:
         socat = require_tool("socat")
@@ -85,7 +86,8 @@ class Socat:
                 chunk = os.read(self.process.stderr.fileno(), 4096)
                 assert chunk, f"socat exited: {seen!r}"
                 seen += chunk
-        threading.Thread(target=self._drain, args=(self.process,), daemon=True).start()
+        self._drainer = threading.Thread(target=self._drain, args=(self.process,), daemon=True)
+        self._drainer.start()
 
     @staticmethod
     def _drain(process: subprocess.Popen[bytes]) -> None:
@@ -103,6 +105,11 @@ class Socat:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(child, signal.SIGKILL)
             self.process.wait(DEADLINE_S)
+        # The drainer ends at the pipe's end of file; then the pipe can be closed.
+        if self._drainer is not None and self.process is not None:
+            self._drainer.join(DEADLINE_S)
+            if not self._drainer.is_alive() and self.process.stderr is not None:
+                self.process.stderr.close()
 
 
 def _children(pid: int) -> list[int]:

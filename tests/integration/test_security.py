@@ -268,12 +268,17 @@ def test_pymodbus_tls_client_with_a_client_certificate(
         context = client_context(pki, name)
         client: Any = AsyncModbusTlsClient(host, port=port, sslctx=context, timeout=5, retries=0)
         assert await client.connect()
+        sock = client.ctx.transport.get_extra_info("socket")
         try:
             read = await client.read_holding_registers(10, count=3, device_id=1)
             write = await client.write_register(20, 0x1234, device_id=1)
             far = await client.read_holding_registers(200, count=1, device_id=2)
         finally:
             client.close()
+            # close() only starts the TLS shutdown: let it close the socket before the loop ends.
+            deadline = time.monotonic() + DEADLINE_S
+            while sock.fileno() != -1 and time.monotonic() < deadline:
+                await asyncio.sleep(0.005)
         return read, write, far
 
     expected = sim.device(1).holding.read(10, 3)

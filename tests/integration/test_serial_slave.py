@@ -196,6 +196,7 @@ def socat_ptys(tmp_path: Path) -> Iterator[tuple[str, str]]:
     finally:
         process.kill()
         process.wait(DEADLINE_S)
+        process.stderr.close()
 
 
 def mbpoll(*args: Any) -> str:

@@ -491,9 +491,9 @@ def test_module_entry_point_serves_until_sigterm(tmp_path: Path) -> None:
         process.send_signal(signal.SIGTERM)
         output, _ = process.communicate(timeout=5)
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
+        with process:  # closes its pipe and waits
+            if process.poll() is None:
+                process.kill()
     assert process.returncode == 0
     stats = json.loads(output.strip().splitlines()[-1])
     assert stats["requests"] == 1 and stats["responses"] == 1

@@ -272,9 +272,9 @@ def test_python_m_gateway_sim_serves_the_r6_over_modbus_tcp() -> None:
         assert process.returncode == 0
         assert json.loads(out.strip().splitlines()[-1])["responses"] == 1
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
+        with process:  # closes its pipes and waits
+            if process.poll() is None:
+                process.kill()
 
 
 def test_python_m_gateway_sim_refuses_serial_flags_with_modbus_tcp() -> None:
@@ -331,9 +331,11 @@ def test_the_gateway_reaches_the_simulator_over_modbus_tcp_security(tmp_path: Pa
             assert client.request(1, h("03 0082 0001")) == h("03 02 00 02")
     finally:
         for process in (gateway, sim):
-            if process is not None and process.poll() is None:
-                process.kill()
-                process.wait()
+            if process is None:
+                continue
+            with process:  # closes its pipes and waits
+                if process.poll() is None:
+                    process.kill()
 
 
 def _split(address: str) -> tuple[str, int]:

@@ -423,6 +423,7 @@ class SlaveProcess:
             self.kill()
 
 
+@pytest.mark.slow  # kills and restarts slaves under load, ~4 s per case
 @pytest.mark.parametrize("in_flight", [1, 4])
 def test_tcp_and_tls_slaves_killed_and_restarted_under_load_give_no_wrong_answer(
     make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, in_flight: int

@@ -30,6 +30,7 @@ import os
 import struct
 from dataclasses import dataclass, field, replace
 
+import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
@@ -631,7 +632,8 @@ LineMachine.TestCase.settings = settings(
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )
-TestLineCore = LineMachine.TestCase
+# Each machine explores 200 examples, 4-8 s: the slow tier (`pytest -m slow`).
+TestLineCore = pytest.mark.slow(LineMachine.TestCase)
 
 
 class AsciiLineMachine(LineMachine):
@@ -653,7 +655,7 @@ class AsciiLineMachine(LineMachine):
 
 
 AsciiLineMachine.TestCase.settings = LineMachine.TestCase.settings
-TestAsciiLineCore = AsciiLineMachine.TestCase
+TestAsciiLineCore = pytest.mark.slow(AsciiLineMachine.TestCase)
 
 
 class EchoLineMachine(LineMachine):
@@ -663,7 +665,7 @@ class EchoLineMachine(LineMachine):
 
 
 EchoLineMachine.TestCase.settings = LineMachine.TestCase.settings
-TestEchoLineCore = EchoLineMachine.TestCase
+TestEchoLineCore = pytest.mark.slow(EchoLineMachine.TestCase)
 
 
 class PipelinedLineMachine(LineMachine):
@@ -824,7 +826,7 @@ class PipelinedLineMachine(LineMachine):
 
 
 PipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
-TestPipelinedLineCore = PipelinedLineMachine.TestCase
+TestPipelinedLineCore = pytest.mark.slow(PipelinedLineMachine.TestCase)
 
 #: A read cache over every register the machines read, on every slave.
 CACHE = tuple(CacheRule(unit, function, 0, 8, 0.3) for unit in SLAVES for function in (3, 4))
@@ -837,7 +839,7 @@ class CachedLineMachine(LineMachine):
 
 
 CachedLineMachine.TestCase.settings = LineMachine.TestCase.settings
-TestCachedLineCore = CachedLineMachine.TestCase
+TestCachedLineCore = pytest.mark.slow(CachedLineMachine.TestCase)
 
 
 class CachedPipelinedLineMachine(PipelinedLineMachine):
@@ -847,7 +849,7 @@ class CachedPipelinedLineMachine(PipelinedLineMachine):
 
 
 CachedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
-TestCachedPipelinedLineCore = CachedPipelinedLineMachine.TestCase
+TestCachedPipelinedLineCore = pytest.mark.slow(CachedPipelinedLineMachine.TestCase)
 
 
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
