@@ -809,8 +809,14 @@ class ModbusTcpServer:
         host, port = self.sockets[0] if self.sockets else (self.listener.host, self.listener.port)
         listener = f"{self.name} {host}:{port}"
         return [
-            MasterStatus(connection.peer, listener, connection.in_flight, connection.requests,
-                         connection.role_text, connection.denied)  # fmt: skip
+            MasterStatus(
+                connection.peer,
+                listener,
+                connection.in_flight,
+                connection.requests,
+                connection.role_text,
+                connection.denied,
+            )
             for connection in self._connections
         ]
 

@@ -152,7 +152,7 @@ def test_the_console_in_chromium(
             plc_row = '#slaves tr[data-unit="1"]'
             browser.wait_for(f"{_text(plc_row + ' td.requests')} === '3'", "unit 1 counted")
             assert browser.evaluate(_text(f"{plc_row} td.exceptions")) == (
-                "0x02 illegal data address ×1"
+                "0x02 illegal data address \u00d71"
             )
             assert browser.evaluate(_text(f"{row} td.seen")) != "never"
             assert browser.evaluate("document.getElementById('notheard').dataset.count") == "28"
@@ -170,7 +170,9 @@ def test_the_console_in_chromium(
         gw.stop()  # the gateway goes away: the page says so and greys its figures out
         banner = browser.wait_for(
             "document.body.classList.contains('stale') && "
-            "document.getElementById('banner').textContent", "the unreachable state")
+            "document.getElementById('banner').textContent",
+            "the unreachable state",
+        )
         assert banner.startswith("gateway unreachable since ")
         assert browser.evaluate(
             "getComputedStyle(document.getElementById('figures')).opacity"
