@@ -43,8 +43,9 @@ def answer_values(request: bytes | None, reply: bytes) -> dict[str, Any] | None:
         registers = [int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data) - 1, 2)]
         return {"address": start, "registers": registers[:MAX_VALUES]}
     if function in _BIT_READS:
-        count = _u16(request, 3) if start is not None and request else reply[1] * 8
-        bits = [(reply[2 + i // 8] >> (i % 8)) & 1 for i in range(min(count, reply[1] * 8))]
+        data = reply[2 : 2 + reply[1]]  # a short answer decodes as far as it goes
+        count = _u16(request, 3) if start is not None and request else len(data) * 8
+        bits = [(data[i // 8] >> (i % 8)) & 1 for i in range(min(count, len(data) * 8))]
         return {"address": start, "bits": bits[: MAX_VALUES * 8]}
     if function in fc.ECHOED_WRITES and len(reply) >= 5:
         return {"address": _u16(reply, 1), "echo": fc.describe_request(reply)}
