@@ -44,7 +44,7 @@ def _host_port(text: str) -> str:
 
 
 def _metrics_address(text: str) -> str:
-    return text if text.lower() == "off" else _host_port(text)
+    return text.lower() if text.lower() in ("off", "auto") else _host_port(text)
 
 
 def _function_code(text: str) -> int:

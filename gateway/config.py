@@ -125,6 +125,10 @@ class ListenerConfig:
         return self.protocol == "tls"
 
 
+#: Where ``metrics.listen = "auto"`` binds, on a port the OS chooses.
+AUTO_METRICS_HOST = "127.0.0.1"
+
+
 @dataclass(frozen=True)
 class MetricsConfig:
     """The HTTP endpoint for /metrics, /healthz and /readyz."""
@@ -209,6 +213,8 @@ class LineConfig:
     probe_interval: float = 1.0
     probe_max_interval: float = 30.0
     slave_timeouts: Mapping[int, float] = field(default_factory=dict)
+    #: Slave address → the name the status page shows (``names``).
+    names: Mapping[int, str] = field(default_factory=dict)
     coalesce: bool = True
     cache: tuple[CacheRule, ...] = ()
     #: ``rtu``, ``ascii`` (serial devices) or ``rtu-over-tcp`` (``device`` is then ``HOST:PORT``).
@@ -549,7 +555,7 @@ _TLS_LINE_KEYS = tuple(k.name for k in _LINE_KEYS_BY_NAME.values() if k.only == 
 #: Line keys with a parser of their own (the rest are read as the schema declares them).
 _LINE_SPECIAL = frozenset({"kind", "device", "address", "baudrate", "data_bits", "parity",
                            "stop_bits",
-                           "timeout", "units", "slave_timeouts", "cache", "max_in_flight",
+                           "timeout", "units", "slave_timeouts", "names", "cache", "max_in_flight",
                            *_TLS_LINE_KEYS})  # fmt: skip
 #: Line keys stored in a field of another name.
 _LINE_FIELDS = {"silence": "silence_setting"}
@@ -680,6 +686,7 @@ def _build_line(check: _Checker, name: str, raw: Mapping[str, Any]) -> LineConfi
         units=units,
         timeout=_line_timeout(check, table, prefix, kind, form),
         slave_timeouts=_slave_timeouts(check, table, prefix),
+        names=_slave_names(check, table, prefix),
         cache=_cache_rules(check, table, prefix),
         max_in_flight=_max_in_flight(check, table, prefix, kind),
         **form,
@@ -831,6 +838,29 @@ def _slave_timeouts(check: _Checker, table: Mapping[str, Any], prefix: str) -> d
         low, high = _LINE_KEYS_BY_NAME["timeout"].float_range()
         timeouts[int(slave_text)] = check.number(raw, slave_text, f"{key}.", 1.0, low, high)
     return timeouts
+
+
+#: The longest slave name ``names`` takes (a status page cell, not a document).
+MAX_NAME_LENGTH = 64
+
+
+def _slave_names(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[int, str]:
+    """``names = { "1" = "plc" }``: keyed by slave address, as ``slave_timeouts`` is."""
+    raw = table.get("names", {})
+    key = f"{prefix}names"
+    if not isinstance(raw, dict):
+        check.fail(key, 'write a table of slave = name, like { "1" = "plc" }')
+        return {}
+    names: dict[int, str] = {}
+    for slave_text, name in raw.items():
+        if not slave_text.isdigit() or not 1 <= int(slave_text) <= 247:
+            check.fail(f"{key}.{slave_text}", "the key must be a slave address 1..247, quoted")
+        elif not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_LENGTH:
+            check.fail(f"{key}.{slave_text}", f"{name!r} is not a name of 1..{MAX_NAME_LENGTH} "
+                       "characters in quotes")  # fmt: skip
+        else:
+            names[int(slave_text)] = name.strip()
+    return names
 
 
 _CACHE_FUNCTIONS = (1, 2, 3, 4)
@@ -1437,6 +1467,8 @@ def _build_metrics(check: _Checker, raw: Mapping[str, Any]) -> MetricsConfig:
     table = check.entry(Table.METRICS, check.table(raw, "metrics"), prefix)
     values = _scalars(check, Table.METRICS, table, prefix, ("listen", *_METRICS_TEXT))
     values.update(_metrics_text(check, table, prefix))
+    if str(table.get("listen", "")).lower() == "auto":  # a free port the OS picks, logged
+        return MetricsConfig(True, AUTO_METRICS_HOST, 0, **values)
     address = check.read(schema.key(Table.METRICS, "listen"), table, prefix)
     if address is None:  # "off"
         return MetricsConfig(False, **values)

@@ -38,13 +38,14 @@ import logging
 import socket
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs
 
 from . import __version__
+from .answer_values import answer_values
 from .core import pdu as fc
 from .core.outcome import Outcome
 from .io.http import GuardedRoute, PacedRenderer, extra_headers, respond
@@ -87,8 +88,16 @@ class StreamEnd(enum.StrEnum):
     STOPPING = "stopping"  #: the gateway stops
 
 
+#: Seconds per sample of a line's utilisation chart, and the samples kept (5 minutes).
+HISTORY_S = 5.0
+HISTORY_SAMPLES = 60
+
 #: Outcomes of a reply that came from the slave, used for its latency.
 _ANSWERED = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION})
+
+#: A request awaiting its reply: (arrival, line, slave address, its PDU).
+_Pending = tuple[float | None, str | None, int | None, bytes | None]
+_UNKNOWN: _Pending = (None, None, None, None)
 
 
 @dataclass(slots=True)  # not frozen: a frozen dataclass costs ~1 us more to build
@@ -108,6 +117,7 @@ class TraceEvent:
     latency_ms: float | None = None
     listener: str | None = None  # requests: the listener it came in on
     role: str | None = None  # requests on a tls listener: the client's role ("NULL" for none)
+    request: bytes | None = None  # replies: the request's PDU, to number the values returned
     ndjson: bytes | None = None  # as NDJSON, made by the first stream that sends it
     sse_frame: bytes | None = None  # as a server-sent event, the same
 
@@ -140,6 +150,10 @@ class TraceEvent:
         elif self.pdu:
             echoed = self.function in fc.ECHOED_WRITES and not fc.is_exception(self.pdu)
             event["detail"] = (fc.describe_request if echoed else fc.describe_response)(self.pdu)
+        if self.direction == "reply":
+            values = answer_values(self.request, self.pdu)
+            if values is not None:
+                event["values"] = values
         if self.outcome is not None:
             event["outcome"] = self.outcome
         if self.latency_ms is not None:
@@ -258,7 +272,7 @@ class TraceHub:
         self._view = view
         self._clock = clock
         self.streams: set[TraceStream] = set()
-        self._pending: dict[tuple[str, int, int], tuple[float, str | None, int | None]] = {}
+        self._pending: dict[tuple[str, int, int], _Pending] = {}
         self._latencies: dict[tuple[str, int], deque[float]] = {}
         self._watched_until = 0.0
         self._unwatch: asyncio.TimerHandle | None = None
@@ -342,7 +356,7 @@ class TraceHub:
         pending = self._pending
         if len(pending) >= MAX_PENDING:
             del pending[next(iter(pending))]
-        pending[(peer, transaction_id, unit)] = (self._clock(), line, slave)
+        pending[(peer, transaction_id, unit)] = (self._clock(), line, slave, pdu)
         if self.streams:
             function = pdu[0] if pdu else 0
             self._publish(TraceEvent(time.time(), "request", peer, transaction_id, unit,
@@ -355,7 +369,7 @@ class TraceHub:
         """A reply is going out to ``peer``."""
         if outcome is None:
             outcome = reply_outcome(pdu)
-        arrived, line, slave = self._pending.pop((peer, transaction_id, unit), (None, None, None))
+        arrived, line, slave, asked = self._pending.pop((peer, transaction_id, unit), _UNKNOWN)
         latency = None if arrived is None else self._clock() - arrived
         if latency is not None and line is not None and slave is not None and outcome in _ANSWERED:
             samples = self._latencies.get((line, slave))
@@ -366,11 +380,12 @@ class TraceHub:
             function = pdu[0] & 0x7F if pdu else 0
             self._publish(TraceEvent(time.time(), "reply", peer, transaction_id, unit, function,
                                      pdu, line, slave, outcome,
-                                     None if latency is None else latency * 1000.0))  # fmt: skip
+                                     None if latency is None else latency * 1000.0,
+                                     request=asked))  # fmt: skip
 
     def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
         """The answer came after its master had left."""
-        arrived, line, slave = self._pending.pop((peer, transaction_id, unit), (None, None, None))
+        arrived, line, slave, _asked = self._pending.pop((peer, transaction_id, unit), _UNKNOWN)
         if self.streams:
             latency = None if arrived is None else (self._clock() - arrived) * 1000.0
             self._publish(TraceEvent(time.time(), "dropped", peer, transaction_id, unit, function,
@@ -405,38 +420,70 @@ class StatusView:
         self._started = time.monotonic()
         # line → (time, wire seconds, CRC errors, utilisation) at the previous snapshot
         self._last: dict[str, tuple[float, float, int, float | None]] = {}
+        self._history: dict[str, UtilisationHistory] = {}
 
     def snapshot(self) -> GatewayStatus:
         """The gateway's state now."""
         now = time.monotonic()
         view = self._view
+        faults = _SlaveFaults(self._metrics)
+        units = self._units()
         return GatewayStatus(
             version=__version__,
             uptime=round(now - self._started, 3),
-            lines=tuple(self._line(status, now) for status in view.line_states()),
+            lines=tuple(self._line(status, now, faults, units) for status in view.line_states()),
             masters=view.masters(),
             listen=view.listen(),
             trace_clients=len(self._hub.streams),
             trace_dropped=self._metrics.trace_events_dropped(),
+            time=round(time.time(), 3),
+            functions=self._functions(),
         )
 
-    def _line(self, status: LineStatus, now: float) -> LineStatus:
+    def _units(self) -> dict[tuple[str, int], list[int]]:
+        """(line, slave address) → the unit ids routed to it now."""
+        units: dict[tuple[str, int], list[int]] = {}
+        route = self._view.route
+        for unit in range(1, 256):
+            target = route(unit)
+            if target is not None:
+                units.setdefault(target, []).append(unit)
+        return units
+
+    def _functions(self) -> tuple[str, ...]:
+        """The function names masters have sent (what the trace's filter can choose)."""
+        seen = {labels[2] for labels, count in self._metrics.requests.series() if count}
+        return tuple(sorted(seen))
+
+    def _line(
+        self,
+        status: LineStatus,
+        now: float,
+        faults: _SlaveFaults,
+        units: Mapping[tuple[str, int], list[int]],
+    ) -> LineStatus:
         """One line's own status, with what the metrics and the hub know of it."""
         name = status.name
-        errors = self._metrics.slave_errors(name)
         slaves = tuple(
             replace(
                 slave,
                 p50=slave.p50 if slave.p50 is not None else latency[0],
                 p99=slave.p99 if slave.p99 is not None else latency[1],
-                errors=errors.get(slave.unit, 0),
+                errors=timeouts + crc,
+                timeouts=timeouts,
+                crc_errors=crc,
+                units=tuple(units.get((name, slave.unit), ())),
             )
             for slave in status.slaves
             for latency in (self._hub.slave_latency(name, slave.unit),)
+            for timeouts, crc in (faults.of(name, slave.unit),)
         )
         noisy, utilisation = self._activity(name, now)
         state = LineState.NOISY if noisy and status.state is LineState.UP else status.state
         histogram = self._metrics.request_duration.labels(name)
+        history = self._history.get(name)
+        if history is None:
+            history = self._history[name] = UtilisationHistory()
         return replace(
             status,
             state=state,
@@ -444,6 +491,8 @@ class StatusView:
             slaves=slaves,
             p50=quantile(histogram.upper_bounds, histogram.counts, 0.5),
             p99=quantile(histogram.upper_bounds, histogram.counts, 0.99),
+            history=history.sample(now, self._metrics.wire_duration.labels(name).sum),
+            history_s=HISTORY_S,
         )
 
     def _activity(self, name: str, now: float) -> tuple[bool, float | None]:
@@ -461,6 +510,47 @@ class StatusView:
         else:
             self._last[name] = (*previous[:2], faults, utilisation)
         return noisy, utilisation
+
+
+class _SlaveFaults:
+    """Timeouts and CRC errors per (line, slave address), read once per snapshot."""
+
+    def __init__(self, metrics: GatewayMetrics) -> None:
+        self._timeouts = _per_slave(metrics.timeouts.series())
+        self._crc = _per_slave(metrics.crc_errors.series())
+
+    def of(self, line: str, slave: int) -> tuple[int, int]:
+        """``(timeouts, crc_errors)`` of one slave since start."""
+        key = (line, slave)
+        return self._timeouts.get(key, 0), self._crc.get(key, 0)
+
+
+def _per_slave(series: Iterable[tuple[tuple[str, ...], int]]) -> dict[tuple[str, int], int]:
+    return {(line, int(unit)): count for (line, unit), count in series if unit.isdigit()}
+
+
+class UtilisationHistory:
+    """A small ring of a line's utilisation, one sample per ``HISTORY_S``, for its chart.
+
+    Sampled when ``/status`` is read: an interval nobody watched is filled with its
+    average (the wire's busy time over it is known), so the chart's time axis holds.
+    """
+
+    def __init__(self) -> None:
+        self.samples: deque[float] = deque(maxlen=HISTORY_SAMPLES)
+        self._since: tuple[float, float] | None = None  # (time, wire seconds) of the bucket
+
+    def sample(self, now: float, wire: float) -> tuple[float, ...]:
+        """Close every whole ``HISTORY_S`` since the last sample; the samples, oldest first."""
+        since = self._since
+        if since is None:
+            self._since = (now, wire)
+        elif now - since[0] >= HISTORY_S:
+            buckets = min(HISTORY_SAMPLES, int((now - since[0]) / HISTORY_S))
+            busy = min(1.0, max(0.0, (wire - since[1]) / (now - since[0])))
+            self.samples.extend([round(busy, 4)] * buckets)
+            self._since = (now, wire)
+        return tuple(self.samples)
 
 
 # --------------------------------------------------------------------------- HTTP routes

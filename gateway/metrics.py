@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from bisect import bisect_left
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from itertools import accumulate
 from typing import Protocol
 
@@ -124,6 +124,29 @@ class _LineCountersCollector(Collector):
             for line, counters in sorted(self._lines.items()):
                 family.add_metric([line], getattr(counters, field))
             yield family
+
+
+#: Reads a line's kernel UART error counters by kind, ``None`` where there are none.
+UartReader = Callable[[], "dict[str, int] | None"]
+
+
+class _UartErrorsCollector(Collector):
+    """Exports the kernel's UART error counters (``TIOCGICOUNT``) of each serial line."""
+
+    def __init__(self, readers: dict[str, UartReader]) -> None:
+        self._readers = readers
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "modbus_gateway_uart_errors",
+            "Errors the serial port's driver counted (frame, parity, overrun, break); only "
+            "lines whose driver keeps them.",
+            labels=["line", "kind"],
+        )
+        for line, read in sorted(self._readers.items()):
+            for kind, count in sorted((read() or {}).items()):
+                family.add_metric([line, kind], count)
+        yield family
 
 
 class CertificateExpiry(Protocol):
@@ -487,6 +510,12 @@ class GatewayMetrics:
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
+        self._uart_readers: dict[str, UartReader] = {}
+        r.register(_UartErrorsCollector(self._uart_readers))
+
+    def watch_uart(self, line: str, read: UartReader) -> None:
+        """Export ``uart_errors_total`` of ``line`` from ``read`` (the line's latest port)."""
+        self._uart_readers[line] = read
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""

@@ -12,8 +12,8 @@ gateway: the application provides it, so neither needs to know the application.
 from __future__ import annotations
 
 import enum
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 from .core.outcome import SlaveState as SlaveState  # the status vocabulary is the core's
@@ -37,6 +37,14 @@ class SlaveStatus:
     p50: float | None = None  # seconds, over the recent answers; None before any
     p99: float | None = None
     errors: int = 0  # timeouts and CRC errors since start
+    units: tuple[int, ...] = ()  # the unit ids masters use for it (``unit`` is its address)
+    name: str | None = None  # from the line's ``names``
+    heard: bool = False  # it has answered (normally or with an exception) since start
+    requests: int = 0  # requests of masters answered for it since start, however
+    exceptions: Mapping[int, int] = field(default_factory=dict)  # exception code → count
+    timeouts: int = 0
+    crc_errors: int = 0
+    last_seen: float | None = None  # wall-clock seconds of its last answer
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +60,11 @@ class LineStatus:
     slaves: tuple[SlaveStatus, ...] = ()
     p50: float | None = None  # request latency as masters see it, seconds, since start
     p99: float | None = None
+    settings: str = ""  # the port's settings as an operator reads them: "9600 8E1"
+    history: tuple[float | None, ...] = ()  # utilisation per ``history_s``, oldest first
+    history_s: float = 0.0
+    uart_errors: Mapping[str, int] | None = None  # kernel counters (TIOCGICOUNT), by kind
+    not_heard: int = 0  # routed slaves in ``slaves`` that have not answered
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,6 +75,8 @@ class MasterStatus:
     listener: str
     in_flight: int
     requests: int
+    role: str | None = None  # on a tls listener, the client certificate's role ("NULL": none)
+    denied: int = 0  # requests its listener's policy refused
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +90,8 @@ class GatewayStatus:
     listen: str = ""  # the Modbus TCP address
     trace_clients: int = 0
     trace_dropped: int = 0
+    time: float = 0.0  # wall-clock seconds of the snapshot (``last_seen`` is relative to it)
+    functions: tuple[str, ...] = ()  # function names masters have sent (trace filters)
 
 
 class GatewayView(Protocol):

@@ -40,6 +40,8 @@ from .clock import PreciseClock, wait_until
 from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .link import Link, LinkError, TlsLink
+from .serial_port import SerialLink
+from .tally import LineTally
 from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
@@ -98,6 +100,9 @@ class Bus:
         if config.kind == "tls":
             metrics.prepare_line_tls(self.name, (reason.value for reason in LineTlsFailure))
         self._notes = LineNotes(self, metrics, loop)
+        self.tally = LineTally()  #: per-slave requests, exceptions, last seen (status page)
+        self._uart: dict[str, int] | None = None  # the last kernel error counts read
+        metrics.watch_uart(self.name, self.uart_errors)
 
     # -- state ---------------------------------------------------------------------------
 
@@ -332,10 +337,12 @@ class Bus:
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
         observe = self._m_wire.observe
+        count = self.tally.count
         for delivery in deliveries:
             if delivery.wire_time >= 0.0:
                 observe(delivery.wire_time)
             request = delivery.request
+            count(request.slave, delivery.pdu, delivery.outcome)
             # A second answer goes nowhere, and the request is freed at once: a master's
             # reply callback usually refers to its own request, a reference cycle the
             # garbage collector would otherwise have to find, one per transaction.
@@ -357,13 +364,26 @@ class Bus:
 
     # -- status: the status page's only view of a line ------------------------------------
 
+    def uart_errors(self) -> dict[str, int] | None:
+        """The port's kernel error counters (``TIOCGICOUNT``): the last read while it is
+        closed, ``None`` on a pty, a network line, or a driver that keeps none."""
+        link = self._link
+        if isinstance(link, SerialLink) and not link.closed:
+            counts = link.uart_errors()
+            self._uart = None if counts is None else {str(k): v for k, v in counts.items()}
+        return self._uart
+
     def status(self, slaves: Iterable[int] = ()) -> LineStatus:
-        """A snapshot of this line and of ``slaves`` (plus any slave it has an opinion on)."""
+        """A snapshot of this line and of ``slaves`` (plus any slave it has an opinion on,
+        has answered for or has a name for)."""
         config = self.config
         states = self._core.slave_states()
+        tallies = self.tally.slaves
+        names = config.names
         listed = tuple(
-            SlaveStatus(self.name, slave, states.get(slave, SlaveState.UP))
-            for slave in sorted(set(slaves) | set(states))
+            self._slave_status(slave, states.get(slave, SlaveState.UP))
+            for slave in sorted(set(slaves) | set(states) | set(tallies) | set(names))
+            if slave  # a broadcast is no slave
         )
         if not self.up:
             state = LineState.DOWN
@@ -378,4 +398,31 @@ class Bus:
             state=state,
             queued=self.queued,
             slaves=listed,
+            settings=self._settings(),
+            uart_errors=self.uart_errors(),
+            not_heard=sum(1 for slave in listed if not slave.heard),
         )
+
+    def _slave_status(self, slave: int, state: SlaveState) -> SlaveStatus:
+        tally = self.tally.slaves.get(slave)
+        if tally is None:
+            return SlaveStatus(self.name, slave, state, name=self.config.names.get(slave))
+        return SlaveStatus(
+            self.name, slave, state,
+            name=self.config.names.get(slave),
+            heard=tally.last_seen is not None,
+            requests=tally.requests,
+            exceptions=dict(tally.exceptions),
+            last_seen=tally.last_seen,
+        )  # fmt: skip
+
+    def _settings(self) -> str:
+        """The line's settings as an operator reads them: ``rtu 9600 8E1, timeout 0.367 s``."""
+        config = self.config
+        timeout = f"timeout {config.timeout:g} s"
+        if config.networked or config.is_url:
+            return f"{config.kind}, {timeout}"
+        parity = str(config.parity)[:1].upper()
+        stop = f"{config.stop_bits:g}"
+        form = f"{config.baudrate} {config.data_bits}{parity}{stop}"
+        return f"{config.kind} {form}, {timeout}"

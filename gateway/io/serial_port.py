@@ -35,6 +35,7 @@ import serial.rs485
 
 from ..config import LineConfig
 from .link import DeviceBusyError, DeviceUnusableError, SerialPortError
+from .uart import UartError, uart_errors
 
 log = logging.getLogger("gateway.io.serial_port")
 
@@ -392,6 +393,10 @@ class SerialLink:
     def closed(self) -> bool:
         """True once the link was closed or lost."""
         return self._closed
+
+    def uart_errors(self) -> dict[UartError, int] | None:
+        """The kernel's error counters of the port (``None`` on a pty, a socket, or closed)."""
+        return None if self._closed else uart_errors(self._fd)
 
     def write(self, data: bytes) -> None:
         """Write a whole frame; a frame is small enough for the kernel buffer to take at once."""

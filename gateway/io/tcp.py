@@ -226,6 +226,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self._next_batch: asyncio.Handle | None = None
         self._closed = False
         self.requests = 0  #: frames received, for the status page
+        self.denied = 0  #: requests the listener's policy refused, for the status page
         #: When this master last became idle: accepted, sent a complete request, or had its
         #: last request answered. Stray bytes do not count.
         self.idle_since = accepted
@@ -433,6 +434,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         self._send(
             transaction_id, unit, fc.exception_pdu(function, answer.code), answer.outcome
         )  # fmt: skip
+        if answer.outcome is Outcome.DENIED:
+            self.denied += 1
         count_local_answer(
             server.metrics, server.name, server.policy, self.principal.role, function, answer
         )
@@ -821,7 +824,14 @@ class ModbusTcpServer:
         host, port = self.sockets[0] if self.sockets else (self.listener.host, self.listener.port)
         listener = f"{self.name} {host}:{port}"
         return [
-            MasterStatus(connection.peer, listener, connection.in_flight, connection.requests)
+            MasterStatus(
+                connection.peer,
+                listener,
+                connection.in_flight,
+                connection.requests,
+                connection.role_text,
+                connection.denied,
+            )
             for connection in self._connections
         ]
 

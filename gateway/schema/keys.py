@@ -204,9 +204,12 @@ LISTENERS = (
 METRICS = (
     Key(table=_M, name="listen", type=Type.ADDRESS_OR_OFF, default="127.0.0.1:9502",
         reload=Reload.RESTART,
-        help='HTTP endpoint for /metrics, /healthz and /readyz; "off" disables it.',
-        flag=Flag(name="--metrics", metavar="HOST:PORT|off", help="HTTP endpoint for "
-                  "/metrics, /healthz, /readyz (default 127.0.0.1:9502)")),
+        help='HTTP endpoint for /metrics, /healthz, /readyz and the status page; "auto" '
+        "takes a free port on 127.0.0.1 (the start-up log names it), so that instances run "
+        'side by side; "off" disables it.',
+        flag=Flag(name="--metrics", metavar="HOST:PORT|auto|off", help="HTTP endpoint for "
+                  "/metrics, /healthz, /readyz and the status page (default 127.0.0.1:9502; "
+                  "auto: a free port, logged)")),
     Key(table=_M, name="max_connections", type=Type.INTEGER, default=32, low=1, high=1024,
         reload=Reload.RESTART,
         help="HTTP connections open at once (scrapers, health checks); at the cap a "
@@ -365,6 +368,11 @@ LINES = (
     Key(table=_L, name="slave_timeouts", type=Type.TIMEOUTS, default={},
         help="Per-slave response timeouts overriding timeout: a table of slave = seconds, "
         'keys quoted, like { "5" = 0.3 }.'),
+    Key(table=_L, name="names", type=Type.NAMES, default={}, example='{ "1" = "plc" }',
+        show=Show.COMMENTED,
+        help="Names of the line's slaves for the status page: a table of slave = name, keys "
+        'quoted, like { "1" = "plc", "2" = "meter" }. A named slave is listed there before it '
+        "has answered."),
     Key(table=_L, name="dead_after", type=Type.INTEGER, default=3, low=0, high=1000,
         help="Dead-slave isolation: after this many transactions in a row that got no answer "
         "(after their retries) the slave is answered 0x0B at once instead of holding the "

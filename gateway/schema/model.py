@@ -72,13 +72,14 @@ class Type(enum.Enum):
     TEXT = "string"
     FILE = "file path"
     ADDRESS = "HOST:PORT"
-    ADDRESS_OR_OFF = 'HOST:PORT or "off"'
+    ADDRESS_OR_OFF = 'HOST:PORT, "auto" or "off"'
     UNITS = "unit ids"
     NETWORKS = "networks"
     FUNCTION_CODES = "function codes"
     FUNCTIONS = "functions"
     RANGES = "ranges"
     TIMEOUTS = "table"
+    NAMES = "table of names"
     TABLES = "tables"
 
 

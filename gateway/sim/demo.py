@@ -63,6 +63,7 @@ class DemoLine:
                 "baudrate": DEMO_BAUDRATE,
                 "timeout": 0.5,
                 "units": sorted(DEMO_UNITS),
+                "names": {"1": "plc", "2": "zl69x recorder", "3": "power controller"},
             },
             "demo-ascii": {
                 "device": self.ascii_pty.path,
@@ -71,8 +72,13 @@ class DemoLine:
                 "parity": "N",
                 "baudrate": DEMO_ASCII_BAUDRATE,
                 "units": sorted(DEMO_ASCII_UNITS),
+                "names": {"4": "zl69x recorder (ascii)"},
             },
-            "demo-tcp": {"kind": "tcp", "address": self.tcp_slave.host_port},
+            "demo-tcp": {
+                "kind": "tcp",
+                "address": self.tcp_slave.host_port,
+                "names": {str(DEMO_TCP_SLAVE_ID): "r6 robot controller"},
+            },
         }
         raw["routes"] = [
             {"unit": unit, "line": "demo-tcp", "slave": DEMO_TCP_SLAVE_ID}

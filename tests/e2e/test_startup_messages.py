@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S
+from conftest import DEADLINE_S, release
 
 from gateway.io.serial_port import PERMISSION_SETTLE_S
 from gateway.sim import PtyPair, open_pty_pair
@@ -45,7 +45,8 @@ class Started:
         )  # fmt: skip
         self.lines: queue.Queue[str | None] = queue.Queue()
         self.log: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
 
     def _read(self) -> None:
         assert self.process.stderr is not None
@@ -69,10 +70,12 @@ class Started:
         raise AssertionError(f"no {pattern!r} within {timeout} s: {''.join(self.log)}")
 
     def exit_code(self, timeout: float = DEADLINE_S) -> int:
-        """Wait for the exit; collect the rest of stderr."""
+        """Wait for the exit; collect the rest of stderr and close the pipe."""
         code = self.process.wait(timeout)
-        while (line := self.lines.get(timeout=DEADLINE_S)) is not None:
-            self.log.append(line)
+        if self.process.stderr is not None and not self.process.stderr.closed:
+            while (line := self.lines.get(timeout=DEADLINE_S)) is not None:
+                self.log.append(line)
+            release(self.process, self.reader)
         return code
 
     def stop(self) -> int:

@@ -303,3 +303,52 @@ def test_a_line_with_fresh_crc_errors_shows_noisy(gateway_with: GatewayOnSim) ->
             master.request(1, READ_10)
     assert status(gw)["lines"][0]["state"] == "noisy"
     assert status(gw)["lines"][0]["state"] == "up"  # no new errors since the last refresh
+
+
+def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    sim = make_sim({1: plc(1), 2: plc(2)})
+    line = sim.line_table([1, 2, 3], timeout=0.05, retries=0, late_answer_window=0,
+                          names={"2": "meter"})  # fmt: skip
+    gw = make_gateway({
+        "server": {"policy": "readers"},
+        "policies": {"readers": {"rules": [{"units": [1, 2, 3, 100], "access": "read"}]}},
+        "lines": {"a": line},
+        "routes": [{"unit": 100, "line": "a", "slave": 2}],
+    })  # fmt: skip
+    (before,) = status(gw)["lines"]
+    assert before["not_heard"] == 3 and before["settings"].startswith("rtu 115200 8N1")
+    assert before["uart_errors"] is None  # a pty keeps no UART error counters
+    named = {s["unit"]: s for s in before["slaves"]}[2]
+    assert (named["name"], named["units"], named["heard"]) == ("meter", [2, 100], False)
+    with gw.connect() as master, stream(gw, "?unit=1") as trace:
+        assert master.request(1, READ_10)[:2] == b"\x03\x14"
+        assert master.request(1, bytes.fromhex("03 FFF0 0001")) == b"\x83\x02"
+        assert master.request(1, bytes.fromhex("06 0001 0001")) == b"\x86\x01"  # denied
+        assert master.request(100, READ_10)[:2] == b"\x03\x14"
+        sim.faults(2).silent = True
+        assert master.request(100, READ_10) == b"\x83\x0b"  # a timeout
+        reply = trace.event()
+        while reply["type"] != "reply":
+            reply = trace.event()
+        assert reply["values"] == {"address": 0, "registers": reply["values"]["registers"]}
+        assert len(reply["values"]["registers"]) == 10
+        exception = trace.event()
+        while exception["type"] != "reply":
+            exception = trace.event()
+        assert exception["values"] == {"exception": 2, "name": "illegal data address"}
+        now = status(gw)
+        (entry,) = now["masters"]
+        assert (entry["denied"], entry["role"], entry["requests"]) == (1, None, 5)
+    (after,) = now["lines"]
+    slaves = {s["unit"]: s for s in after["slaves"]}
+    one, two = slaves[1], slaves[2]
+    assert (one["units"], one["requests"], one["exceptions"], one["heard"]) == (
+        [1], 2, {"2": 1}, True,
+    )  # fmt: skip
+    assert abs(one["last_seen"] - now["time"]) < DEADLINE_S
+    assert (two["requests"], two["timeouts"], two["crc_errors"], two["errors"]) == (2, 1, 0, 1)
+    assert after["not_heard"] == 1  # slave 3 never answered
+    assert "read_holding_registers" in now["functions"]
+    assert after["history_s"] == live.HISTORY_S and isinstance(after["history"], list)

@@ -1,0 +1,45 @@
+"""What each slave of a line was asked and answered, for the status page.
+
+``Bus`` counts every answer it hands back to a master here (one dictionary look-up
+per transaction): the requests, the exception codes the slave returned and when it was
+last heard. Timeouts and CRC errors are counted by the line's metrics already.
+"""
+
+from __future__ import annotations
+
+import time
+
+from ..core.outcome import Outcome
+
+
+class SlaveTally:
+    """One slave's counts since the line was opened."""
+
+    __slots__ = ("exceptions", "last_seen", "requests")
+
+    def __init__(self) -> None:
+        self.requests = 0
+        self.exceptions: dict[int, int] = {}
+        self.last_seen: float | None = None  # wall-clock seconds of the last answer
+
+
+class LineTally:
+    """Every slave's tally on one line."""
+
+    __slots__ = ("slaves",)
+
+    def __init__(self) -> None:
+        self.slaves: dict[int, SlaveTally] = {}
+
+    def count(self, slave: int, pdu: bytes, outcome: Outcome) -> None:
+        """One answer went back to a master (a slave's, or the gateway's own 0x0A/0x0B)."""
+        tally = self.slaves.get(slave)
+        if tally is None:
+            tally = self.slaves[slave] = SlaveTally()
+        tally.requests += 1
+        if outcome is Outcome.OK:
+            tally.last_seen = time.time()
+        elif outcome is Outcome.SLAVE_EXCEPTION:
+            tally.last_seen = time.time()
+            code = pdu[1] if len(pdu) > 1 else 0
+            tally.exceptions[code] = tally.exceptions.get(code, 0) + 1
