@@ -108,7 +108,10 @@ def test_the_gateway_builds_and_installs_from_that_list_alone(tmp_path: Path) ->
     _run(*pip, "wheel", *offline, "--no-deps", "--wheel-dir", str(dist), str(source), env=alone)
     (project,) = dist.glob("modbus_gateway-*.whl")
     _run(*pip, "install", *offline, str(project), env=alone)
-    version = _run(str(env / "bin" / "modbus-gateway"), "--version")
+    # The venv's gateway, not a checkout's on PYTHONPATH or in the working directory.
+    version = _run(
+        str(env / "bin" / "modbus-gateway"), "--version", env=alone | {"PYTHONSAFEPATH": "1"}
+    )
     assert version.startswith("modbus-gateway "), version
     assert version.strip().endswith(f"({_expected_build()})"), version
     _run(str(env / "bin" / "python"), "-c", "import cryptography.x509, serial, uvloop")
