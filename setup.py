@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import enum
 import os
+import shutil
 import sys
+import sysconfig
 
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
@@ -103,6 +105,16 @@ def _say(message: str) -> None:
     print(f"modbus-gateway build: {message}", file=sys.stderr, flush=True)
 
 
+def _missing_tool() -> str | None:
+    """What the C build surely lacks (no compiler, no headers), or None: worth trying."""
+    compiler = (os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(compiler) is None:
+        return f"no C compiler ({compiler})"
+    if not os.path.isfile(os.path.join(sysconfig.get_paths()["include"], "Python.h")):
+        return "no Python headers (Debian: apt-get install python3-dev)"
+    return None
+
+
 def _extensions(commands: frozenset[str]) -> list[object]:
     """The mypyc extensions, or none: pure Python when not asked, editable or not buildable."""
     asked = _asked()
@@ -110,6 +122,10 @@ def _extensions(commands: frozenset[str]) -> list[object]:
         return []
     if asked is Compile.AUTOMATIC and commands & EDITABLE_COMMANDS:
         _say("editable install, pure Python (MODBUS_GATEWAY_COMPILE=1 compiles it in place)")
+        return []
+    missing = _missing_tool()
+    if asked is Compile.AUTOMATIC and missing:
+        _say(f"{missing}, installing pure Python")  # without a minute of mypyc first
         return []
     try:
         from mypyc.build import mypycify

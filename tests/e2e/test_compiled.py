@@ -207,6 +207,19 @@ def test_a_failed_c_build_installs_pure_python_unless_forced(tmp_path: Path) -> 
     assert not list((tmp_path / "forced").glob("*.whl"))
 
 
+def test_without_a_compiler_the_default_build_is_pure_python_without_mypyc(
+    tmp_path: Path,
+) -> None:
+    """No compiler at all: pure Python at once, without a minute of mypyc first."""
+    source = source_copy(tmp_path / "source")
+    built = build_wheel(source, tmp_path / "out", CC="/nonexistent/cc")
+    assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-4000:]
+    assert "no C compiler (/nonexistent/cc), installing pure Python" in built.stderr + built.stdout
+    (wheel,) = (tmp_path / "out").glob("modbus_gateway-*.whl")
+    assert wheel.name.endswith("-py3-none-any.whl"), wheel.name
+    assert not (source / "build" / "__native_gateway.c").exists()  # mypyc did not run
+
+
 def test_an_editable_install_stays_pure_python_unless_forced(tmp_path: Path) -> None:
     """Extensions beside the sources would hide every edit to them: automatic means
     interpreted for ``pip install -e`` (no mypyc run, nothing written into the tree)."""
