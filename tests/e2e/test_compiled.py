@@ -130,7 +130,7 @@ def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
     # The tests with the sources beside them (the layering test reads them), imported from
     # nowhere but the venv: PYTHONSAFEPATH keeps the working directory off sys.path.
     tests_tree = tmp_path_factory.mktemp("tree")
-    for name in ("tests", "conf", "gateway"):
+    for name in ("tests", "conf", "docs", "gateway"):
         shutil.copytree(ROOT / name, tests_tree / name, ignore=SKIP)
     shutil.copytree(ROOT / "bench", tests_tree / BENCH_PATH / "bench", ignore=SKIP)
     shutil.copy(ROOT / "pyproject.toml", tests_tree / "pyproject.toml")
