@@ -9,7 +9,7 @@ import logging
 import sys
 from collections.abc import Callable, Coroutine, Sequence
 from importlib import resources
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from . import __version__, build, schema
 from .app import Gateway, reloader, run_until_signalled
@@ -27,8 +27,10 @@ from .io.link import DeviceUnusableError
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
 from .schema import Key, Scope, Table, Type
-from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS, DemoLine
 from .trace import Tracer, parse_function
+
+if TYPE_CHECKING:  # the simulator loads in demo mode only
+    from .sim.demo import DemoLine
 
 log = logging.getLogger("gateway")
 
@@ -432,6 +434,8 @@ def _configure(
                 json_log = True
                 setup_logging("info", "json")
         if args.demo:
+            from .sim.demo import DemoLine
+
             demo = DemoLine()
             raw = demo.configure(raw, listen=args.listen or DEMO_LISTEN)
         return build_config(apply_overrides(raw, args), args.config or "<command line>"), demo
@@ -470,6 +474,8 @@ def _serve(args: argparse.Namespace, config: GatewayConfig, demo: DemoLine | Non
         await run_until_signalled(Gateway(config, tracer=tracer), reload_source, args.grace)
 
     if demo is not None:
+        from .sim.demo import DEMO_ASCII_UNITS, DEMO_TCP_UNITS, DEMO_UNITS
+
         demo.start()
         log.info("demo: simulated units %s on %s", DEMO_UNITS, demo.pty.path)
         log.info("demo: ASCII units %s on %s", DEMO_ASCII_UNITS, demo.ascii_pty.path)

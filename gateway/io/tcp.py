@@ -58,9 +58,7 @@ import ssl
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Final, Protocol, cast
-
-from cryptography import x509
+from typing import TYPE_CHECKING, Final, Protocol, cast
 
 from ..config import ListenerConfig, ServerConfig
 from ..core import pdu as fc
@@ -98,6 +96,9 @@ from .tls import (
     peer_chain,
     role_of,
 )
+
+if TYPE_CHECKING:  # only TLS listeners hold certificates
+    from cryptography import x509
 
 log = logging.getLogger("gateway.tcp")
 

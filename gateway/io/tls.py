@@ -48,15 +48,14 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from typing import Any, TypeVar
-
-from cryptography import x509
-from cryptography.exceptions import InvalidSignature
-from cryptography.x509.oid import NameOID
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ..config import LineConfig, ListenerConfig
 from ..core.connection_admission import CertificateFacts
 from ..core.policy import ROLE_OID, decode_role
+
+if TYPE_CHECKING:  # ``cryptography`` loads with the first certificate: TLS configurations only
+    from cryptography import x509
 
 log = logging.getLogger("gateway.tls")
 
@@ -149,6 +148,8 @@ class CertificateInfo:
 
 
 def _subject(certificate: x509.Certificate) -> str:
+    from cryptography.x509.oid import NameOID
+
     names = certificate.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
     if names:
         return str(names[0].value)
@@ -156,6 +157,8 @@ def _subject(certificate: x509.Certificate) -> str:
 
 
 def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
+    from cryptography import x509
+
     try:
         with open(path, "rb") as handle:
             data = handle.read()
@@ -171,6 +174,8 @@ def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
 
 
 def _issuer_name(crl: x509.CertificateRevocationList) -> str:
+    from cryptography.x509.oid import NameOID
+
     names = crl.issuer.get_attributes_for_oid(NameOID.COMMON_NAME)
     return str(names[0].value) if names else crl.issuer.rfc4514_string()
 
@@ -191,6 +196,8 @@ def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevoca
     refuse every client certificate against it (``CRL has expired``), so it is a fault to fix
     before it locks every master out, not a warning.
     """
+    from cryptography import x509
+
     try:
         with open(path, "rb") as handle:
             data = handle.read()
@@ -377,6 +384,8 @@ def role_from_certificate(der: bytes | None) -> str | None:
     No role extension, two of them, or one that is not a single UTF8String gives the
     NULL role; so does a certificate ``cryptography`` cannot parse. Never raises.
     """
+    from cryptography import x509
+
     if not der:
         return None
     try:
@@ -434,6 +443,8 @@ def _observe(
 def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
     """The subject of the first certificate of a Certificate handshake message (with its
     4-byte header); TLS 1.3 puts a request context before the list. ``None``: none."""
+    from cryptography import x509
+
     for form in (tls13, not tls13):
         offset = 4 + (1 + message[4] if form and len(message) > 4 else 0) + 3
         length = int.from_bytes(message[offset : offset + 3], "big")
@@ -499,6 +510,8 @@ def _anchor(certificate: x509.Certificate, authorities: Sequence[x509.Certificat
     x509.Certificate | None
 ):  # fmt: skip
     """The CA among ``authorities`` that is ``certificate`` or signed it, if any."""
+    from cryptography.exceptions import InvalidSignature
+
     for authority in authorities:
         if certificate == authority:
             return authority
@@ -526,6 +539,8 @@ def certificate_facts(
     chain's window counts. Revoked: the leaf's serial is in a CRL of ``revocations``
     signed by the leaf's issuer (the leaf alone, as the handshake checks it).
     """
+    from cryptography import x509
+
     try:
         certificates = [x509.load_der_x509_certificate(der) for der in chain]
     except ValueError:

@@ -1,6 +1,8 @@
-"""The compiled build (``MODBUS_GATEWAY_COMPILE=1``, see setup.py): built from this checkout,
-it says it is compiled, every module of the list is an extension, and it passes the line's
-own tests and real exchanges with independent masters.
+"""The compiled build, the default where a C compiler exists (see setup.py): built from this
+checkout with ``MODBUS_GATEWAY_COMPILE`` unset, it says it is compiled, every module of the
+list is an extension, and it passes the line's own tests and real exchanges with independent
+masters. A failed C build falls back to pure Python (and fails when forced); an editable
+install stays pure Python unless forced.
 
 mypyc compiles the same source, but a compiled class is stricter than a Python one (a
 subclass defined in interpreted code, an attribute of another type than declared): what
@@ -16,13 +18,16 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import venv
+import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
 import pytest
 from conftest import environment_with_our_dependencies
 
-pytestmark = pytest.mark.compiled
+#: Building takes mypyc a minute or more on a busy machine, the tests several.
+pytestmark = [pytest.mark.compiled, pytest.mark.timeout(1800)]
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -78,27 +83,46 @@ class CompiledInstall(NamedTuple):
     tests_tree: Path
 
 
-@pytest.fixture(scope="module")
-def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
-    """The README's compiled install, from a copy of this checkout, in a fresh venv."""
+SKIP = shutil.ignore_patterns("__pycache__", "*.so", ".hypothesis", "build")
+
+
+def needs_a_build() -> None:
+    """Skip (fail under CI) where the compiled build cannot be made."""
     missing = why_it_cannot_build()
     if missing is not None:
         if os.environ.get("CI"):
             pytest.fail(f"CI must test the compiled build: {missing}")
         pytest.skip(missing)
-    skip = shutil.ignore_patterns("__pycache__", "*.so", ".hypothesis", "build")
-    source = tmp_path_factory.mktemp("source")
-    shutil.copytree(ROOT / "gateway", source / "gateway", ignore=skip)
+
+
+def source_copy(where: Path) -> Path:
+    """What an sdist holds: the package and the build files."""
+    shutil.copytree(ROOT / "gateway", where / "gateway", ignore=SKIP)
     for name in ("setup.py", "pyproject.toml", "README.md"):
-        shutil.copy(ROOT / name, source / name)
-    out = tmp_path_factory.mktemp("wheel")
-    built = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+        shutil.copy(ROOT / name, where / name)
+    return where
+
+
+def build_wheel(source: Path, out: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    """``pip wheel`` with ``MODBUS_GATEWAY_COMPILE`` unset unless given (the default build),
+    against this environment's mypy (build isolation would download it)."""
+    base = {k: v for k, v in os.environ.items() if k != "MODBUS_GATEWAY_COMPILE"}
+    return subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-v",
          "-w", str(out), str(source)],
-        env={**os.environ, "MODBUS_GATEWAY_COMPILE": "1"},
-        capture_output=True, text=True, timeout=900, check=False,
+        env=base | env, capture_output=True, text=True, timeout=900, check=False,
     )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
+    """The default install, from a copy of this checkout, in a fresh venv: compiled."""
+    needs_a_build()
+    source = source_copy(tmp_path_factory.mktemp("source"))
+    out = tmp_path_factory.mktemp("wheel")
+    built = build_wheel(source, out)
     assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-4000:]
+    assert "modbus-gateway build: compiled" in built.stderr + built.stdout
     (wheel,) = out.glob("modbus_gateway-*.whl")
     assert not wheel.name.endswith("-none-any.whl"), f"not a compiled wheel: {wheel.name}"
     env_dir = tmp_path_factory.mktemp("venv")
@@ -106,9 +130,9 @@ def compiled(tmp_path_factory: pytest.TempPathFactory) -> CompiledInstall:
     # The tests with the sources beside them (the layering test reads them), imported from
     # nowhere but the venv: PYTHONSAFEPATH keeps the working directory off sys.path.
     tests_tree = tmp_path_factory.mktemp("tree")
-    for name in ("tests", "conf", "gateway", "docs"):
-        shutil.copytree(ROOT / name, tests_tree / name, ignore=skip)
-    shutil.copytree(ROOT / "bench", tests_tree / BENCH_PATH / "bench", ignore=skip)
+    for name in ("tests", "conf", "docs", "gateway"):
+        shutil.copytree(ROOT / name, tests_tree / name, ignore=SKIP)
+    shutil.copytree(ROOT / "bench", tests_tree / BENCH_PATH / "bench", ignore=SKIP)
     shutil.copy(ROOT / "pyproject.toml", tests_tree / "pyproject.toml")
     return CompiledInstall(python, env_dir, tests_tree)
 
@@ -165,3 +189,62 @@ def test_the_compiled_build_passes_the_line_tests(compiled: CompiledInstall) -> 
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
     assert " passed" in done.stdout.splitlines()[-1], done.stdout[-2000:]
+
+
+def test_a_failed_c_build_installs_pure_python_unless_forced(tmp_path: Path) -> None:
+    """No working compiler (``CC=false``): the default build still installs, pure Python;
+    ``MODBUS_GATEWAY_COMPILE=1`` stops with the error instead."""
+    needs_a_build()
+    source = source_copy(tmp_path / "source")
+    fell_back = build_wheel(source, tmp_path / "auto", CC="false")
+    assert fell_back.returncode == 0, fell_back.stdout[-2000:] + fell_back.stderr[-4000:]
+    assert "installing pure Python" in fell_back.stderr + fell_back.stdout
+    (wheel,) = (tmp_path / "auto").glob("modbus_gateway-*.whl")
+    assert wheel.name.endswith("-py3-none-any.whl"), wheel.name
+    with zipfile.ZipFile(wheel) as archive:
+        assert not [name for name in archive.namelist() if name.endswith(".so")]
+    forced = build_wheel(source, tmp_path / "forced", CC="false", MODBUS_GATEWAY_COMPILE="1")
+    assert forced.returncode != 0
+    assert not list((tmp_path / "forced").glob("*.whl"))
+
+
+def test_without_a_compiler_the_default_build_is_pure_python_without_mypyc(
+    tmp_path: Path,
+) -> None:
+    """No compiler at all: pure Python at once, without a minute of mypyc first."""
+    source = source_copy(tmp_path / "source")
+    built = build_wheel(source, tmp_path / "out", CC="/nonexistent/cc")
+    assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-4000:]
+    assert "no C compiler (/nonexistent/cc), installing pure Python" in built.stderr + built.stdout
+    (wheel,) = (tmp_path / "out").glob("modbus_gateway-*.whl")
+    assert wheel.name.endswith("-py3-none-any.whl"), wheel.name
+    assert not (source / "build" / "__native_gateway.c").exists()  # mypyc did not run
+
+
+def test_an_editable_install_stays_pure_python_unless_forced(tmp_path: Path) -> None:
+    """Extensions beside the sources would hide every edit to them: automatic means
+    interpreted for ``pip install -e`` (no mypyc run, nothing written into the tree)."""
+    source = source_copy(tmp_path / "source")
+    env_dir = tmp_path / "venv"
+    venv.create(env_dir, with_pip=False)
+    python = env_dir / "bin" / "python"
+    base = {k: v for k, v in os.environ.items() if k != "MODBUS_GATEWAY_COMPILE"}
+    build = "import sys; from setuptools import build_meta; build_meta.build_editable(sys.argv[1])"
+    subprocess.run(
+        [sys.executable, "-c", build, str(tmp_path)], cwd=source, env=base,
+        capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    (editable,) = tmp_path.glob("modbus_gateway-*.whl")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+         "--no-index", "-q", str(editable)],
+        capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    assert not list(source.rglob("*.so"))
+    alone = {k: v for k, v in base.items() if k != "PYTHONPATH"} | {"PYTHONSAFEPATH": "1"}
+    said = subprocess.run(
+        [python, "-c", "import gateway; print(gateway.__file__, gateway.build())"],
+        cwd=tmp_path, env=alone,
+        capture_output=True, text=True, timeout=60, check=True,
+    ).stdout.split()  # fmt: skip
+    assert said == [str(source / "gateway" / "__init__.py"), "interpreted"]
