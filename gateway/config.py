@@ -181,6 +181,8 @@ class LineConfig:
     broadcast_turnaround: float = 0.1
     max_queue: int = 256
     max_queue_per_master: int = 32
+    #: Seconds a request may wait unsent before it is answered 0x0B (0: no limit).
+    max_queue_wait: float = 5.0
     late_answer_window: float | None = None
     noisy_after: float | None = None
     probe_share: float = 0.05

@@ -298,6 +298,10 @@ LINES = (
         high=10_000,
         help="Requests one master may have waiting on this line or on its wire (one that "
         "fails waits again for its retry); past this it gets 0x06 (device busy)."),
+    Key(table=_L, name="max_queue_wait", type=Type.SECONDS, default=5.0, low=0.0, high=3600.0,
+        help="Seconds a request may wait in the line's queue: one still unsent after this is "
+        "answered 0x0B without using the line (its master has given up on it by then), and "
+        "the slave's health is not touched. 0: no limit."),
     Key(table=_L, name="noisy_after", type=Type.SECONDS, default="auto", low=0.0, high=3600.0,
         auto="3 x the longest timeout",
         help="Seconds without a usable gap (a babbling slave or transceiver) before waiting "

@@ -101,6 +101,7 @@ class LineCore(Sending):
         self._noisy_after = policy.noisy_deadline if self.wire.quiet_line else INFINITY
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
+        self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
         self._timeouts: dict[int, float] = {}  # ``policy.timeout_for``, asked once per slave
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
@@ -179,6 +180,8 @@ class LineCore(Sending):
                 when = min(when, self.late.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
+        if self.queue.arrivals:  # the oldest queued request's patience (``max_queue_wait``)
+            when = min(when, self.queue.arrivals[0].enqueued_at + self._max_wait)
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
@@ -384,4 +387,12 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
+        if self.queue.oldest_arrival() + self._max_wait <= now:
+            self._expire_waits(now)
         self.service(now)
+
+    def _expire_waits(self, now: float) -> None:
+        """Requests unsent after ``max_queue_wait``: 0x0B without the wire (their masters
+        have given up by now); the slave's health is not touched."""
+        for request in self.queue.overdue(now - self._max_wait + 1e-9):
+            self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
