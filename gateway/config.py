@@ -173,7 +173,13 @@ class LineConfig:
     data_bits: int = 8
     parity: str = "N"
     stop_bits: float = 1
-    timeout: float = 0.367  # auto_timeout(9600): "auto" is computed from the line's settings
+    timeout: float = 0.367  # auto_timeout(9600): the fixed timeout unless ``learn_timeouts``
+    #: ``timeout = "auto"`` (the file's default): each slave's timeout is learned
+    #: (``core.line.response_timing``); a line built directly keeps ``timeout`` fixed.
+    learn_timeouts: bool = False
+    #: Learned timing: the wait for a slave or function never heard from, and the most.
+    initial_timeout: float = 1.0
+    max_timeout: float = 3.0
     retries: int = 1
     retry_unsafe: bool = False
     frame_gap: float | None = None
@@ -665,6 +671,7 @@ def _build_line(check: _Checker, name: str, raw: Mapping[str, Any]) -> LineConfi
         port=port,
         units=units,
         timeout=_line_timeout(check, table, prefix, kind, form),
+        learn_timeouts=table.get("timeout", "auto") == "auto",
         slave_timeouts=_slave_timeouts(check, table, prefix),
         cache=_cache_rules(check, table, prefix),
         max_in_flight=_max_in_flight(check, table, prefix, kind),

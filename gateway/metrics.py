@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from bisect import bisect_left
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from itertools import accumulate
 from typing import Protocol
 
@@ -124,6 +124,29 @@ class _LineCountersCollector(Collector):
             for line, counters in sorted(self._lines.items()):
                 family.add_metric([line], getattr(counters, field))
             yield family
+
+
+#: A line's learned response timeouts by slave, read at scrape time (``Bus``).
+ResponseTimeouts = Callable[[], Mapping[int, float]]
+
+
+class _ResponseTimeoutCollector(Collector):
+    """Exports every line's learned response timeouts at scrape time."""
+
+    def __init__(self, lines: dict[str, ResponseTimeouts]) -> None:
+        self._lines = lines
+
+    def collect(self) -> Iterator[Metric]:
+        family = GaugeMetricFamily(
+            "modbus_gateway_slave_response_timeout_seconds",
+            'The learned response timeout (timeout = "auto") of the slave: the turnaround '
+            "allowed to its first attempts, the longest of its functions'.",
+            labels=["line", "unit"],
+        )
+        for line, learned in sorted(self._lines.items()):
+            for slave, seconds in sorted(learned().items()):
+                family.add_metric([line, UNIT_LABELS[slave]], seconds)
+        yield family
 
 
 class CertificateExpiry(Protocol):
@@ -469,6 +492,8 @@ class GatewayMetrics:
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
         r.register(_LineCountersCollector(self._line_counters))
+        self._response_timeouts: dict[str, ResponseTimeouts] = {}
+        r.register(_ResponseTimeoutCollector(self._response_timeouts))
 
     def describe_lines(self, names: list[str]) -> None:
         """Record the configured lines in the build info metric."""
@@ -506,6 +531,10 @@ class GatewayMetrics:
         if counters is None:
             counters = self._line_counters[line] = LineCounters()
         return counters
+
+    def set_response_timeouts(self, line: str, learned: ResponseTimeouts) -> None:
+        """Where ``line``'s learned response timeouts are read (a reopened line's core)."""
+        self._response_timeouts[line] = learned
 
     def request_duration_for(self, line: str) -> LoopHistogram:
         """The latency histogram of ``line``."""

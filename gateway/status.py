@@ -37,6 +37,9 @@ class SlaveStatus:
     p50: float | None = None  # seconds, over the recent answers; None before any
     p99: float | None = None
     errors: int = 0  # timeouts and CRC errors since start
+    #: Seconds: the learned response timeout (``timeout = "auto"``), its slowest function's;
+    #: None where the timeout is fixed or before the slave's first answer.
+    learned_timeout: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -94,6 +94,8 @@ class Bus:
         self._m_line_up = metrics.line_up.labels(self.name)
         self._m_line_up.set(0)
         metrics.prepare_line(self.name)
+        core = self._core
+        metrics.set_response_timeouts(self.name, lambda: core.timing.by_slave(core.health.slaves))
         metrics.set_line_kind(self.name, config.kind)
         if config.kind == "tls":
             metrics.prepare_line_tls(self.name, (reason.value for reason in LineTlsFailure))
@@ -361,8 +363,14 @@ class Bus:
         """A snapshot of this line and of ``slaves`` (plus any slave it has an opinion on)."""
         config = self.config
         states = self._core.slave_states()
+        learned = self._core.timing.by_slave(states)
         listed = tuple(
-            SlaveStatus(self.name, slave, states.get(slave, SlaveState.UP))
+            SlaveStatus(
+                self.name,
+                slave,
+                states.get(slave, SlaveState.UP),
+                learned_timeout=_rounded(learned.get(slave)),
+            )
             for slave in sorted(set(slaves) | set(states))
         )
         if not self.up:
@@ -379,3 +387,8 @@ class Bus:
             queued=self.queued,
             slaves=listed,
         )
+
+
+def _rounded(seconds: float | None) -> float | None:
+    """Milliseconds are enough for a person reading /status."""
+    return None if seconds is None else round(seconds, 3)

@@ -35,6 +35,7 @@ from .records import (
     Note,
     Transmit,
 )
+from .response_timing import ResponseTiming
 from .sending import Sending
 from .sharing import ReadSharing
 from .wire import SerialWire, Wire
@@ -72,6 +73,7 @@ class LineCore(Sending):
         self.wire: Wire = wire if wire is not None else SerialWire()
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
+        self.timing = ResponseTiming(policy, framing, 0.0)
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
         self._wanting_since: float | None = None
@@ -98,11 +100,10 @@ class LineCore(Sending):
         self.silence = policy.silence
         self.garbled_wait = max(2 * policy.silence, 0.003)
         # Only a shared medium can be noisy: a connection's frames need no gap to be read.
-        self._noisy_after = policy.noisy_deadline if self.wire.quiet_line else INFINITY
+        self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
         self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
-        self._timeouts: dict[int, float] = {}  # ``policy.timeout_for``, asked once per slave
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
@@ -171,7 +172,7 @@ class LineCore(Sending):
             if wire.outstanding < wire.capacity:
                 when = min(when, self._send_at)
                 if self._wanting_since is not None:
-                    when = min(when, self._wanting_since + self._noisy_after)
+                    when = min(when, self._wanting_since + self.timing.noisy_after)
                 if lane.requests and lane.credit < 0.0:
                     when = min(when, lane.credit_time())
             if lane.requests:
