@@ -55,6 +55,7 @@ def test_status_serialises_enums_as_their_words() -> None:
     assert plain["lines"][0]["state"] == "noisy"
     assert plain["lines"][0]["slaves"][0] == {
         "line": "a", "unit": 5, "state": "suspect", "p50": None, "p99": None, "errors": 2,
+        "learned_timeout": None,
     }  # fmt: skip
     assert plain["masters"][0]["peer"] == "10.0.0.7:5000"
 
