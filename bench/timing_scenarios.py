@@ -74,7 +74,7 @@ def bimodal(bench: Bench) -> ScenarioResult:
 def _dies_run(bench: Bench, baudrate: int) -> Run:
     before = bench.timing.pick(DIES_AFTER_S, DIES_AFTER_S, 1.0)
     after = bench.timing.pick(6.0, 4.0, 1.0)
-    spec = _spec(bench, 1, (1,), before + after, flaky_units=[1])
+    spec = _spec(bench, 1, (1,), before + after, flaky_units=[1], exception_pause=0.1)
     spec.kill_after = before
     return bench._run(
         f"{baudrate} baud, the slave falls silent after {before:g} s, default timeout and retries",
