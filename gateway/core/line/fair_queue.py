@@ -25,7 +25,7 @@ from collections import deque
 from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 
-from .records import INFINITY, LineRequest, LineStats
+from .records import LineRequest, LineStats
 
 
 @dataclass(slots=True, eq=False)
@@ -215,12 +215,6 @@ class FairQueue:
             master.queue.remove(request)
             self.dequeued(master, request)
         return [request for _, request in doomed]
-
-    def oldest_arrival(self) -> float:
-        """When the oldest request still in ``arrivals`` was queued (``INFINITY``: none);
-        it may have left since, which ``overdue`` finds out."""
-        arrivals = self.arrivals
-        return arrivals[0].enqueued_at if arrivals else INFINITY
 
     def overdue(self, queued_before: float) -> list[LineRequest]:
         """Take from the queues every request still unsent that was queued before

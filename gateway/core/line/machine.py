@@ -181,8 +181,11 @@ class LineCore(Sending):
                 when = min(when, self.late.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
-        if self.queue.arrivals:  # the oldest queued request's patience (``max_queue_wait``)
-            when = min(when, self.queue.arrivals[0].enqueued_at + self._max_wait)
+        arrivals = self.queue.arrivals
+        if arrivals:  # the oldest queued request's patience (``max_queue_wait``)
+            expiry = arrivals[0].enqueued_at + self._max_wait
+            if expiry < when:
+                when = expiry
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
@@ -388,7 +391,8 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
-        if self.queue.oldest_arrival() + self._max_wait <= now:
+        arrivals = self.queue.arrivals
+        if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:
             self._expire_waits(now)
         self.service(now)
 

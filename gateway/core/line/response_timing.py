@@ -5,7 +5,8 @@ first byte of its answer. Serial, ASCII and RTU-over-TCP lines learn it per slav
 function code (a slave may answer reads in 5 ms and an unknown code only after 0.5 s);
 ``tcp`` and ``tls`` lines, whose slaves sit behind one connection, learn it per function
 for the whole line. The estimate is a decaying peak: the longest turnaround seen, which
-forgets ``DECAY_PER_ANSWER`` of itself per answer. It is an upper quantile of the last few
+forgets ``DECAY_PER_ANSWER`` of itself per answer (applied every ``DECAY_EVERY`` answers
+of its slave and function, so an answer costs a comparison). It is an upper quantile of the last few
 hundred answers, not a mean: a slave slow on 1 request in 10 refreshes it long before it
 forgets, so the bound keeps covering the slow request. The *bound* is that peak times
 ``MARGIN``, never below the floor (``FLOOR_S``, ``NETWORK_FLOOR_S``: the scheduling and
@@ -44,8 +45,9 @@ NETWORK_FLOOR_S: Final = 0.2
 MARGIN: Final = 1.5
 #: The peak keeps this much of itself per answer (halved after ~350 answers).
 DECAY_PER_ANSWER: Final = 0.998
-#: Answers between two recomputations of the line's longest bound (it may only shrink then).
-LONGEST_EVERY: Final = 512
+#: Answers of a slave and function between two steps of its peak's decay.
+DECAY_EVERY: Final = 32
+_DECAY_STEP: Final = DECAY_PER_ANSWER**DECAY_EVERY
 #: Predicted answer times kept per line (a bound, not an LRU: polling refills it).
 PREDICTIONS_KEPT: Final = 256
 
@@ -79,10 +81,10 @@ class ResponseTiming:
         self.char_time = char_time
         self.floor = FLOOR_S if kind in (LineKind.RTU, LineKind.ASCII) else NETWORK_FLOOR_S
         self.bounds: dict[int, float] = {}  # key -> learned bound (``key``)
-        self.peaks: dict[int, float] = {}  # key -> decaying peak turnaround
+        #: key -> [decaying peak turnaround, answers since its last decay step]
+        self.peaks: dict[int, list[float]] = {}
         self.predicted: dict[bytes, float] = {}  # request PDU -> its answer's transmission
         self.longest = 0.0  # the longest bound (for ``noisy_after``)
-        self.answers = 0
         #: The zero-turnaround instant of the attempt ``deadline`` last timed.
         self.expected_at = 0.0
         self.configure(policy, True, char_time)
@@ -158,7 +160,15 @@ class ResponseTiming:
         if not self.learn or slave in self.fixed:
             self.expected_at = sent_by
             return sent_by + self.policy.timeout_for(slave)
-        expected = self.expected_at = sent_by + self.answer_time(pdu)
+        # ``answer_time`` and ``wait``, inline for a known request: once per transaction.
+        predicted = self.predicted.get(pdu)
+        if predicted is None:
+            predicted = self.answer_time(pdu)
+        expected = self.expected_at = sent_by + predicted
+        if attempt == 1:
+            bound = self.bounds.get((slave << 8 | pdu[0]) if self.per_slave else pdu[0])
+            if bound is not None:
+                return expected + bound
         return expected + self.wait(slave, pdu[0], attempt)
 
     def answer_time(self, pdu: bytes) -> float:
@@ -189,30 +199,34 @@ class ResponseTiming:
     def answered(self, slave: int, function: int, turnaround: float) -> None:
         """An answer came ``turnaround`` seconds after its zero-turnaround instant."""
         key = (slave << 8 | function) if self.per_slave else function
-        peak = self.peaks.get(key, 0.0) * DECAY_PER_ANSWER
-        if turnaround > peak:
-            peak = turnaround
-        self.peaks[key] = peak
-        bound = peak * MARGIN
-        if bound < self.floor_now:
-            bound = self.floor_now
-        elif bound > self.maximum:
-            bound = self.maximum
+        peak = self.peaks.get(key)
+        if peak is None:
+            peak = self.peaks[key] = [turnaround, 0.0]
+            self._set_bound(key, turnaround)
+        elif turnaround > peak[0]:
+            peak[0] = turnaround
+            self._set_bound(key, turnaround)
+        peak[1] += 1.0
+        if peak[1] >= DECAY_EVERY:
+            peak[1] = 0.0
+            peak[0] *= _DECAY_STEP
+            self._set_bound(key, peak[0])
+
+    def late(self, slave: int, function: int, turnaround: float) -> None:
+        """An answer recognised as late: its turnaround was at least ``turnaround``."""
+        self.answered(slave, function, turnaround)
+
+    def _set_bound(self, key: int, peak: float) -> None:
+        """The bound for ``key`` from its peak: with the margin, the floor and the cap."""
+        bound = min(max(peak * MARGIN, self.floor_now), self.maximum)
+        before = self.bounds.get(key, 0.0)
         self.bounds[key] = bound
         if bound > self.longest:
             self.longest = bound
             self._refresh_noisy()
-        self.answers += 1
-        if self.answers >= LONGEST_EVERY:
-            self.answers = 0
-            self.longest = max(self.bounds.values(), default=0.0)
+        elif before == self.longest and bound < before:
+            self.longest = max(self.bounds.values())
             self._refresh_noisy()
-
-    def late(self, slave: int, function: int, turnaround: float) -> None:
-        """An answer recognised as late: its turnaround was at least ``turnaround``."""
-        key = self.key(slave, function)
-        self.peaks[key] = max(self.peaks.get(key, 0.0), turnaround)
-        self.answered(slave, function, turnaround)
 
     def _refresh_noisy(self) -> None:
         """``noisy_after``: as set, else 3 x the longest wait (``initial_timeout`` until a
