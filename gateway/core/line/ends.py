@@ -32,7 +32,7 @@ from .records import (
     Note,
     tuple_new,
 )
-from .response_timing import ResponseTiming
+from .response_timing import LAST_BEFORE_DECAY, ResponseTiming
 from .sharing import ReadSharing
 from .wire import Wire
 
@@ -75,7 +75,13 @@ class AttemptEnds:
         response = frame.pdu
         timing = self.timing
         if timing.learn:
-            timing.answered(slave, function, now - attempt.expected_at)
+            # ``timing.answered``, inline when nothing changes: once per answer.
+            turnaround = now - attempt.expected_at
+            peak = timing.peaks.get((slave << 8 | function) if timing.per_slave else function)
+            if peak is not None and turnaround <= peak[0] and peak[1] < LAST_BEFORE_DECAY:
+                peak[1] += 1.0
+            else:
+                timing.answered(slave, function, turnaround)
         if self.late.windows:
             window = self.late.windows.get(slave)
             if window is not None and window.owner is request and window.sent_at is not None:

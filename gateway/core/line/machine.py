@@ -181,11 +181,10 @@ class LineCore(Sending):
                 when = min(when, self.late.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
-        arrivals = self.queue.arrivals
-        if arrivals:  # the oldest queued request's patience (``max_queue_wait``)
-            expiry = arrivals[0].enqueued_at + self._max_wait
-            if expiry < when:
-                when = expiry
+        if self.queue.queued:  # the oldest queued request's patience (``max_queue_wait``)
+            arrivals = self.queue.arrivals
+            if arrivals and arrivals[0].enqueued_at + self._max_wait < when:
+                when = arrivals[0].enqueued_at + self._max_wait
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
@@ -391,9 +390,10 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
-        arrivals = self.queue.arrivals
-        if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:
-            self._expire_waits(now)
+        if self.queue.queued:
+            arrivals = self.queue.arrivals
+            if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:
+                self._expire_waits(now)
         self.service(now)
 
     def _expire_waits(self, now: float) -> None:

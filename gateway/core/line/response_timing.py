@@ -48,6 +48,8 @@ DECAY_PER_ANSWER: Final = 0.998
 #: Answers of a slave and function between two steps of its peak's decay.
 DECAY_EVERY: Final = 32
 _DECAY_STEP: Final = DECAY_PER_ANSWER**DECAY_EVERY
+#: A peak's answer count below this takes the next answer without a decay step.
+LAST_BEFORE_DECAY: Final = DECAY_EVERY - 1
 #: Predicted answer times kept per line (a bound, not an LRU: polling refills it).
 PREDICTIONS_KEPT: Final = 256
 
@@ -97,6 +99,8 @@ class ResponseTiming:
         self.policy = policy
         self.learn = policy.learn_timeouts
         self.fixed: dict[int, float] = dict(policy.slave_timeouts)
+        #: Learning per slave, no slave fixed: the wire may read ``bounds`` itself.
+        self.plain = self.learn and self.per_slave and not self.fixed
         self.maximum = policy.max_timeout
         self.initial = min(policy.initial_timeout, self.maximum)
         self.floor_now = min(self.floor, self.maximum)

@@ -193,9 +193,19 @@ class SerialWire(Wire):
             frame = line.frame(slave, pdu)
         sent_by = now + len(frame) * line.char_time
         timing = line.timing
-        deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
+        # ``timing.deadline``, inline for a request heard before: once per transaction.
+        predicted = timing.predicted.get(pdu) if timing.plain else None
+        bound = None
+        if predicted is not None and request.attempts == 1:
+            bound = timing.bounds.get(slave << 8 | pdu[0])
+        if predicted is None or bound is None:
+            deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
+            expected = timing.expected_at
+        else:
+            expected = sent_by + predicted
+            deadline = expected + bound
         self.attempt = Attempt(
-            request, line.new_decoder(slave, pdu), now, deadline, credit, timing.expected_at
+            request, line.new_decoder(slave, pdu), now, deadline, credit, expected
         )
         self.outstanding = 1
         line.quiet_since = sent_by
