@@ -220,3 +220,20 @@ def test_a_reload_that_keeps_the_line_keeps_what_was_learned() -> None:
     bus.core.reconfigure(default_line(19200, retries=2), bus.now)
     assert bus.core.timing.learned(SLAVE, 3) == learned
     assert LineCore(default_line(19200), 0.0).timing.learned(SLAVE, 3) is None
+
+
+def test_the_learned_timeouts_are_exported_per_slave_at_scrape_time() -> None:
+    from prometheus_client import CollectorRegistry
+
+    from gateway.metrics import GatewayMetrics
+
+    registry = CollectorRegistry()
+    metrics = GatewayMetrics(registry)
+    bus = Bus(default_line(19200))
+    bus.poll(0.2)
+    core = bus.core
+    metrics.set_response_timeouts("a", lambda: core.timing.by_slave(core.health.slaves))
+    name = "modbus_gateway_slave_response_timeout_seconds"
+    exported = registry.get_sample_value(name, {"line": "a", "unit": "1"})
+    assert exported == core.timing.learned(SLAVE, 3) == pytest.approx(0.3, abs=0.01)
+    assert registry.get_sample_value(name, {"line": "a", "unit": "2"}) is None
