@@ -32,7 +32,7 @@ from .records import (
     Note,
     tuple_new,
 )
-from .response_timing import LAST_BEFORE_DECAY, ResponseTiming
+from .response_timing import ResponseTiming
 from .sharing import ReadSharing
 from .wire import Wire
 
@@ -73,20 +73,13 @@ class AttemptEnds:
         else:
             self.alive(slave)
         response = frame.pdu
-        timing = self.timing
-        if timing.learn:
-            # ``timing.answered``, inline when nothing changes: once per answer.
-            turnaround = now - attempt.expected_at
-            peak = timing.peaks.get((slave << 8 | function) if timing.per_slave else function)
-            if peak is not None and turnaround <= peak[0] and peak[1] < LAST_BEFORE_DECAY:
-                peak[1] += 1.0
-            else:
-                timing.answered(slave, function, turnaround)
+        if now > attempt.learn_above:  # slower than its slave's peak so far, or a first
+            self.timing.answered(slave, function, now - attempt.expected_at)
         if self.late.windows:
             window = self.late.windows.get(slave)
             if window is not None and window.owner is request and window.sent_at is not None:
                 # Perhaps the lost attempt's answer: the slave may be that slow.
-                timing.late(slave, function, now - window.sent_at)
+                self.timing.late(slave, function, now - window.sent_at)
             ends = self.late.ends_on(slave, request, response)
             if ends is True:
                 self.late.close(slave)  # it answered something after the loss: done

@@ -228,9 +228,9 @@ class FlightWire(Wire):
         timing = line.timing
         deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
         decoder = line.new_decoder(slave, pdu)
-        expected = timing.expected_at
+        expected, above = timing.expected_at, timing.learn_above
         self.flights[tid] = Attempt(
-            request, decoder, now, deadline, credit, expected, tid, epoch, charged
+            request, decoder, now, deadline, credit, expected, above, tid, epoch, charged
         )
         self.outstanding = len(self.flights)
         return frame

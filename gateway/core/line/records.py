@@ -253,6 +253,7 @@ class Attempt:
     deadline: float
     from_credit: bool
     expected_at: float  # when the answer would have ended with no turnaround at all
+    learn_above: float  # an answer after this teaches the learned timing (``complete``)
     silence_at: float
     garbled_at: float
     garbled: ResponseError | None
@@ -268,6 +269,7 @@ class Attempt:
         deadline: float,
         from_credit: bool,
         expected_at: float,
+        learn_above: float,
         tid: int = -1,
         epoch: int = 0,
         charged: float = 0.0,
@@ -279,6 +281,7 @@ class Attempt:
         self.deadline = deadline
         self.from_credit = from_credit
         self.expected_at = expected_at
+        self.learn_above = learn_above
         self.silence_at = INFINITY
         self.garbled_at = INFINITY
         self.garbled = None

@@ -5,8 +5,9 @@ first byte of its answer. Serial, ASCII and RTU-over-TCP lines learn it per slav
 function code (a slave may answer reads in 5 ms and an unknown code only after 0.5 s);
 ``tcp`` and ``tls`` lines, whose slaves sit behind one connection, learn it per function
 for the whole line. The estimate is a decaying peak: the longest turnaround seen, which
-forgets ``DECAY_PER_ANSWER`` of itself per answer (applied every ``DECAY_EVERY`` answers
-of its slave and function, so an answer costs a comparison). It is an upper quantile of the last few
+forgets ``DECAY_PER_ANSWER`` of itself per attempt (applied every ``DECAY_EVERY`` attempts
+to its slave and function; an answer no slower than the peak costs the machine one
+comparison: ``Attempt.learn_above``). It is an upper quantile of the last few
 hundred answers, not a mean: a slave slow on 1 request in 10 refreshes it long before it
 forgets, so the bound keeps covering the slow request. The *bound* is that peak times
 ``MARGIN``, never below the floor (``FLOOR_S``, ``NETWORK_FLOOR_S``: the scheduling and
@@ -45,11 +46,9 @@ NETWORK_FLOOR_S: Final = 0.2
 MARGIN: Final = 1.5
 #: The peak keeps this much of itself per answer (halved after ~350 answers).
 DECAY_PER_ANSWER: Final = 0.998
-#: Answers of a slave and function between two steps of its peak's decay.
+#: Attempts to a slave and function between two steps of its peak's decay.
 DECAY_EVERY: Final = 32
 _DECAY_STEP: Final = DECAY_PER_ANSWER**DECAY_EVERY
-#: A peak's answer count below this takes the next answer without a decay step.
-LAST_BEFORE_DECAY: Final = DECAY_EVERY - 1
 #: Predicted answer times kept per line (a bound, not an LRU: polling refills it).
 PREDICTIONS_KEPT: Final = 256
 
@@ -83,12 +82,14 @@ class ResponseTiming:
         self.char_time = char_time
         self.floor = FLOOR_S if kind in (LineKind.RTU, LineKind.ASCII) else NETWORK_FLOOR_S
         self.bounds: dict[int, float] = {}  # key -> learned bound (``key``)
-        #: key -> [decaying peak turnaround, answers since its last decay step]
+        #: key -> [decaying peak turnaround, attempts since its last decay step, bound]
         self.peaks: dict[int, list[float]] = {}
         self.predicted: dict[bytes, float] = {}  # request PDU -> its answer's transmission
         self.longest = 0.0  # the longest bound (for ``noisy_after``)
-        #: The zero-turnaround instant of the attempt ``deadline`` last timed.
+        #: The zero-turnaround instant of the attempt ``deadline`` last timed, and the
+        #: instant past which its answer teaches something (``INFINITY``: fixed timeout).
         self.expected_at = 0.0
+        self.learn_above = INFINITY
         self.configure(policy, True, char_time)
 
     def configure(self, policy: LinePolicy, quiet_line: bool, char_time: float) -> None:
@@ -160,19 +161,22 @@ class ResponseTiming:
 
     def deadline(self, slave: int, pdu: bytes, attempt: int, sent_by: float) -> float:
         """When the ``attempt``-th attempt of ``pdu``, sent by ``sent_by``, times out; sets
-        ``expected_at``. A fixed timeout runs from ``sent_by`` to the end of the answer."""
+        ``expected_at`` and ``learn_above``, and counts the attempt for the decay. A fixed
+        timeout runs from ``sent_by`` to the end of the answer."""
         if not self.learn or slave in self.fixed:
             self.expected_at = sent_by
+            self.learn_above = INFINITY
             return sent_by + self.policy.timeout_for(slave)
-        # ``answer_time`` and ``wait``, inline for a known request: once per transaction.
-        predicted = self.predicted.get(pdu)
-        if predicted is None:
-            predicted = self.answer_time(pdu)
-        expected = self.expected_at = sent_by + predicted
-        if attempt == 1:
-            bound = self.bounds.get((slave << 8 | pdu[0]) if self.per_slave else pdu[0])
-            if bound is not None:
-                return expected + bound
+        expected = self.expected_at = sent_by + self.answer_time(pdu)
+        key = (slave << 8 | pdu[0]) if self.per_slave else pdu[0]
+        state = self.peaks.get(key)
+        if state is None:
+            self.learn_above = -INFINITY  # a first answer: whatever it takes teaches
+        else:
+            self.learn_above = expected + state[0]
+            state[1] += 1.0
+            if state[1] >= DECAY_EVERY:
+                self.decay(key, state)
         return expected + self.wait(slave, pdu[0], attempt)
 
     def answer_time(self, pdu: bytes) -> float:
@@ -203,18 +207,19 @@ class ResponseTiming:
     def answered(self, slave: int, function: int, turnaround: float) -> None:
         """An answer came ``turnaround`` seconds after its zero-turnaround instant."""
         key = (slave << 8 | function) if self.per_slave else function
-        peak = self.peaks.get(key)
-        if peak is None:
-            peak = self.peaks[key] = [turnaround, 0.0]
+        state = self.peaks.get(key)
+        if state is None:
+            self.peaks[key] = [turnaround, 0.0, 0.0]
             self._set_bound(key, turnaround)
-        elif turnaround > peak[0]:
-            peak[0] = turnaround
+        elif turnaround > state[0]:
+            state[0] = turnaround
             self._set_bound(key, turnaround)
-        peak[1] += 1.0
-        if peak[1] >= DECAY_EVERY:
-            peak[1] = 0.0
-            peak[0] *= _DECAY_STEP
-            self._set_bound(key, peak[0])
+
+    def decay(self, key: int, state: list[float]) -> None:
+        """``DECAY_EVERY`` attempts went to ``key``: its peak forgets a step."""
+        state[1] = 0.0
+        state[0] *= _DECAY_STEP
+        self._set_bound(key, state[0])
 
     def late(self, slave: int, function: int, turnaround: float) -> None:
         """An answer recognised as late: its turnaround was at least ``turnaround``."""
@@ -224,7 +229,7 @@ class ResponseTiming:
         """The bound for ``key`` from its peak: with the margin, the floor and the cap."""
         bound = min(max(peak * MARGIN, self.floor_now), self.maximum)
         before = self.bounds.get(key, 0.0)
-        self.bounds[key] = bound
+        self.bounds[key] = self.peaks[key][2] = bound
         if bound > self.longest:
             self.longest = bound
             self._refresh_noisy()

@@ -20,6 +20,7 @@ from ..errors import ResponseError
 from ..outcome import DiscardReason
 from .fair_queue import Master
 from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
+from .response_timing import DECAY_EVERY
 
 if TYPE_CHECKING:
     from .machine import LineCore
@@ -195,17 +196,22 @@ class SerialWire(Wire):
         timing = line.timing
         # ``timing.deadline``, inline for a request heard before: once per transaction.
         predicted = timing.predicted.get(pdu) if timing.plain else None
-        bound = None
+        state = None
         if predicted is not None and request.attempts == 1:
-            bound = timing.bounds.get(slave << 8 | pdu[0])
-        if predicted is None or bound is None:
+            state = timing.peaks.get(slave << 8 | pdu[0])  # [peak, attempts, bound]
+        if predicted is None or state is None:
             deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
             expected = timing.expected_at
+            above = timing.learn_above
         else:
             expected = sent_by + predicted
-            deadline = expected + bound
+            deadline = expected + state[2]
+            above = expected + state[0]
+            state[1] += 1.0
+            if state[1] >= DECAY_EVERY:
+                timing.decay(slave << 8 | pdu[0], state)
         self.attempt = Attempt(
-            request, line.new_decoder(slave, pdu), now, deadline, credit, expected
+            request, line.new_decoder(slave, pdu), now, deadline, credit, expected, above
         )
         self.outstanding = 1
         line.quiet_since = sent_by
