@@ -167,24 +167,25 @@ class LineCore(Sending):
         """The next time ``handle_timer`` must be called, ``None`` when nothing is due."""
         wire = self.wire
         when = wire.timer() if wire.outstanding else INFINITY
-        if self.queue.queued and (wire.concurrent or not wire.outstanding):
-            lane = self.lane
-            if wire.outstanding < wire.capacity:
-                when = min(when, self._send_at)
-                if self._wanting_since is not None:
-                    when = min(when, self._wanting_since + self.timing.noisy_after)
-                if lane.requests and lane.credit < 0.0:
-                    when = min(when, lane.credit_time())
-            if lane.requests:
-                when = min(when, lane.earliest())
-            if self.late.windows:
-                when = min(when, self.late.earliest())
-        if self._noisy:
-            when = min(when, self.quiet_since + self._gap)
-        if self.queue.queued:  # the oldest queued request's patience (``max_queue_wait``)
-            arrivals = self.queue.arrivals
+        queue = self.queue
+        if queue.queued:
+            arrivals = queue.arrivals  # the oldest queued request's patience (``max_queue_wait``)
             if arrivals and arrivals[0].enqueued_at + self._max_wait < when:
                 when = arrivals[0].enqueued_at + self._max_wait
+            if wire.concurrent or not wire.outstanding:
+                lane = self.lane
+                if wire.outstanding < wire.capacity:
+                    when = min(when, self._send_at)
+                    if self._wanting_since is not None:
+                        when = min(when, self._wanting_since + self.timing.noisy_after)
+                    if lane.requests and lane.credit < 0.0:
+                        when = min(when, lane.credit_time())
+                if lane.requests:
+                    when = min(when, lane.earliest())
+                if self.late.windows:
+                    when = min(when, self.late.earliest())
+        if self._noisy:
+            when = min(when, self.quiet_since + self._gap)
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
