@@ -36,6 +36,7 @@ from . import (
     reverse_scenarios,
     scenarios,
     slave_kind_scenarios,
+    timing_scenarios,
     tls_scenarios,
     transport_scenarios,
 )
@@ -58,6 +59,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **slave_kind_scenarios.SCENARIOS,
     **reverse_scenarios.SCENARIOS,
     **inflight_scenarios.SCENARIOS,
+    **timing_scenarios.SCENARIOS,
     **fairness.SCENARIOS,
 }
 

@@ -89,6 +89,7 @@ class SimOptions:
     seed: int = 1
     realtime: bool = False  #: SCHED_FIFO for the simulator's thread (a real slave has its own CPU)
     late: Sequence[tuple[int, float, float, float]] = ()  #: (unit, share, min s, max s)
+    late_first: Sequence[int] = ()  #: units of ``late`` whose first read is late too
     die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
     framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
     modbus_tcp_listen: str | None = None  #: HOST:PORT: a Modbus TCP slave instead of a pty
@@ -148,7 +149,8 @@ class Simulator:
         for unit, rate in options.crc_error_rates.items():
             command += ["--crc-error-rate", f"{unit}:{rate}"]
         for unit, share, low, high in options.late:
-            command += ["--late", f"{unit}:{share}:{low}:{high}"]
+            first = ":first" if unit in options.late_first else ""
+            command += ["--late", f"{unit}:{share}:{low}:{high}{first}"]
         for unit in options.die_on_signal:
             command += ["--die-on-signal", str(unit)]
         if options.framing != "rtu":

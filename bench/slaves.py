@@ -13,6 +13,7 @@ what the benchmark needs and a demo does not:
   Other slaves keep answering; a late answer is written whole at the instant its
   last byte would leave the wire, by a thread of its own. Its wire time is not
   counted in the line's ``early_requests``: the master cannot foresee it.
+  ``UNIT:SHARE:MIN:MAX:first``: the unit's first read is one of them too.
 - ``--die-on-signal UNIT``: on SIGUSR1 the unit falls silent for good (a slave that
   dies in the middle of a run; the load generator sends the signal and notes when).
 
@@ -62,6 +63,7 @@ class LateRule:
     share: float
     min_s: float
     max_s: float
+    first: bool = False  #: the unit's first read is slow too
 
 
 @dataclass
@@ -112,9 +114,9 @@ class LateAnswers:
             return True
         return False
 
-    def decide(self, rule: LateRule) -> float | None:
-        """The delay for this read, or None to answer it on time."""
-        if self._rng.random() >= rule.share:
+    def decide(self, rule: LateRule, first: bool = False) -> float | None:
+        """The delay for this read (``first``: the unit's first), or None to answer it on time."""
+        if self._rng.random() >= rule.share and not (first and rule.first):
             return None
         return self._rng.uniform(rule.min_s, rule.max_s)
 
@@ -163,6 +165,7 @@ class BenchSlave(SimulatedDevice):
         self.unit = unit
         self.late_rule: LateRule | None = None
         self.late: LateAnswers | None = None
+        self.reads = 0  #: reads answered so far
 
     def handle(self, pdu: bytes, *, broadcast: bool = False) -> bytes | None:
         """Answer now, or hand the answer to the late-answer thread (the line sends nothing)."""
@@ -174,7 +177,8 @@ class BenchSlave(SimulatedDevice):
         response = super().handle(pdu)
         if response is None or not pdu or pdu[0] not in _READS:
             return response
-        delay = late.decide(rule)
+        delay = late.decide(rule, first=self.reads == 0)
+        self.reads += 1
         if delay is None:
             return response
         late.schedule(self.unit, response, delay)
@@ -204,13 +208,16 @@ def _unit_rate(text: str) -> tuple[int, float]:
 
 def _late_rule(text: str) -> LateRule:
     parts = text.split(":")
+    first = parts[-1] == "first"
+    if first:
+        parts.pop()
     try:
         unit, share, low, high = _unit(parts[0]), *(float(part) for part in parts[1:])
     except (ValueError, TypeError, IndexError):
         raise argparse.ArgumentTypeError(f"{text!r} is not UNIT:SHARE:MIN:MAX") from None
     if not 0.0 <= share <= 1.0 or not 0.0 <= low <= high:
         raise argparse.ArgumentTypeError(f"{text!r}: need 0 <= SHARE <= 1 and 0 <= MIN <= MAX")
-    return LateRule(unit, share, low, high)
+    return LateRule(unit, share, low, high, first)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -192,7 +192,13 @@ class LineConfig:
     data_bits: int = 8
     parity: str = "N"
     stop_bits: float = 1
-    timeout: float = 0.367  # auto_timeout(9600): "auto" is computed from the line's settings
+    timeout: float = 0.367  # auto_timeout(9600): the fixed timeout unless ``learn_timeouts``
+    #: ``timeout = "auto"`` (the file's default): each slave's timeout is learned
+    #: (``core.line.response_timing``); a line built directly keeps ``timeout`` fixed.
+    learn_timeouts: bool = False
+    #: Learned timing: the wait for a slave or function never heard from, and the most.
+    initial_timeout: float = 1.0
+    max_timeout: float = 3.0
     retries: int = 1
     retry_unsafe: bool = False
     frame_gap: float | None = None
@@ -200,6 +206,8 @@ class LineConfig:
     broadcast_turnaround: float = 0.1
     max_queue: int = 256
     max_queue_per_master: int = 32
+    #: Seconds a request may wait unsent before it is answered 0x0B (0: no limit).
+    max_queue_wait: float = 5.0
     late_answer_window: float | None = None
     noisy_after: float | None = None
     probe_share: float = 0.05
@@ -685,6 +693,7 @@ def _build_line(check: _Checker, name: str, raw: Mapping[str, Any]) -> LineConfi
         port=port,
         units=units,
         timeout=_line_timeout(check, table, prefix, kind, form),
+        learn_timeouts=table.get("timeout", "auto") == "auto",
         slave_timeouts=_slave_timeouts(check, table, prefix),
         names=_slave_names(check, table, prefix),
         cache=_cache_rules(check, table, prefix),

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from bisect import bisect_left
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from itertools import accumulate
 from typing import Protocol
 
@@ -146,6 +146,29 @@ class _UartErrorsCollector(Collector):
         for line, read in sorted(self._readers.items()):
             for kind, count in sorted((read() or {}).items()):
                 family.add_metric([line, kind], count)
+        yield family
+
+
+#: A line's learned response timeouts by slave, read at scrape time (``Bus``).
+ResponseTimeouts = Callable[[], Mapping[int, float]]
+
+
+class _ResponseTimeoutCollector(Collector):
+    """Exports every line's learned response timeouts at scrape time."""
+
+    def __init__(self, lines: dict[str, ResponseTimeouts]) -> None:
+        self._lines = lines
+
+    def collect(self) -> Iterator[Metric]:
+        family = GaugeMetricFamily(
+            "modbus_gateway_slave_response_timeout_seconds",
+            'The learned response timeout (timeout = "auto") of the slave: the turnaround '
+            "allowed to its first attempts, the longest of its functions'.",
+            labels=["line", "unit"],
+        )
+        for line, learned in sorted(self._lines.items()):
+            for slave, seconds in sorted(learned().items()):
+                family.add_metric([line, UNIT_LABELS[slave]], seconds)
         yield family
 
 
@@ -512,6 +535,8 @@ class GatewayMetrics:
         r.register(_LineCountersCollector(self._line_counters))
         self._uart_readers: dict[str, UartReader] = {}
         r.register(_UartErrorsCollector(self._uart_readers))
+        self._response_timeouts: dict[str, ResponseTimeouts] = {}
+        r.register(_ResponseTimeoutCollector(self._response_timeouts))
 
     def watch_uart(self, line: str, read: UartReader) -> None:
         """Export ``uart_errors_total`` of ``line`` from ``read`` (the line's latest port)."""
@@ -553,6 +578,10 @@ class GatewayMetrics:
         if counters is None:
             counters = self._line_counters[line] = LineCounters()
         return counters
+
+    def set_response_timeouts(self, line: str, learned: ResponseTimeouts) -> None:
+        """Where ``line``'s learned response timeouts are read (a reopened line's core)."""
+        self._response_timeouts[line] = learned
 
     def request_duration_for(self, line: str) -> LoopHistogram:
         """The latency histogram of ``line``."""

@@ -45,6 +45,9 @@ class SlaveStatus:
     timeouts: int = 0
     crc_errors: int = 0
     last_seen: float | None = None  # wall-clock seconds of its last answer
+    #: Seconds: the learned response timeout (``timeout = "auto"``), its slowest function's;
+    #: None where the timeout is fixed or before the slave's first answer.
+    learned_timeout: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -96,6 +96,8 @@ class Bus:
         self._m_line_up = metrics.line_up.labels(self.name)
         self._m_line_up.set(0)
         metrics.prepare_line(self.name)
+        core = self._core
+        metrics.set_response_timeouts(self.name, lambda: core.timing.by_slave(core.health.slaves))
         metrics.set_line_kind(self.name, config.kind)
         if config.kind == "tls":
             metrics.prepare_line_tls(self.name, (reason.value for reason in LineTlsFailure))
@@ -380,8 +382,9 @@ class Bus:
         states = self._core.slave_states()
         tallies = self.tally.slaves
         names = config.names
+        learned = self._core.timing.by_slave(states)
         listed = tuple(
-            self._slave_status(slave, states.get(slave, SlaveState.UP))
+            self._slave_status(slave, states.get(slave, SlaveState.UP), learned.get(slave))
             for slave in sorted(set(slaves) | set(states) | set(tallies) | set(names))
             if slave  # a broadcast is no slave
         )
@@ -403,13 +406,16 @@ class Bus:
             not_heard=sum(1 for slave in listed if not slave.heard),
         )
 
-    def _slave_status(self, slave: int, state: SlaveState) -> SlaveStatus:
+    def _slave_status(self, slave: int, state: SlaveState, learned: float | None) -> SlaveStatus:
         tally = self.tally.slaves.get(slave)
+        learned_timeout = _rounded(learned)
         if tally is None:
-            return SlaveStatus(self.name, slave, state, name=self.config.names.get(slave))
+            return SlaveStatus(self.name, slave, state, name=self.config.names.get(slave),
+                               learned_timeout=learned_timeout)  # fmt: skip
         return SlaveStatus(
             self.name, slave, state,
             name=self.config.names.get(slave),
+            learned_timeout=learned_timeout,
             heard=tally.last_seen is not None,
             requests=tally.requests,
             exceptions=dict(tally.exceptions),
@@ -419,10 +425,20 @@ class Bus:
     def _settings(self) -> str:
         """The line's settings as an operator reads them: ``rtu 9600 8E1, timeout 0.367 s``."""
         config = self.config
-        timeout = f"timeout {config.timeout:g} s"
+        timeout = (
+            f"timeout learned ({config.initial_timeout:g} s at first, "
+            f"{config.max_timeout:g} s at most)"
+            if config.learn_timeouts
+            else f"timeout {config.timeout:g} s"
+        )
         if config.networked or config.is_url:
             return f"{config.kind}, {timeout}"
         parity = str(config.parity)[:1].upper()
         stop = f"{config.stop_bits:g}"
         form = f"{config.baudrate} {config.data_bits}{parity}{stop}"
         return f"{config.kind} {form}, {timeout}"
+
+
+def _rounded(seconds: float | None) -> float | None:
+    """Milliseconds are enough for a person reading /status."""
+    return None if seconds is None else round(seconds, 3)

@@ -292,15 +292,22 @@ LINES = (
     *_ascii_keys(_L, 'kind = "ascii"', "", Reload.APPLIED),
     *_serial_format(_L, "", Reload.REOPENS, flags=True),
     Key(table=_L, name="timeout", type=Type.SECONDS, default="auto", low=0.001, high=60.0,
-        auto="the longest answer (256 bytes; 513 characters on ASCII) at the line's settings "
-        "plus 0.1 s for the slave to start answering: 0.367 s at 9600 8N1, 0.247 s at 19200 "
-        "8E1; 0.1 s more on a network line",
-        help="Seconds from the end of the request to the end of the slave's answer. With one "
-        "retry, \"auto\" lets a silent slave's 0x0B reach the master before its own timeout "
-        "(1 s in most masters) at 9600 baud and faster. Slower slaves: raise it here or per "
-        "slave in slave_timeouts.",
+        auto="learned per slave and function (per line on tcp and tls): the predicted answer's "
+        "transmission plus a high quantile of the slave's turnaround, between 0.1 s (0.2 s on "
+        "a network line) and max_timeout; initial_timeout until it first answers",
+        help="Seconds from the end of the request to the end of the slave's answer. \"auto\" "
+        "learns each slave's timing, so a slave slow on some requests keeps a timeout that "
+        "covers them and a fast slave's silence is noticed quickly; a retry waits twice as "
+        "long. A number is fixed for every slave, as is a slave_timeouts entry for its slave.",
         flag=Flag(name="--timeout", metavar="SECONDS", scope=Scope.EVERY_LINE,
-                  help="response timeout of every line (default auto: 0.367 at 9600 8N1)")),
+                  help="fixed response timeout of every line (default auto: learned)")),
+    Key(table=_L, name="initial_timeout", type=Type.SECONDS, default=1.0, low=0.001,
+        high=60.0,
+        help='timeout = "auto": the turnaround allowed to a slave (or one of its functions) '
+        "never heard from yet, the common 1 s of the serial-line guide."),
+    Key(table=_L, name="max_timeout", type=Type.SECONDS, default=3.0, low=0.001, high=60.0,
+        help='timeout = "auto": the most a learned turnaround, or a retry\'s backed-off '
+        "one, may reach."),
     Key(table=_L, name="retries", type=Type.INTEGER, default=1, low=0, high=10,
         help="Times a request is sent again after a timeout or a garbled answer, before "
         "exception 0x0B. Only requests without side effects are retried: FC 1-4, 7, 11, 12, "
@@ -314,7 +321,7 @@ LINES = (
         "(a counter increment, a pulse, a queue push). Set true only if every such request "
         "on this line is idempotent."),
     Key(table=_L, name="late_answer_window", type=Type.SECONDS, default="auto", low=0.0,
-        high=60.0, auto="2 x that slave's timeout",
+        high=60.0, auto="2 x the wait of the attempt that lost it (at most 2 x max_timeout)",
         help="After a timeout or a garbled answer, the slave's answer may still arrive: for "
         "this many seconds nothing that could be confused with it (same slave and function) "
         "is sent to that slave; other slaves are served meanwhile."),
@@ -344,8 +351,12 @@ LINES = (
         high=10_000,
         help="Requests one master may have waiting on this line or on its wire (one that "
         "fails waits again for its retry); past this it gets 0x06 (device busy)."),
+    Key(table=_L, name="max_queue_wait", type=Type.SECONDS, default=5.0, low=0.0, high=3600.0,
+        help="Seconds a request may wait in the line's queue: one still unsent after this is "
+        "answered 0x0B without using the line (its master has given up on it by then), and "
+        "the slave's health is not touched. 0: no limit."),
     Key(table=_L, name="noisy_after", type=Type.SECONDS, default="auto", low=0.0, high=3600.0,
-        auto="3 x the longest timeout",
+        auto="3 x the longest timeout (learned: at most 3 x max_timeout)",
         help="Seconds without a usable gap (a babbling slave or transceiver) before waiting "
         "requests are answered 0x0B and the line is reported noisy."),
     Key(table=_L, name="rs485", type=Type.BOOLEAN, default=False, only=_SERIAL,

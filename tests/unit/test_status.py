@@ -57,6 +57,7 @@ def test_status_serialises_enums_as_their_words() -> None:
         "line": "a", "unit": 5, "state": "suspect", "p50": None, "p99": None, "errors": 2,
         "units": [], "name": None, "heard": False, "requests": 0, "exceptions": {},
         "timeouts": 0, "crc_errors": 0, "last_seen": None,
+        "learned_timeout": None,
     }  # fmt: skip
     assert plain["masters"][0]["peer"] == "10.0.0.7:5000"
 

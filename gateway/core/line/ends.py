@@ -32,6 +32,7 @@ from .records import (
     Note,
     tuple_new,
 )
+from .response_timing import ResponseTiming
 from .sharing import ReadSharing
 from .wire import Wire
 
@@ -53,14 +54,8 @@ class AttemptEnds:
     wire: Wire
     retries: deque[LineRequest]
     garbled_wait: float
-    _timeouts: dict[int, float]
+    timing: ResponseTiming
     _stopping: bool
-
-    def timeout_for(self, slave: int) -> float:
-        timeout = self._timeouts.get(slave)
-        if timeout is None:
-            timeout = self._timeouts[slave] = self.policy.timeout_for(slave)
-        return timeout
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire (the wire has ended ``attempt``)."""
@@ -78,14 +73,20 @@ class AttemptEnds:
         else:
             self.alive(slave)
         response = frame.pdu
+        if now > attempt.learn_above:  # slower than its slave's peak so far, or a first
+            self.timing.answered(slave, function, now - attempt.expected_at)
         if self.late.windows:
+            window = self.late.windows.get(slave)
+            if window is not None and window.owner is request and window.sent_at is not None:
+                # Perhaps the lost attempt's answer: the slave may be that slow.
+                self.timing.late(slave, function, now - window.sent_at)
             ends = self.late.ends_on(slave, request, response)
             if ends is True:
                 self.late.close(slave)  # it answered something after the loss: done
             elif ends is False:
                 # An exception cannot be told from the lost request's: this one's own
                 # answer may be the one still on its way now.
-                self._open_window(slave, record, request, now)
+                self._open_window(slave, record, request, now, attempt.sent_at)
         self._charge(attempt, wire, now)
         if response[0] & fc.EXCEPTION_FLAG:
             outcome = Outcome.SLAVE_EXCEPTION
@@ -126,10 +127,10 @@ class AttemptEnds:
         wire = now - attempt.sent_at
         record = self.health.record(slave)
         if not damaged:
-            self._open_window(slave, record, request, now)
+            self._open_window(slave, record, request, now, attempt.sent_at)
         before = record.state
         if error is None:
-            timeout = self.timeout_for(slave)
+            timeout = self.timing.wait(slave, request.pdu[0], request.attempts)
             self.notes.append(Note(LineEvent.TIMEOUT, slave, f"no answer within {timeout:g} s"))
             state = self.health.count_timeout(record, request.pdu[0], now, self.policy)
             if state is not None:
@@ -199,27 +200,41 @@ class AttemptEnds:
                 self._lane_remove(waiting)
                 self._queue_at_front(waiting)
 
-    def late_bytes(self, data: bytes) -> None:
+    def late_bytes(self, data: bytes, now: float) -> None:
         """Bytes while nothing is on the wire: a lost answer shows its slave alive, slow."""
+        lost = self.late.lost_attempts()
         for slave in self.late.watch(data):
-            self.alive(slave)
+            self._late_answer(slave, lost, now)
 
-    def late_frame(self, frame: bytes) -> None:
+    def late_frame(self, frame: bytes, now: float) -> None:
         """An intact frame the attempt on the wire discarded: is it a lost answer?"""
+        lost = self.late.lost_attempts()
         slave = self.late.is_lost_answer(frame)
         if slave is not None:
-            self.alive(slave)
+            self._late_answer(slave, lost, now)
+
+    def _late_answer(self, slave: int, lost: dict[int, tuple[float, int]], now: float) -> None:
+        """A lost answer came: the slave is alive, and as slow as that (the bound widens)."""
+        sent = lost.get(slave)
+        if sent is not None and self.timing.learn:
+            self.timing.late(slave, sent[1], now - sent[0])
+        self.alive(slave)
 
     def _open_window(
-        self, slave: int, record: SlaveRecord, request: LineRequest, now: float
+        self,
+        slave: int,
+        record: SlaveRecord,
+        request: LineRequest,
+        now: float,
+        sent_at: float | None = None,
     ) -> None:
         """The slave's answer to ``request`` may still come: nothing that could be taken for
         it goes to this slave until the window ends or the slave shows it is done. A line
         whose answers carry transaction ids needs no window (the id names the answer)."""
         if not self.wire.quiet_line:
             return
-        window = self.policy.late_window_for(slave)
-        self.late.open(slave, request, now + window)
+        window = self.timing.late_window(slave, request.pdu[0], request.attempts)
+        self.late.open(slave, request, now + window, sent_at)
         self.notes.append(Note(LineEvent.LATE_WINDOW, slave, f"{window:g} s"))
 
     def _set_state(self, slave: int, record: SlaveRecord, state: SlaveState) -> None:
@@ -239,7 +254,7 @@ class AttemptEnds:
 
     def _lane_put(self, request: LineRequest, now: float) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
-        self.lane.put(request, now + self.timeout_for(request.slave))
+        self.lane.put(request, now + self.timing.wait(request.slave, request.pdu[0], 1))
         self.queue.master(request.master)
         self.queue.count_waiting(request, +1)
 

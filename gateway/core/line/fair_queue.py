@@ -10,7 +10,9 @@ after the transaction on the wire (behind others that came so before it), unless
 account is ahead of every waiting master's: it cannot become the heaviest user that
 way. Each master has its own queue bound (0x06 beyond it); the
 line-wide bound pushes out the longest queue's newest request before refusing a master
-with a shorter queue.
+with a shorter queue. A request still unsent after the line's ``max_queue_wait`` is
+overdue: ``arrivals`` holds the queued requests in submission order, so the oldest is
+found without a scan (requests that left another way are skipped when met at its head).
 
 This part keeps the order and the counts; it answers questions and never emits an
 action: the machine (``machine.LineCore``) decides what becomes of a request.
@@ -50,6 +52,8 @@ class FairQueue:
         self.vclock = 0.0
         self.vmax = 0.0  # the furthest account of a master that waited (``push``)
         self.queued = 0  # requests waiting for the line, wherever they wait
+        #: Requests queued by ``enqueue``, oldest first; some may have left since (``overdue``).
+        self.arrivals: deque[LineRequest] = deque()
 
     def master(self, key: Hashable) -> Master:
         """``key``'s account, created on first need."""
@@ -84,6 +88,7 @@ class FairQueue:
         turn.
         """
         master.queue.append(request)
+        self.arrivals.append(request)
         master.queued += 1
         self.queued += 1
         self.stats.queue_depth = self.queued
@@ -170,6 +175,9 @@ class FairQueue:
                     skipped.append((master, rank == 0))
                 continue
             master.queue.remove(request)
+            arrivals = self.arrivals
+            if arrivals and arrivals[0] is request:
+                arrivals.popleft()  # the usual case: the oldest goes first
             master.queued -= 1  # ``dequeued``
             self.queued -= 1
             self.stats.queue_depth = self.queued
@@ -208,6 +216,24 @@ class FairQueue:
             self.dequeued(master, request)
         return [request for _, request in doomed]
 
+    def overdue(self, queued_before: float) -> list[LineRequest]:
+        """Take from the queues every request still unsent that was queued before
+        ``queued_before`` (the caller answers them); forget those that left otherwise."""
+        arrivals = self.arrivals
+        taken: list[LineRequest] = []
+        while arrivals and arrivals[0].enqueued_at < queued_before:
+            request = arrivals.popleft()
+            if request.sent or request.answered:
+                continue
+            owner = self.masters.get(request.master)
+            if owner is None or request not in owner.queue:
+                continue  # in the lane, or handed on: it has its own deadline
+            owner.queue.remove(request)
+            self.dequeued(owner, request)
+            self.reschedule(owner)
+            taken.append(request)
+        return taken
+
     def waiting(self) -> Iterator[LineRequest]:
         """Every request in the masters' queues."""
         for master in self.masters.values():
@@ -222,6 +248,7 @@ class FairQueue:
             master.queued = 0
             master.heap_seq = -1
         self.heap.clear()
+        self.arrivals.clear()
         self.masters = {k: m for k, m in self.masters.items() if not m.gone}
         self.queued = 0
         self.stats.queue_depth = 0

@@ -74,7 +74,8 @@ class FlightWire(Wire):
         self.flights: dict[int, Attempt] = {}  # TID -> attempt
         self.stream = MbapDecoder()
         self.out_of_step = False
-        self.lost_tids: dict[int, int] = {}  # TID of a timed-out attempt -> its slave
+        #: TID of a timed-out attempt -> its slave, when it was sent, its function.
+        self.lost_tids: dict[int, tuple[int, float, int]] = {}
         # (master, slave) -> [requests outstanding, of which with side effects]
         self.open: dict[OpenKey, list[int]] = {}
         self.opened_by: dict[LineRequest, tuple[OpenKey, bool]] = {}  # by identity
@@ -133,9 +134,12 @@ class FlightWire(Wire):
         line = self.line
         flight = self.flights.get(tid)
         if flight is None:
-            slave = self.lost_tids.pop(tid, None)
-            line.discard(DiscardReason.UNEXPECTED_TID, 1, slave if slave is not None else 0)
-            if slave is not None:  # a timed-out attempt's answer: the slave is alive, slow
+            lost = self.lost_tids.pop(tid, None)
+            line.discard(DiscardReason.UNEXPECTED_TID, 1, lost[0] if lost is not None else 0)
+            if lost is not None:  # a timed-out attempt's answer: the slave is alive, slow
+                slave, sent_at, function = lost
+                if line.timing.learn:
+                    line.timing.late(slave, function, now - sent_at)
                 line.alive(slave)
             return
         request = flight.request
@@ -154,7 +158,8 @@ class FlightWire(Wire):
         expired = [flight for flight in self.flights.values() if now >= flight.deadline]
         for flight in expired:
             lost = self.lost_tids
-            lost[flight.tid] = flight.request.slave
+            request = flight.request
+            lost[flight.tid] = (request.slave, flight.sent_at, request.pdu[0])
             if len(lost) > _LOST_TIDS_KEPT:
                 del lost[next(iter(lost))]
             self.line.fail(flight, None, now)
@@ -216,13 +221,17 @@ class FlightWire(Wire):
             line.queue.charge_ahead(master, charged)
             if master.queue and master.heap_seq < 0:
                 line.queue.push(master)
-        transmit_time = len(frame) * line.char_time
+        sent_by = now + len(frame) * line.char_time
         epoch = line.sharing.epoch(slave)
         if line.policy.cache and any(may_change(f.request, slave) for f in self.flights.values()):
             epoch = -1  # a change to it is outstanding: the device may run it after this read
-        deadline = now + transmit_time + line.timeout_for(slave)
+        timing = line.timing
+        deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
         decoder = line.new_decoder(slave, pdu)
-        self.flights[tid] = Attempt(request, decoder, now, deadline, credit, tid, epoch, charged)
+        expected, above = timing.expected_at, timing.learn_above
+        self.flights[tid] = Attempt(
+            request, decoder, now, deadline, credit, expected, above, tid, epoch, charged
+        )
         self.outstanding = len(self.flights)
         return frame
 

@@ -33,6 +33,7 @@ class Window:
     owner: LineRequest | None = None
     decoder: ResponseDecoder | None = None  # recognises the lost answer itself
     pending: int = 0  # the owner's attempts whose answers may still come
+    sent_at: float | None = None  # when the owner's latest lost attempt was sent
 
 
 class LateWindows:
@@ -42,8 +43,11 @@ class LateWindows:
         self.windows: dict[int, Window] = {}
         self.new_decoder = new_decoder
 
-    def open(self, slave: int, request: LineRequest, until: float) -> None:
-        """The slave's answer to ``request`` may still come until ``until`` (or later)."""
+    def open(
+        self, slave: int, request: LineRequest, until: float, sent_at: float | None = None
+    ) -> None:
+        """The slave's answer to ``request`` (its attempt sent at ``sent_at``) may still come
+        until ``until`` (or later)."""
         window = self.windows.get(slave)
         if window is None:
             window = self.windows[slave] = Window()
@@ -56,6 +60,8 @@ class LateWindows:
             window.owner = request
             window.decoder = self.new_decoder(slave, request.pdu)
             window.pending = 1
+        if window.sent_at is None or (sent_at is not None and window.pending == 1):
+            window.sent_at = sent_at
 
     def keep(self, handed: LateWindow) -> None:
         """A window handed on by the line this one replaces."""
@@ -74,6 +80,14 @@ class LateWindows:
             LateWindow(slave, w.until, frozenset(w.signatures), w.owner, w.pending)
             for slave, w in self.windows.items()
         ]
+
+    def lost_attempts(self) -> dict[int, tuple[float, int]]:
+        """By slave: when its window owner's first lost attempt went, and its function."""
+        return {
+            slave: (w.sent_at, w.owner.pdu[0])
+            for slave, w in self.windows.items()
+            if w.sent_at is not None and w.owner is not None
+        }
 
     def close(self, slave: int) -> None:
         del self.windows[slave]

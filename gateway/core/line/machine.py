@@ -35,6 +35,7 @@ from .records import (
     Note,
     Transmit,
 )
+from .response_timing import ResponseTiming
 from .sending import Sending
 from .sharing import ReadSharing
 from .wire import SerialWire, Wire
@@ -72,6 +73,7 @@ class LineCore(Sending):
         self.wire: Wire = wire if wire is not None else SerialWire()
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
+        self.timing = ResponseTiming(policy, framing, 0.0)
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
         self._wanting_since: float | None = None
@@ -98,10 +100,10 @@ class LineCore(Sending):
         self.silence = policy.silence
         self.garbled_wait = max(2 * policy.silence, 0.003)
         # Only a shared medium can be noisy: a connection's frames need no gap to be read.
-        self._noisy_after = policy.noisy_deadline if self.wire.quiet_line else INFINITY
+        self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
-        self._timeouts: dict[int, float] = {}  # ``policy.timeout_for``, asked once per slave
+        self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
@@ -165,18 +167,23 @@ class LineCore(Sending):
         """The next time ``handle_timer`` must be called, ``None`` when nothing is due."""
         wire = self.wire
         when = wire.timer() if wire.outstanding else INFINITY
-        if self.queue.queued and (wire.concurrent or not wire.outstanding):
-            lane = self.lane
-            if wire.outstanding < wire.capacity:
-                when = min(when, self._send_at)
-                if self._wanting_since is not None:
-                    when = min(when, self._wanting_since + self._noisy_after)
-                if lane.requests and lane.credit < 0.0:
-                    when = min(when, lane.credit_time())
-            if lane.requests:
-                when = min(when, lane.earliest())
-            if self.late.windows:
-                when = min(when, self.late.earliest())
+        queue = self.queue
+        if queue.queued:
+            arrivals = queue.arrivals  # the oldest queued request's patience (``max_queue_wait``)
+            if arrivals and arrivals[0].enqueued_at + self._max_wait < when:
+                when = arrivals[0].enqueued_at + self._max_wait
+            if wire.concurrent or not wire.outstanding:
+                lane = self.lane
+                if wire.outstanding < wire.capacity:
+                    when = min(when, self._send_at)
+                    if self._wanting_since is not None:
+                        when = min(when, self._wanting_since + self.timing.noisy_after)
+                    if lane.requests and lane.credit < 0.0:
+                        when = min(when, lane.credit_time())
+                if lane.requests:
+                    when = min(when, lane.earliest())
+                if self.late.windows:
+                    when = min(when, self.late.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
         return None if when == INFINITY else when
@@ -384,4 +391,14 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
+        if self.queue.queued:
+            arrivals = self.queue.arrivals
+            if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:
+                self._expire_waits(now)
         self.service(now)
+
+    def _expire_waits(self, now: float) -> None:
+        """Requests unsent after ``max_queue_wait``: 0x0B without the wire (their masters
+        have given up by now); the slave's health is not touched."""
+        for request in self.queue.overdue(now - self._max_wait + 1e-9):
+            self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)

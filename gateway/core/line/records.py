@@ -5,7 +5,7 @@ Everything here is a record or a pure function; no decision is made in this modu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final, NamedTuple, Protocol
 
@@ -84,6 +84,8 @@ class LinePolicy(Protocol):
     @property
     def max_queue_per_master(self) -> int: ...
     @property
+    def max_queue_wait(self) -> float: ...
+    @property
     def dead_after(self) -> int: ...
     @property
     def probe_interval(self) -> float: ...
@@ -103,6 +105,19 @@ class LinePolicy(Protocol):
     def noisy_deadline(self) -> float: ...
     @property
     def echo(self) -> bool: ...
+
+    @property
+    def learn_timeouts(self) -> bool: ...
+    @property
+    def initial_timeout(self) -> float: ...
+    @property
+    def max_timeout(self) -> float: ...
+    @property
+    def slave_timeouts(self) -> Mapping[int, float]: ...
+    @property
+    def late_answer_window(self) -> float | None: ...
+    @property
+    def noisy_after(self) -> float | None: ...
 
     def timeout_for(self, slave: int) -> float: ...
 
@@ -237,6 +252,8 @@ class Attempt:
     sent_at: float
     deadline: float
     from_credit: bool
+    expected_at: float  # when the answer would have ended with no turnaround at all
+    learn_above: float  # an answer after this teaches the learned timing (``complete``)
     silence_at: float
     garbled_at: float
     garbled: ResponseError | None
@@ -251,6 +268,8 @@ class Attempt:
         sent_at: float,
         deadline: float,
         from_credit: bool,
+        expected_at: float,
+        learn_above: float,
         tid: int = -1,
         epoch: int = 0,
         charged: float = 0.0,
@@ -261,6 +280,8 @@ class Attempt:
         self.sent_at = sent_at
         self.deadline = deadline
         self.from_credit = from_credit
+        self.expected_at = expected_at
+        self.learn_above = learn_above
         self.silence_at = INFINITY
         self.garbled_at = INFINITY
         self.garbled = None

@@ -26,7 +26,6 @@ class Sending(AttemptEnds):
     _send_at: float
     _wanting_since: float | None
     _noisy: bool
-    _noisy_after: float
     _up: bool
     _paused: bool
     _gap: float
@@ -52,7 +51,7 @@ class Sending(AttemptEnds):
             self._send_at = ready_at
             if self._wanting_since is None:
                 self._wanting_since = now
-            elif now >= self._wanting_since + self._noisy_after:
+            elif now >= self._wanting_since + self.timing.noisy_after:
                 self._go_noisy()
             return
         self._wanting_since = None
@@ -152,7 +151,8 @@ class Sending(AttemptEnds):
     def _go_noisy(self) -> None:
         self._noisy = True
         self._wanting_since = None
-        self.notes.append(Note(LineEvent.LINE_NOISY, 0, f"no gap for {self._noisy_after:g} s"))
+        waited = self.timing.noisy_after
+        self.notes.append(Note(LineEvent.LINE_NOISY, 0, f"no gap for {waited:g} s"))
         self._fail_all(ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
 
     def _fail_all(self, code: ExceptionCode, outcome: Outcome) -> None:

@@ -20,6 +20,7 @@ from ..errors import ResponseError
 from ..outcome import DiscardReason
 from .fair_queue import Master
 from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
+from .response_timing import DECAY_EVERY
 
 if TYPE_CHECKING:
     from .machine import LineCore
@@ -186,20 +187,34 @@ class SerialWire(Wire):
         line = self.line
         slave = request.slave
         pdu = request.pdu
-        # ``line.frame`` and ``line.timeout_for``, inline when known: once per transaction.
+        # ``line.frame``, inline when known: once per transaction.
         frames = line._frames
         frame = frames.get((slave, pdu)) if frames is not None else None
         if frame is None:
             frame = line.frame(slave, pdu)
-        timeout = line._timeouts.get(slave)
-        if timeout is None:
-            timeout = line.timeout_for(slave)
-        transmit_time = len(frame) * line.char_time
+        sent_by = now + len(frame) * line.char_time
+        timing = line.timing
+        # ``timing.deadline``, inline for a request heard before: once per transaction.
+        predicted = timing.predicted.get(pdu) if timing.plain else None
+        state = None
+        if predicted is not None and request.attempts == 1:
+            state = timing.peaks.get(slave << 8 | pdu[0])  # [peak, attempts, bound]
+        if predicted is None or state is None:
+            deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
+            expected = timing.expected_at
+            above = timing.learn_above
+        else:
+            expected = sent_by + predicted
+            deadline = expected + state[2]
+            above = expected + state[0]
+            state[1] += 1.0
+            if state[1] >= DECAY_EVERY:
+                timing.decay(slave << 8 | pdu[0], state)
         self.attempt = Attempt(
-            request, line.new_decoder(slave, pdu), now, now + transmit_time + timeout, credit
+            request, line.new_decoder(slave, pdu), now, deadline, credit, expected, above
         )
         self.outstanding = 1
-        line.quiet_since = now + transmit_time
+        line.quiet_since = sent_by
         if line.echo:
             self.echo_left = frame
         return frame
@@ -234,7 +249,7 @@ class SerialWire(Wire):
         if attempt is None:
             line.discard(DiscardReason.LATE, len(data))
             if line.late.windows:
-                line.late_bytes(data)
+                line.late_bytes(data, now)
                 line.service(now)
             return
         if attempt.garbled is not None:
@@ -255,7 +270,7 @@ class SerialWire(Wire):
                     # in front of the answer: drop it and keep decoding what followed it.
                     line.discard(DiscardReason(error.kind), 1, attempt.request.slave)
                     if line.late.windows and error.frame:
-                        line.late_frame(error.frame)
+                        line.late_frame(error.frame, now)
                 else:
                     line.garbled(attempt, error, decoder.looks_like_answer, now)
                     if self.attempt is not attempt:  # failed: the rest is late bytes
