@@ -40,7 +40,7 @@ from .io.bus import Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, start_http
 from .io.rtu_listener import rtu_over_tcp_server
-from .io.serial_port import check_device_free, check_device_usable
+from .io.serial_port import check_devices_usable
 from .io.serial_slave import SerialSlave
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
@@ -215,8 +215,7 @@ class Gateway:
         ensure_file_descriptors(
             config.server.max_connections * len(listeners) + http_connections + _FDS_BESIDES_MASTERS
         )
-        for line in config.lines:  # a device held or unusable fails the start
-            check_device_usable(line)
+        check_devices_usable(config)  # a device held or unusable fails the start
         for line in config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in config.lines])
@@ -247,7 +246,6 @@ class Gateway:
         """Open each ``serial-slave`` listener's line (or keep trying in the background)."""
         for listener in self.config.listeners:
             if listener.serial is not None:
-                check_device_free(listener.serial)
                 slave = SerialSlave(listener, router, self.metrics,
                                     self._policy(self.config, listener), loop)  # fmt: skip
                 slave.tracer, slave.audit = self.trace, self.audit

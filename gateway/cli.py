@@ -23,7 +23,7 @@ from .config import (
     read_config_file,
 )
 from .core.framing import is_mbap
-from .io.link import DeviceUnusableError
+from .io.link import DeviceUnusableError, ListenerDeviceUnusableError
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
 from .schema import Key, Scope, Table, Type
@@ -500,9 +500,14 @@ def _serve(args: argparse.Namespace, config: GatewayConfig, demo: DemoLine | Non
 def _device_error(error: DeviceUnusableError, args: argparse.Namespace) -> str:
     """The device's error naming the setting as the user gave it: the flag when a flag set
     it (or when no file is in play and a flag exists), else the file's key."""
-    if error.key == "device":
+    if isinstance(error, ListenerDeviceUnusableError):
+        if not args.serial_slave or error.line != "serial-slave":
+            return str(error)  # a listener of the file: its key there
+        if error.key == "device":
+            return error.told("--serial-slave")
+    elif error.key == "device":
         return error.told("--serial") if args.serial else str(error)
-    for key in schema.flagged():
+    for key in schema.flagged():  # --baudrate, --data-bits, ... set --serial-slave's too
         flag = key.flag
         if key.table is not Table.LINES or key.name != error.key or flag is None:
             continue

@@ -78,6 +78,21 @@ class DeviceUnusableError(SerialPortError):
         return f"line {self.line!r}: {self.problem}; {self.fix.format(setting=setting)}."
 
 
+class ListenerDeviceUnusableError(DeviceUnusableError):
+    """The same for the device of a ``serial-slave`` listener (the gateway answering
+    masters on a serial line): its setting is the listener's key, ``key_prefix`` + ``key``
+    (``listeners[0].device``), or the flag that set it."""
+
+    def __init__(self, listener: str, key_prefix: str, key: str, problem: str, fix: str) -> None:
+        self.key_prefix = key_prefix
+        super().__init__(listener, key, problem, fix)
+        self.args = (self.told(f"{key_prefix}{key}"),)
+
+    def told(self, setting: str) -> str:
+        """The whole sentence, naming the listener and the setting to change as ``setting``."""
+        return f"listener {self.line!r}: {self.problem}; {self.fix.format(setting=setting)}."
+
+
 class Link(Protocol):
     """What ``Bus`` needs from whatever carries a line's bytes."""
 

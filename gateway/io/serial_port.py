@@ -33,8 +33,13 @@ from typing import Any
 import serial
 import serial.rs485
 
-from ..config import LineConfig
-from .link import DeviceBusyError, DeviceUnusableError, SerialPortError
+from ..config import GatewayConfig, LineConfig, ListenerConfig
+from .link import (
+    DeviceBusyError,
+    DeviceUnusableError,
+    ListenerDeviceUnusableError,
+    SerialPortError,
+)
 from .uart import UartError, uart_errors
 
 log = logging.getLogger("gateway.io.serial_port")
@@ -55,10 +60,13 @@ _DENIED = frozenset({errno.EACCES, errno.EPERM})
 __all__ = [
     "DeviceBusyError",
     "DeviceUnusableError",
+    "ListenerDeviceUnusableError",
     "SerialLink",
     "SerialPortError",
     "check_device_free",
     "check_device_usable",
+    "check_devices_usable",
+    "check_listener_device_usable",
     "describe_holder",
     "open_serial",
 ]
@@ -321,6 +329,29 @@ def check_device_usable(
         os.close(fd)
     check_device_free(line)
     _release(open_serial(line))  # every setting applied once, exactly as the line will
+
+
+def check_listener_device_usable(listener: ListenerConfig) -> None:
+    """``check_device_usable`` for a ``serial-slave`` listener's device, its error naming
+    the listener and its key. A device that does not exist passes here too: the listener
+    opens it once it is plugged in."""
+    if listener.serial is None:
+        return
+    try:
+        check_device_usable(listener.serial)
+    except DeviceUnusableError as error:
+        raise ListenerDeviceUnusableError(
+            listener.name, listener.key_prefix, error.key, error.problem, error.fix
+        ) from error
+
+
+def check_devices_usable(config: GatewayConfig) -> None:
+    """At start, every line's device and every ``serial-slave`` listener's, before any is
+    opened: one that is held or cannot be used stops the start with the fix."""
+    for line in config.lines:
+        check_device_usable(line)
+    for listener in config.listeners:
+        check_listener_device_usable(listener)
 
 
 def _open_when_permitted(

@@ -137,6 +137,46 @@ def test_a_device_not_plugged_in_yet_is_waited_for(tmp_path: Path) -> None:
         assert started.stop() == 0
 
 
+def _slave_listener(device: str, extra: str = "") -> str:
+    """A ``serial-slave`` listener in the file, the first ``[[listeners]]`` entry."""
+    return (f'[[listeners]]\nname = "panel"\nprotocol = "serial-slave"\n'
+            f'device = "{device}"\n{extra}')  # fmt: skip
+
+
+def test_a_regular_file_is_not_a_serial_slave_device(tmp_path: Path) -> None:
+    """The serial-slave listener's device is checked as a line's is, in the user's terms."""
+    file, missing = tmp_path / "ttyUSB1", str(tmp_path / "ttyUSB9")
+    file.write_text("")
+    flagged = _failure(Started("--serial", missing, "--serial-slave", str(file), *QUIET))
+    assert f"listener 'serial-slave': {file} is not a serial device (not a terminal)" in flagged
+    assert "set --serial-slave to the adapter's device" in flagged
+    from_file = _failure(Started("--config", _config(tmp_path, missing,
+                                                     _slave_listener(str(file)))))  # fmt: skip
+    assert f"listener 'panel': {file} is not a serial device" in from_file
+    assert "set listeners[0].device to the adapter's device" in from_file
+
+
+def test_seven_data_bits_on_a_serial_slave_device_that_cannot(pty: PtyPair, tmp_path: Path) -> None:
+    missing = str(tmp_path / "ttyUSB9")
+    flagged = _failure(Started("--serial", missing, "--serial-slave", pty.path,
+                               "--data-bits", "7", *QUIET))  # fmt: skip
+    assert f"listener 'serial-slave': {pty.path} cannot set data_bits = 7" in flagged
+    assert "choose a value the adapter supports with --data-bits" in flagged
+    from_file = _failure(Started("--config", _config(
+        tmp_path, missing, _slave_listener(pty.path, "data_bits = 7\n"))))  # fmt: skip
+    assert "with listeners[0].data_bits" in from_file
+
+
+def test_a_serial_slave_device_not_plugged_in_yet_is_waited_for(tmp_path: Path) -> None:
+    started = Started("--serial", str(tmp_path / "ttyUSB9"),
+                      "--serial-slave", str(tmp_path / "ttyUSB8"), *QUIET)  # fmt: skip
+    try:
+        started.wait_for(r"listener serial-slave: .*ttyUSB8.*; retrying")
+        started.wait_for(LISTENING.pattern)
+    finally:
+        assert started.stop() == 0
+
+
 def _as_nobody() -> tuple[str, ...]:
     """Run as ``nobody`` when root (root opens any device node whatever its mode)."""
     if os.geteuid() != 0:
