@@ -8,6 +8,14 @@ interval (doubling up to ``probe_max_interval``). Requests for suspect and down 
 wait in the *lane*, one per slave, and share ``probe_share`` of the line's time: a
 credit banked at that rate (at most one second's share) pays for their wire time.
 
+*Absent* slaves missed their first contact and never answered anything. While there
+are any, a first contact with another slave never heard from is a probe too: it holds
+the line for ``initial_timeout``, most likely for nothing (a scan, a stale address
+list). It waits in the lane, goes on the lane's credit, and goes free (the lane's
+credit in debt) only after the line stayed quiet ``FIRST_CONTACT_QUIET_S``: a master
+polling a live slave in a loop, whose next request comes a few milliseconds after its
+answer, is never held behind it.
+
 These parts answer questions and keep counts; the machine (``machine.LineCore``)
 makes the transitions and emits the notes.
 """
@@ -16,9 +24,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Final
 
 from ..outcome import SlaveState
 from .records import INFINITY, LinePolicy, LineRequest
+
+#: A first contact with a slave never heard from, while others are absent, goes without
+#: the lane's credit only after the line stayed quiet this long (see the module doc).
+FIRST_CONTACT_QUIET_S: Final = 0.1
 
 
 @dataclass(slots=True)
@@ -37,6 +50,13 @@ class SlaveHealth:
 
     def __init__(self) -> None:
         self.slaves: dict[int, SlaveRecord] = {}
+        #: Slaves that missed their first contact and never answered, while not up.
+        self.absent: set[int] = set()
+
+    def unheard(self, slave: int) -> bool:
+        """True for a slave that has never answered anything."""
+        record = self.slaves.get(slave)
+        return record is None or not record.answered
 
     def record(self, slave: int) -> SlaveRecord:
         """What the line knows of ``slave``, created on first need."""
@@ -92,20 +112,30 @@ class ProbeLane:
         self.credit_at = now
         self.share = 0.0
         self.cap = 0.0
+        #: Slaves whose waiting request is a first contact (see the module doc).
+        self.first_contacts: set[int] = set()
+        self.last_loss = -INFINITY  # when the last attempt ended without an answer
 
     def configure(self, share: float) -> None:
         self.share = share
         self.cap = share  # at most one second's share banked
 
-    def put(self, request: LineRequest, deadline: float) -> None:
+    def put(self, request: LineRequest, deadline: float, first_contact: bool = False) -> None:
         """Wait here: one attempt, answered 0x0B if not sent by ``deadline``."""
         request.single = True
         request.lane_deadline = deadline
         self.requests[request.slave] = request
+        if first_contact:
+            self.first_contacts.add(request.slave)
 
     def remove(self, request: LineRequest) -> None:
         del self.requests[request.slave]
+        self.first_contacts.discard(request.slave)
         request.lane_deadline = INFINITY
+
+    def free_at(self, quiet_since: float) -> float:
+        """When a first contact may go without the lane's credit (see the module doc)."""
+        return max(quiet_since, self.last_loss) + FIRST_CONTACT_QUIET_S
 
     def holds(self, request: LineRequest) -> bool:
         return self.requests.get(request.slave) is request

@@ -219,6 +219,9 @@ class LineCore(Sending):
             if record is not None and record.state is not SlaveState.UP:
                 self._submit_isolated(request, record, now)
                 return
+            if record is None and self.health.absent and self._first_contact(request, now):
+                self.service(now)  # a first contact among absent slaves: a probe
+                return
             if not self._admit_read(request, now):
                 return
         queue.enqueue(master, request, master.queued == 0 and not on_wire)

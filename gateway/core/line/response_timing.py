@@ -129,6 +129,11 @@ class ResponseTiming:
         found = [bound for key, bound in self.bounds.items() if key >> 8 == slave]
         return max(found, default=None)
 
+    def first_contact(self, slave: int) -> bool:
+        """True while ``slave`` is waited for ``initial_timeout``: learned timing, not fixed,
+        and nothing learned of it yet (not even a late answer)."""
+        return self.learn and slave not in self.fixed and self.slave_timeout(slave) is None
+
     def by_slave(self, heard: Iterable[int]) -> dict[int, float]:
         """Each learned slave's longest bound (on a line that learns per line: the line's,
         for each slave in ``heard``); none where the timeout is fixed."""

@@ -91,15 +91,26 @@ class Sending(AttemptEnds):
         if picked is not None:
             return picked[0], picked[1], False
         if lane.requests:
-            request = self._lane_candidate(now)
+            request = self._lane_candidate(now, free=True)
             if request is not None:
                 return request, None, False
         return None
 
-    def _lane_candidate(self, now: float) -> LineRequest | None:
+    def _lane_candidate(self, now: float, free: bool = False) -> LineRequest | None:
+        """The lane's next request; a first contact goes ``free`` (without the lane's
+        credit) only once the line stayed quiet long enough (``health`` module doc)."""
         wire = self.wire
         order = self.order
-        best = self.lane.candidate(lambda r: wire.may_go(r, now) and not order.behind_broadcast(r))
+        lane = self.lane
+        held: set[int] | tuple[()] = ()
+        if free and lane.first_contacts:
+            free_at = lane.free_at(self.quiet_since)
+            if now < free_at:
+                held = lane.first_contacts
+                self._send_at = free_at  # ``service`` keeps it when nothing goes now
+        best = lane.candidate(
+            lambda r: r.slave not in held and wire.may_go(r, now) and not order.behind_broadcast(r)
+        )
         if best is not None:
             self.queue.dequeued(self.queue.masters.get(best.master), best)
         return best
