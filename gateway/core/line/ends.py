@@ -137,9 +137,14 @@ class AttemptEnds:
                 self._set_state(slave, record, state)
         elif error.kind != BAD_CHECK:  # a CRC error was noted when it arrived
             self.notes.append(Note(LineEvent.GARBLED, slave, error.reason))
-        if before is SlaveState.UP and record.state is not SlaveState.UP:
-            if not attempt.from_credit:  # else ``_charge`` pays it from the share
-                self.lane.spend(wire, now)  # the loss that made it suspect is paid from its share
+        # The loss that made it suspect is paid from the lane's share (by ``_charge`` when
+        # it was sent on that share).
+        if (
+            before is SlaveState.UP
+            and record.state is not SlaveState.UP
+            and not attempt.from_credit
+        ):
+            self.lane.spend(wire, now)
         self.lane.last_loss = now
         self._charge(attempt, wire, now)
         self._retry_or_answer(request, record, now)
@@ -174,7 +179,8 @@ class AttemptEnds:
             )
 
         for request in self.queue.first_contacts(unheard, lane.requests):
-            self._lane_put(request, now, first_contact=True)
+            # waiting there as long as its first contact would have waited for its answer
+            self._lane_put(request, request.enqueued_at, first_contact=True)
 
     def _first_contact(self, request: LineRequest, now: float) -> bool:
         """A request for a slave never heard from while others are absent: a probe in
