@@ -14,6 +14,8 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import pytest
+
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.health import FIRST_CONTACT_QUIET_S
@@ -73,12 +75,12 @@ class Plant:
         self.core.submit(request, self.now)
         return request
 
-    def start(self, absent_masters: int) -> None:
-        """``absent_masters`` masters rotating over the absent units, one polling the live
-        slave, all in a loop from the start."""
+    def start(self, absent_masters: int, live_at: float = 0.0) -> None:
+        """``absent_masters`` masters rotating over the absent units from the start, one
+        polling the live slave from ``live_at``, all in a loop."""
         for index in range(absent_masters):
             self.due[f"a{index}"] = self.skew(f"a{index}")
-        self.due["live"] = 0.0
+        self.due["live"] = live_at
         self.looping.update(self.due)
 
     @staticmethod
@@ -149,6 +151,21 @@ def test_a_live_slaves_master_keeps_its_fair_share_among_masters_scanning_absent
     window = 30.0
     plant.run(window)
     share = plant.ok("live") * plant.transaction_s() / window
+    assert share >= 1 / 9, share
+
+
+@pytest.mark.parametrize("live_at", [0.5, 1.5, 3.25])
+def test_a_live_slave_first_polled_once_units_are_absent_gets_its_fair_share(
+    live_at: float,
+) -> None:
+    """The live slave is first asked after absent units missed: its first contact is a
+    probe among theirs, and goes before them (its master used the line least); answered,
+    it is polled as usual."""
+    plant = Plant(line_config())
+    plant.start(8, live_at)
+    window = 30.0
+    plant.run(window)
+    share = plant.ok("live") * plant.transaction_s() / (window - live_at)
     assert share >= 1 / 9, share
 
 

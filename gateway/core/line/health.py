@@ -140,14 +140,25 @@ class ProbeLane:
     def holds(self, request: LineRequest) -> bool:
         return self.requests.get(request.slave) is request
 
-    def candidate(self, may_go: Callable[[LineRequest], bool]) -> LineRequest | None:
-        """The oldest request ``may_go`` lets go, taken from the lane."""
+    def candidate(
+        self,
+        may_go: Callable[[LineRequest], bool],
+        account: Callable[[LineRequest], float] | None = None,
+    ) -> LineRequest | None:
+        """The oldest request ``may_go`` lets go, taken from the lane. With ``account`` (its
+        master's wire time used), first contacts go after isolated slaves' requests, the
+        lightest master's first: masters whose first contacts went unanswered paid for
+        them, and a master polling a new slave beside them is not kept behind them."""
         best: LineRequest | None = None
+        best_key = (0.0, 0.0)
+        first = self.first_contacts
         for request in self.requests.values():
             if not may_go(request):
                 continue
-            if best is None or request.enqueued_at < best.enqueued_at:
-                best = request
+            weight = account(request) if account is not None and request.slave in first else 0.0
+            key = (weight, request.enqueued_at)
+            if best is None or key < best_key:
+                best, best_key = request, key
         if best is not None:
             self.remove(best)
         return best

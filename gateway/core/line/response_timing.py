@@ -16,8 +16,10 @@ network jitter a fast slave's answer meets) nor above ``max_timeout``.
 An attempt's timeout is the predicted answer's transmission time (the longest frame when
 its length cannot be predicted) plus the bound, doubled for each earlier attempt of the
 request, up to ``max_timeout``. A slave or function never heard from gets
-``initial_timeout``. An answer recognised as late raises the peak to its turnaround, so
-the next request is not timed out the same way. A silent slave teaches nothing: a
+``initial_timeout``; a request to a slave that never answered is not retried (``ends``),
+and beside absent slaves its first contact is a probe (``health``). An answer recognised
+as late raises the peak to its turnaround, so the next request is not timed out the same
+way. A silent slave teaches nothing: a
 timeout never raises the bound.
 
 A number for ``timeout`` (or a ``slave_timeouts`` entry for its slave) is fixed: the

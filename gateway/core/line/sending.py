@@ -108,8 +108,15 @@ class Sending(AttemptEnds):
             if now < free_at:
                 held = lane.first_contacts
                 self._send_at = free_at  # ``service`` keeps it when nothing goes now
+        masters = self.queue.masters
+
+        def account(request: LineRequest) -> float:
+            master = masters.get(request.master)
+            return 1.0 + master.vtime if master is not None else 1.0  # isolated ones: 0
+
         best = lane.candidate(
-            lambda r: r.slave not in held and wire.may_go(r, now) and not order.behind_broadcast(r)
+            lambda r: r.slave not in held and wire.may_go(r, now) and not order.behind_broadcast(r),
+            account if lane.first_contacts else None,
         )
         if best is not None:
             self.queue.dequeued(self.queue.masters.get(best.master), best)
