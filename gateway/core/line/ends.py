@@ -19,7 +19,7 @@ from ..framing import Framing
 from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
-from .health import ProbeLane, SlaveHealth, SlaveRecord
+from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
 from .records import (
@@ -307,7 +307,11 @@ class AttemptEnds:
 
     def _lane_put(self, request: LineRequest, now: float, first_contact: bool = False) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
-        deadline = now + self.timing.wait(request.slave, request.pdu[0], 1)
+        slave, function = request.slave, request.pdu[0]
+        if first_contact:  # there at the next free slot: one probe, then the quiet before it
+            deadline = now + self.timing.longest_attempt(slave, function) + FIRST_CONTACT_QUIET_S
+        else:
+            deadline = now + self.timing.wait(slave, function, 1)
         self.lane.put(request, deadline, first_contact)
         self.queue.master(request.master)
         self.queue.count_waiting(request, +1)

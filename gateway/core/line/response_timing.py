@@ -201,6 +201,11 @@ class ResponseTiming:
             self.predicted[pdu] = predicted
         return predicted
 
+    def longest_attempt(self, slave: int, function: int) -> float:
+        """The most a first attempt may hold the line: its wait and two longest frames."""
+        chars = MAX_ASCII_FRAME if self.ascii else MAX_RTU_FRAME
+        return self.wait(slave, function, 1) + 2 * chars * self.char_time
+
     def late_window(self, slave: int, function: int, attempt: int) -> float:
         """How long a lost answer may still come: ``late_answer_window``, else 2 x the wait
         of the attempt that lost it."""
