@@ -114,6 +114,8 @@ class ProbeLane:
         self.cap = 0.0
         #: Slaves whose waiting request is a first contact (see the module doc).
         self.first_contacts: set[int] = set()
+        #: Slave -> since when a first contact with it has been waiting (until one goes).
+        self.asked_since: dict[int, float] = {}
         self.last_loss = -INFINITY  # when the last attempt ended without an answer
 
     def configure(self, share: float) -> None:
@@ -127,15 +129,18 @@ class ProbeLane:
         self.requests[request.slave] = request
         if first_contact:
             self.first_contacts.add(request.slave)
+            self.asked_since.setdefault(request.slave, request.enqueued_at)
 
     def remove(self, request: LineRequest) -> None:
         del self.requests[request.slave]
         self.first_contacts.discard(request.slave)
         request.lane_deadline = INFINITY
 
-    def free_at(self, quiet_since: float) -> float:
-        """When a first contact may go without the lane's credit (see the module doc)."""
-        return max(quiet_since, self.last_loss) + FIRST_CONTACT_QUIET_S
+    def free_at(self, quiet_since: float, request: LineRequest) -> float:
+        """When the first contact ``request`` may go without the lane's credit: the line
+        and the request itself quiet for ``FIRST_CONTACT_QUIET_S`` (so the masters that
+        ask in the same moment compete for it, not the first to ask)."""
+        return max(quiet_since, self.last_loss, request.enqueued_at) + FIRST_CONTACT_QUIET_S
 
     def holds(self, request: LineRequest) -> bool:
         return self.requests.get(request.slave) is request
@@ -147,20 +152,26 @@ class ProbeLane:
     ) -> LineRequest | None:
         """The oldest request ``may_go`` lets go, taken from the lane. With ``account`` (its
         master's wire time used), first contacts go after isolated slaves' requests, the
-        lightest master's first: masters whose first contacts went unanswered paid for
-        them, and a master polling a new slave beside them is not kept behind them."""
+        lightest master's first (masters whose first contacts went unanswered paid for
+        them), then the slave asked for longest (a master polling a new slave asks it
+        again and again, a scan asks each address once)."""
         best: LineRequest | None = None
-        best_key = (0.0, 0.0)
+        best_key = (0.0, 0.0, 0.0)
         first = self.first_contacts
+        since = self.asked_since
         for request in self.requests.values():
             if not may_go(request):
                 continue
-            weight = account(request) if account is not None and request.slave in first else 0.0
-            key = (weight, request.enqueued_at)
+            enqueued = request.enqueued_at
+            if account is not None and request.slave in first:
+                key = (account(request), since.get(request.slave, enqueued), enqueued)
+            else:
+                key = (0.0, enqueued, enqueued)
             if best is None or key < best_key:
                 best, best_key = request, key
         if best is not None:
             self.remove(best)
+            since.pop(best.slave, None)
         return best
 
     def expired(self, now: float) -> list[LineRequest]:

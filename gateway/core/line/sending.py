@@ -102,12 +102,17 @@ class Sending(AttemptEnds):
         wire = self.wire
         order = self.order
         lane = self.lane
-        held: set[int] | tuple[()] = ()
+        held: set[int] = set()
         if free and lane.first_contacts:
-            free_at = lane.free_at(self.quiet_since)
-            if now < free_at:
-                held = lane.first_contacts
-                self._send_at = free_at  # ``service`` keeps it when nothing goes now
+            opens = INFINITY
+            for request in lane.requests.values():
+                if request.slave in lane.first_contacts:
+                    free_at = lane.free_at(self.quiet_since, request)
+                    if now < free_at:
+                        held.add(request.slave)
+                        opens = min(opens, free_at)
+            if held:
+                self._send_at = opens  # ``service`` keeps it when nothing goes now
         masters = self.queue.masters
 
         def account(request: LineRequest) -> float:
