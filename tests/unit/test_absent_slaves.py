@@ -55,6 +55,7 @@ class Plant:
     next_unit: dict[str, int] = field(default_factory=dict)
     looping: set[str] = field(default_factory=set)  # masters that poll on after an answer
     in_step: bool = False  # every absent master rotates from unit 100 (as the bench's do)
+    live_last: bool = False  # the live master asks again a hair after every other master
 
     def __post_init__(self) -> None:
         self.core = LineCore(self.config, -1.0)
@@ -84,10 +85,12 @@ class Plant:
         self.due["live"] = live_at
         self.looping.update(self.due)
 
-    @staticmethod
-    def skew(master: str) -> float:
-        """Masters are not in step: each pauses a little longer or shorter than the next."""
-        return 0.0 if master == "live" else 0.0007 * (1 + int(master[1:]))
+    def skew(self, master: str) -> float:
+        """Masters are not in step: each pauses a little longer than the one before (in
+        step, the same, the live master last when ``live_last``)."""
+        if master == "live":
+            return 0.0001 if self.live_last else 0.0
+        return 0.0 if self.in_step else 0.0007 * (1 + int(master[1:]))
 
     def unit_for(self, master: str) -> int:
         if master == "live":
@@ -155,16 +158,16 @@ def test_a_live_slaves_master_keeps_its_fair_share_among_masters_scanning_absent
     assert share >= 1 / 9, share
 
 
-@pytest.mark.parametrize("in_step", [False, True])
+@pytest.mark.parametrize(("in_step", "live_last"), [(False, False), (True, False), (True, True)])
 @pytest.mark.parametrize("live_at", [0.05, 0.5, 1.5, 3.25])
 def test_a_live_slave_first_polled_once_units_are_absent_gets_its_fair_share(
-    live_at: float, in_step: bool
+    live_at: float, in_step: bool, live_last: bool
 ) -> None:
     """The live slave is first asked after absent units missed: its first contact is a
     probe among theirs, waits for the next time the line is free of them, and goes first
     (its master used the line least); answered, it is polled as usual. Masters whose
     pause after a 0x0B matches the line's quiet before a probe must not lock it out."""
-    plant = Plant(line_config(), in_step=in_step)
+    plant = Plant(line_config(), in_step=in_step, live_last=live_last)
     plant.start(8, live_at)
     window = 30.0
     plant.run(window)
@@ -228,3 +231,29 @@ def test_a_slow_slave_never_heard_from_is_served_at_defaults_beside_absent_units
     plant.now = sent_at + 0.8
     deliveries = core.deliveries
     assert [(d.request, d.outcome) for d in deliveries] == [(request, Outcome.OK)]
+
+
+def test_masters_asking_in_the_same_moment_compete_for_a_free_probe() -> None:
+    """A free probe does not go to the first master to ask once the line is quiet (the
+    masters whose requests were answered 0x0B together ask again together, the same one
+    first each time): a first contact waits ``FIRST_CONTACT_QUIET_S`` itself, and the
+    master that used the line least goes."""
+    plant = Plant(line_config())
+    plant.submit("scan", 100)
+    plant.pump()
+    plant.run(1.05)  # unit 100 missed its first contact: "scan" paid 1 s of wire
+    plant.now = 2.0  # the line has been quiet long since
+    plant.submit("scan", 101)
+    plant.pump()
+    plant.now = 2.001
+    plant.submit("live", LIVE)
+    plant.pump()
+    core = plant.core
+    while len(plant.sent) == 1:
+        timer = core.get_timer()
+        assert timer is not None
+        plant.now = timer
+        core.handle_timer(timer)
+        plant.pump()
+    assert plant.sent[1][1] == LIVE
+    assert plant.sent[1][0] == pytest.approx(2.001 + FIRST_CONTACT_QUIET_S)

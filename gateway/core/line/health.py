@@ -150,7 +150,7 @@ class ProbeLane:
         may_go: Callable[[LineRequest], bool],
         account: Callable[[LineRequest], float] | None = None,
     ) -> LineRequest | None:
-        """The oldest request ``may_go`` lets go, taken from the lane. With ``account`` (its
+        """The oldest request ``may_go`` lets go (``take`` takes it). With ``account`` (its
         master's wire time used), first contacts go after isolated slaves' requests, the
         lightest master's first (masters whose first contacts went unanswered paid for
         them), then the slave asked for longest (a master polling a new slave asks it
@@ -169,10 +169,12 @@ class ProbeLane:
                 key = (0.0, enqueued, enqueued)
             if best is None or key < best_key:
                 best, best_key = request, key
-        if best is not None:
-            self.remove(best)
-            since.pop(best.slave, None)
         return best
+
+    def take(self, request: LineRequest) -> None:
+        """``request`` goes: out of the lane, its slave no longer waiting for a first contact."""
+        self.remove(request)
+        self.asked_since.pop(request.slave, None)
 
     def expired(self, now: float) -> list[LineRequest]:
         return [r for r in self.requests.values() if now >= r.lane_deadline]

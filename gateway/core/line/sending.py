@@ -97,22 +97,13 @@ class Sending(AttemptEnds):
         return None
 
     def _lane_candidate(self, now: float, free: bool = False) -> LineRequest | None:
-        """The lane's next request; a first contact goes ``free`` (without the lane's
-        credit) only once the line stayed quiet long enough (``health`` module doc)."""
+        """The lane's next request. A first contact goes ``free`` (without the lane's
+        credit) once it and the line have been quiet a while (``health`` module doc); the
+        fairest one is waited for, so the first to ask when the line is quiet is not
+        always the one that goes."""
         wire = self.wire
         order = self.order
         lane = self.lane
-        held: set[int] = set()
-        if free and lane.first_contacts:
-            opens = INFINITY
-            for request in lane.requests.values():
-                if request.slave in lane.first_contacts:
-                    free_at = lane.free_at(self.quiet_since, request)
-                    if now < free_at:
-                        held.add(request.slave)
-                        opens = min(opens, free_at)
-            if held:
-                self._send_at = opens  # ``service`` keeps it when nothing goes now
         masters = self.queue.masters
 
         def account(request: LineRequest) -> float:
@@ -120,11 +111,18 @@ class Sending(AttemptEnds):
             return 1.0 + master.vtime if master is not None else 1.0  # isolated ones: 0
 
         best = lane.candidate(
-            lambda r: r.slave not in held and wire.may_go(r, now) and not order.behind_broadcast(r),
+            lambda r: wire.may_go(r, now) and not order.behind_broadcast(r),
             account if lane.first_contacts else None,
         )
-        if best is not None:
-            self.queue.dequeued(self.queue.masters.get(best.master), best)
+        if best is None:
+            return None
+        if free and best.slave in lane.first_contacts:
+            free_at = lane.free_at(self.quiet_since, best)
+            if now < free_at:
+                self._send_at = free_at  # ``service`` keeps it when nothing goes now
+                return None
+        lane.take(best)
+        self.queue.dequeued(self.queue.masters.get(best.master), best)
         return best
 
     def _send(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> None:
