@@ -12,9 +12,12 @@ credit banked at that rate (at most one second's share) pays for their wire time
 are any, a first contact with another slave never heard from is a probe too: it holds
 the line for ``initial_timeout``, most likely for nothing (a scan, a stale address
 list). It waits in the lane, goes on the lane's credit, and goes free (the lane's
-credit in debt) only after the line stayed quiet ``FIRST_CONTACT_QUIET_S``: a master
-polling a live slave in a loop, whose next request comes a few milliseconds after its
-answer, is never held behind it.
+credit in debt) only after the line and the request stayed quiet
+``FIRST_CONTACT_QUIET_S``: a master polling a live slave in a loop, whose next request
+comes a few milliseconds after its answer, is never held behind it. Among first
+contacts, the lightest master's goes first, then the slave asked for longest; it waits
+in the lane until the next free chance has passed (one probe's longest hold and the
+quiet after it), then is answered 0x0B unsent.
 
 These parts answer questions and keep counts; the machine (``machine.LineCore``)
 makes the transitions and emits the notes.
