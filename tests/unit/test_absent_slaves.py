@@ -257,3 +257,17 @@ def test_masters_asking_in_the_same_moment_compete_for_a_free_probe() -> None:
         plant.pump()
     assert plant.sent[1][1] == LIVE
     assert plant.sent[1][0] == pytest.approx(2.001 + FIRST_CONTACT_QUIET_S)
+
+
+def test_with_isolation_turned_off_first_contacts_are_queued_as_usual_again() -> None:
+    """A reload that turns isolation off (``dead_after = 0``) forgets the absent slaves:
+    a first contact is queued for the fair order again, not made a probe."""
+    plant = Plant(line_config())
+    plant.submit("scan", 100)
+    plant.pump()
+    plant.run(1.05)
+    assert plant.core.health.absent == {100}
+    plant.core.reconfigure(line_config(dead_after=0), plant.now)
+    plant.submit("live", LIVE)
+    plant.pump()
+    assert plant.sent[-1] == (plant.now, LIVE)

@@ -109,6 +109,7 @@ class LineCore(Sending):
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
         self._apply_policy(policy)
         if policy.dead_after <= 0:  # isolation off: every slave is served again
+            self.health.absent.clear()
             for slave, record in self.health.not_up():
                 self._set_state(slave, record, SlaveState.UP)
             for request in list(self.lane.requests.values()):
