@@ -19,7 +19,7 @@ from ..framing import Framing
 from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
-from .health import ProbeLane, SlaveHealth, SlaveRecord
+from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
 from .records import (
@@ -137,8 +137,15 @@ class AttemptEnds:
                 self._set_state(slave, record, state)
         elif error.kind != BAD_CHECK:  # a CRC error was noted when it arrived
             self.notes.append(Note(LineEvent.GARBLED, slave, error.reason))
-        if before is SlaveState.UP and record.state is not SlaveState.UP:
-            self.lane.spend(wire, now)  # the loss that made it suspect is paid from its share
+        # The loss that made it suspect is paid from the lane's share (by ``_charge`` when
+        # it was sent on that share).
+        if (
+            before is SlaveState.UP
+            and record.state is not SlaveState.UP
+            and not attempt.from_credit
+        ):
+            self.lane.spend(wire, now)
+        self.lane.last_loss = now
         self._charge(attempt, wire, now)
         self._retry_or_answer(request, record, now)
         if before is not record.state:
@@ -146,13 +153,58 @@ class AttemptEnds:
                 1 if record.state is SlaveState.SUSPECT and slave not in self.lane.requests else 0
             )
             self._isolate(slave, keep)
+        if (
+            not record.answered
+            and record.state is not SlaveState.UP
+            and self.timing.first_contact(slave)
+        ):
+            self._absent(slave, now)
+
+    def _absent(self, slave: int, now: float) -> None:
+        """``slave`` missed its first contact: the first contacts still queued for other
+        slaves never heard from become probes (``health`` module doc)."""
+        absent = self.health.absent
+        if slave in absent:
+            return
+        absent.add(slave)
+        lane = self.lane
+        health = self.health
+        wire = self.wire
+
+        def unheard(other: int) -> bool:
+            return (
+                health.unheard(other)
+                and self.timing.first_contact(other)
+                and not wire.on_wire_to(other)
+            )
+
+        for request in self.queue.first_contacts(unheard, lane.requests):
+            # waiting there as long as its first contact would have waited for its answer
+            self._lane_put(request, request.enqueued_at, first_contact=True)
+
+    def _first_contact(self, request: LineRequest, now: float) -> bool:
+        """A request for a slave never heard from while others are absent: a probe in
+        the lane, or 0x0B at once when the slave's first contact already waits there;
+        ``False`` (queue it as usual) while its first contact is on the wire."""
+        slave = request.slave
+        if self.wire.on_wire_to(slave) or not self.timing.first_contact(slave):
+            return False
+        if slave in self.lane.requests:
+            self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+            return True
+        if request.pdu[0] not in fc.READ_FUNCTIONS:
+            self.sharing.change(slave)
+        self._lane_put(request, now, first_contact=True)
+        return True
 
     def _retry_or_answer(self, request: LineRequest, record: SlaveRecord, now: float) -> None:
-        """Only requests without side effects go again, and not to a down slave."""
+        """Only requests without side effects go again, and not to a down slave, nor to a
+        slave never heard from (no answer seen: the retry's doubled wait buys nothing)."""
         policy = self.policy
         retryable = (
             not self._stopping
             and not request.single
+            and (bool(record.answered) or not self.timing.first_contact(request.slave))
             and request.attempts <= policy.retries
             and request.wanted
             and (policy.retry_unsafe or fc.is_safe_to_retry(request.pdu))
@@ -194,6 +246,7 @@ class AttemptEnds:
         record = self.health.record(slave)
         record.misses = 0
         if record.state is not SlaveState.UP:
+            self.health.absent.discard(slave)
             self._set_state(slave, record, SlaveState.UP)
             waiting = self.lane.requests.get(slave)
             if waiting is not None:
@@ -252,9 +305,14 @@ class AttemptEnds:
             return  # the answer is older than a write still to run: kept, it would be stale
         self.sharing.store(request, response, now, rules)
 
-    def _lane_put(self, request: LineRequest, now: float) -> None:
+    def _lane_put(self, request: LineRequest, now: float, first_contact: bool = False) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
-        self.lane.put(request, now + self.timing.wait(request.slave, request.pdu[0], 1))
+        slave, function = request.slave, request.pdu[0]
+        if first_contact:  # there at the next free slot: one probe, then the quiet before it
+            deadline = now + self.timing.longest_attempt(slave, function) + FIRST_CONTACT_QUIET_S
+        else:
+            deadline = now + self.timing.wait(slave, function, 1)
+        self.lane.put(request, deadline, first_contact)
         self.queue.master(request.master)
         self.queue.count_waiting(request, +1)
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Callable, Hashable, Iterator
+from collections.abc import Callable, Container, Hashable, Iterator
 from dataclasses import dataclass, field
 
 from .records import LineRequest, LineStats
@@ -215,6 +215,29 @@ class FairQueue:
             master.queue.remove(request)
             self.dequeued(master, request)
         return [request for _, request in doomed]
+
+    def first_contacts(
+        self, unheard: Callable[[int], bool], skip: Container[int]
+    ) -> list[LineRequest]:
+        """Take from the queues the oldest request for each slave ``unheard`` names and
+        ``skip`` does not (the caller puts them in the lane), oldest first."""
+        found: list[tuple[Master, LineRequest]] = []
+        for master in self.masters.values():
+            for request in master.queue:
+                if not request.broadcast and request.slave not in skip and unheard(request.slave):
+                    found.append((master, request))
+        found.sort(key=lambda pair: pair[1].enqueued_at)
+        taken: list[LineRequest] = []
+        slaves: set[int] = set()
+        for master, request in found:
+            if request.slave in slaves:
+                continue
+            slaves.add(request.slave)
+            master.queue.remove(request)
+            self.dequeued(master, request)
+            self.reschedule(master)
+            taken.append(request)
+        return taken
 
     def overdue(self, queued_before: float) -> list[LineRequest]:
         """Take from the queues every request still unsent that was queued before

@@ -8,6 +8,17 @@ interval (doubling up to ``probe_max_interval``). Requests for suspect and down 
 wait in the *lane*, one per slave, and share ``probe_share`` of the line's time: a
 credit banked at that rate (at most one second's share) pays for their wire time.
 
+*Absent* slaves missed their first contact and never answered anything. While there
+are any, a first contact with another slave never heard from is a probe too: it holds
+the line for ``initial_timeout``, most likely for nothing (a scan, a stale address
+list). It waits in the lane, goes on the lane's credit, and goes free (the lane's
+credit in debt) only after the line and the request stayed quiet
+``FIRST_CONTACT_QUIET_S``: a master polling a live slave in a loop, whose next request
+comes a few milliseconds after its answer, is never held behind it. Among first
+contacts, the lightest master's goes first, then the slave asked for longest; it waits
+in the lane until the next free chance has passed (one probe's longest hold and the
+quiet after it), then is answered 0x0B unsent.
+
 These parts answer questions and keep counts; the machine (``machine.LineCore``)
 makes the transitions and emits the notes.
 """
@@ -16,9 +27,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Final
 
 from ..outcome import SlaveState
 from .records import INFINITY, LinePolicy, LineRequest
+
+#: A first contact with a slave never heard from, while others are absent, goes without
+#: the lane's credit only after the line stayed quiet this long (see the module doc).
+FIRST_CONTACT_QUIET_S: Final = 0.1
 
 
 @dataclass(slots=True)
@@ -37,6 +53,13 @@ class SlaveHealth:
 
     def __init__(self) -> None:
         self.slaves: dict[int, SlaveRecord] = {}
+        #: Slaves that missed their first contact and never answered, while not up.
+        self.absent: set[int] = set()
+
+    def unheard(self, slave: int) -> bool:
+        """True for a slave that has never answered anything."""
+        record = self.slaves.get(slave)
+        return record is None or not record.answered
 
     def record(self, slave: int) -> SlaveRecord:
         """What the line knows of ``slave``, created on first need."""
@@ -92,35 +115,69 @@ class ProbeLane:
         self.credit_at = now
         self.share = 0.0
         self.cap = 0.0
+        #: Slaves whose waiting request is a first contact (see the module doc).
+        self.first_contacts: set[int] = set()
+        #: Slave -> since when a first contact with it has been waiting (until one goes).
+        self.asked_since: dict[int, float] = {}
+        self.last_loss = -INFINITY  # when the last attempt ended without an answer
 
     def configure(self, share: float) -> None:
         self.share = share
         self.cap = share  # at most one second's share banked
 
-    def put(self, request: LineRequest, deadline: float) -> None:
+    def put(self, request: LineRequest, deadline: float, first_contact: bool = False) -> None:
         """Wait here: one attempt, answered 0x0B if not sent by ``deadline``."""
         request.single = True
         request.lane_deadline = deadline
         self.requests[request.slave] = request
+        if first_contact:
+            self.first_contacts.add(request.slave)
+            self.asked_since.setdefault(request.slave, request.enqueued_at)
 
     def remove(self, request: LineRequest) -> None:
         del self.requests[request.slave]
+        self.first_contacts.discard(request.slave)
         request.lane_deadline = INFINITY
+
+    def free_at(self, quiet_since: float, request: LineRequest) -> float:
+        """When the first contact ``request`` may go without the lane's credit: the line
+        and the request itself quiet for ``FIRST_CONTACT_QUIET_S`` (so the masters that
+        ask in the same moment compete for it, not the first to ask)."""
+        return max(quiet_since, self.last_loss, request.enqueued_at) + FIRST_CONTACT_QUIET_S
 
     def holds(self, request: LineRequest) -> bool:
         return self.requests.get(request.slave) is request
 
-    def candidate(self, may_go: Callable[[LineRequest], bool]) -> LineRequest | None:
-        """The oldest request ``may_go`` lets go, taken from the lane."""
+    def candidate(
+        self,
+        may_go: Callable[[LineRequest], bool],
+        account: Callable[[LineRequest], float] | None = None,
+    ) -> LineRequest | None:
+        """The oldest request ``may_go`` lets go (``take`` takes it). With ``account`` (its
+        master's wire time used), first contacts go after isolated slaves' requests, the
+        lightest master's first (masters whose first contacts went unanswered paid for
+        them), then the slave asked for longest (a master polling a new slave asks it
+        again and again, a scan asks each address once)."""
         best: LineRequest | None = None
+        best_key = (0.0, 0.0, 0.0)
+        first = self.first_contacts
+        since = self.asked_since
         for request in self.requests.values():
             if not may_go(request):
                 continue
-            if best is None or request.enqueued_at < best.enqueued_at:
-                best = request
-        if best is not None:
-            self.remove(best)
+            enqueued = request.enqueued_at
+            if account is not None and request.slave in first:
+                key = (account(request), since.get(request.slave, enqueued), enqueued)
+            else:
+                key = (0.0, enqueued, enqueued)
+            if best is None or key < best_key:
+                best, best_key = request, key
         return best
+
+    def take(self, request: LineRequest) -> None:
+        """``request`` goes: out of the lane, its slave no longer waiting for a first contact."""
+        self.remove(request)
+        self.asked_since.pop(request.slave, None)
 
     def expired(self, now: float) -> list[LineRequest]:
         return [r for r in self.requests.values() if now >= r.lane_deadline]

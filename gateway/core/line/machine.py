@@ -109,6 +109,7 @@ class LineCore(Sending):
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
         self._apply_policy(policy)
         if policy.dead_after <= 0:  # isolation off: every slave is served again
+            self.health.absent.clear()
             for slave, record in self.health.not_up():
                 self._set_state(slave, record, SlaveState.UP)
             for request in list(self.lane.requests.values()):
@@ -218,6 +219,9 @@ class LineCore(Sending):
             record = self.health.slaves.get(request.slave)
             if record is not None and record.state is not SlaveState.UP:
                 self._submit_isolated(request, record, now)
+                return
+            if record is None and self.health.absent and self._first_contact(request, now):
+                self.service(now)  # a first contact among absent slaves: a probe
                 return
             if not self._admit_read(request, now):
                 return

@@ -16,8 +16,10 @@ network jitter a fast slave's answer meets) nor above ``max_timeout``.
 An attempt's timeout is the predicted answer's transmission time (the longest frame when
 its length cannot be predicted) plus the bound, doubled for each earlier attempt of the
 request, up to ``max_timeout``. A slave or function never heard from gets
-``initial_timeout``. An answer recognised as late raises the peak to its turnaround, so
-the next request is not timed out the same way. A silent slave teaches nothing: a
+``initial_timeout``; a request to a slave that never answered is not retried (``ends``),
+and beside absent slaves its first contact is a probe (``health``). An answer recognised
+as late raises the peak to its turnaround, so the next request is not timed out the same
+way. A silent slave teaches nothing: a
 timeout never raises the bound.
 
 A number for ``timeout`` (or a ``slave_timeouts`` entry for its slave) is fixed: the
@@ -129,6 +131,11 @@ class ResponseTiming:
         found = [bound for key, bound in self.bounds.items() if key >> 8 == slave]
         return max(found, default=None)
 
+    def first_contact(self, slave: int) -> bool:
+        """True while ``slave`` is waited for ``initial_timeout``: learned timing, not fixed,
+        and nothing learned of it yet (not even a late answer)."""
+        return self.learn and slave not in self.fixed and self.slave_timeout(slave) is None
+
     def by_slave(self, heard: Iterable[int]) -> dict[int, float]:
         """Each learned slave's longest bound (on a line that learns per line: the line's,
         for each slave in ``heard``); none where the timeout is fixed."""
@@ -193,6 +200,11 @@ class ResponseTiming:
                 self.predicted.clear()
             self.predicted[pdu] = predicted
         return predicted
+
+    def longest_attempt(self, slave: int, function: int) -> float:
+        """The most a first attempt may hold the line: its wait and two longest frames."""
+        chars = MAX_ASCII_FRAME if self.ascii else MAX_RTU_FRAME
+        return self.wait(slave, function, 1) + 2 * chars * self.char_time
 
     def late_window(self, slave: int, function: int, attempt: int) -> float:
         """How long a lost answer may still come: ``late_answer_window``, else 2 x the wait

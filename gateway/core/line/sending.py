@@ -91,17 +91,38 @@ class Sending(AttemptEnds):
         if picked is not None:
             return picked[0], picked[1], False
         if lane.requests:
-            request = self._lane_candidate(now)
+            request = self._lane_candidate(now, free=True)
             if request is not None:
                 return request, None, False
         return None
 
-    def _lane_candidate(self, now: float) -> LineRequest | None:
+    def _lane_candidate(self, now: float, free: bool = False) -> LineRequest | None:
+        """The lane's next request. A first contact goes ``free`` (without the lane's
+        credit) once it and the line have been quiet a while (``health`` module doc); the
+        fairest one is waited for, so the first to ask when the line is quiet is not
+        always the one that goes."""
         wire = self.wire
         order = self.order
-        best = self.lane.candidate(lambda r: wire.may_go(r, now) and not order.behind_broadcast(r))
-        if best is not None:
-            self.queue.dequeued(self.queue.masters.get(best.master), best)
+        lane = self.lane
+        masters = self.queue.masters
+
+        def account(request: LineRequest) -> float:
+            master = masters.get(request.master)
+            return 1.0 + master.vtime if master is not None else 1.0  # isolated ones: 0
+
+        best = lane.candidate(
+            lambda r: wire.may_go(r, now) and not order.behind_broadcast(r),
+            account if lane.first_contacts else None,
+        )
+        if best is None:
+            return None
+        if free and best.slave in lane.first_contacts:
+            free_at = lane.free_at(self.quiet_since, best)
+            if now < free_at:
+                self._send_at = free_at  # ``service`` keeps it when nothing goes now
+                return None
+        lane.take(best)
+        self.queue.dequeued(self.queue.masters.get(best.master), best)
         return best
 
     def _send(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> None:
