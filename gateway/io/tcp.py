@@ -153,7 +153,8 @@ class Router:
         by_line = {target.bus.name: target.bus for target in self.routes.values()}
         by_line.update((bus.name, bus) for bus in broadcast_buses)
         self.buses = list(by_line.values())
-        self._by_line = by_line
+        #: The running line of each line name (``bus``; read directly once per request).
+        self.by_line = by_line
         self.admitter = Admitter.of(
             {unit: CoreTarget(target.bus.name, target.slave) for unit, target in routes.items()},
             [bus.name for bus in broadcast_buses],
@@ -165,7 +166,7 @@ class Router:
 
     def bus(self, line: str) -> Bus:
         """The running line called ``line`` (a name from the routing table)."""
-        return self._by_line[line]
+        return self.by_line[line]
 
 
 def count_local_answer(
@@ -385,7 +386,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         )
         if isinstance(result, Submit):
             target = result.target
-            bus = router.bus(target.line)
+            bus = router.by_line[target.line]  # ``router.bus``, inline: once per request
             self._submit(transaction_id, unit, pdu, bus, target.slave, arrived, ticket)
         elif isinstance(result, Broadcast):
             buses = [router.bus(line) for line in result.lines]
