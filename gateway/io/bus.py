@@ -318,8 +318,7 @@ class Bus:
             self._pumping = False
         deadline = core.get_timer()
         if deadline is None:
-            if self._clock.deadline:
-                self._clock.disarm()
+            self._clock.disarm()  # cheap when not armed: no test of ``deadline`` first
         else:
             self._timer_at = deadline
             self._clock.arm(deadline, self._on_timer, ahead=True)

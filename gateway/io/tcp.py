@@ -317,7 +317,8 @@ class MasterConnection(asyncio.BufferedProtocol):
 
     def _run_batch(self) -> None:
         """Handle at most ``max_pipeline`` requests, minus those in flight; write replies once."""
-        budget = self._server.config.max_pipeline - self._in_flight
+        max_pipeline = self._server.max_pipeline
+        budget = max_pipeline - self._in_flight
         batch: list[bytes] = []
         self._batch = batch
         try:
@@ -337,7 +338,7 @@ class MasterConnection(asyncio.BufferedProtocol):
                 self._transport.write(b"".join(batch))  # may call pause_writing at once
         if self._closed:
             return
-        if self._in_flight >= self._server.config.max_pipeline:
+        if self._in_flight >= max_pipeline:
             self._pause(ReadPause.PIPELINE)
         elif self._pauses:
             self._resume(ReadPause.PIPELINE)
@@ -663,6 +664,8 @@ class ModbusTcpServer:
         if self.one_at_a_time:
             value = replace(value, max_pipeline=1, broadcast_reply=False)
         self._config = value
+        #: ``config.max_pipeline``, a plain attribute: every batch reads it.
+        self.max_pipeline = value.max_pipeline
 
     @property
     def connections(self) -> int:
