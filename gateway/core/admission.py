@@ -116,9 +116,13 @@ class Admitter:
                 return AnswerLocally(
                     ExceptionCode.ILLEGAL_FUNCTION, Outcome.DENIED, reason, routed, decision.denied
                 )
-        refusal = _refusal(unit, function, policy)
-        if refusal is not None:
-            return AnswerLocally(ExceptionCode.ILLEGAL_FUNCTION, Outcome.REJECTED, refusal, routed)
+        # The gateway's own refusals, whatever the rules grant (inline: once per request).
+        if function in policy.refuse_functions:
+            return AnswerLocally(ExceptionCode.ILLEGAL_FUNCTION, Outcome.REJECTED, _REFUSED, routed)
+        if unit == 0 and function not in fc.BROADCAST_FUNCTIONS:
+            return AnswerLocally(
+                ExceptionCode.ILLEGAL_FUNCTION, Outcome.REJECTED, _NOT_BROADCAST, routed
+            )
         try:
             fc.validate_request(pdu)
         except ModbusError as error:
@@ -129,12 +133,3 @@ class Admitter:
             return self._broadcast
         what = "no line takes broadcasts" if unit == 0 else f"no route for unit {unit}"
         return AnswerLocally(ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE, what, routed)
-
-
-def _refusal(unit: int, function: int, policy: Policy) -> str | None:
-    """The gateway's own refusal of this request, whatever the rules grant."""
-    if function in policy.refuse_functions:
-        return _REFUSED
-    if unit == 0 and function not in fc.BROADCAST_FUNCTIONS:
-        return _NOT_BROADCAST
-    return None

@@ -1,11 +1,18 @@
 """CRC-16/MODBUS (polynomial 0xA001 reflected, initial value 0xFFFF).
 
 The CRC travels low byte first on the wire. A 256-entry table keeps the cost of
-a frame to a few microseconds; the function is pure and allocation-free beyond
-its result.
+a frame to a few microseconds; a second table, by 16-bit word (65,536 entries, 128 kB
+as an ``array``), halves the loop: a reflected CRC-16 shifts its whole register out
+in two bytes, so the register after a word depends only on the register xor the word.
+Every answer's CRC is checked, so this is the hot path's costliest loop. The
+function is pure.
 """
 
 from __future__ import annotations
+
+import sys
+from array import array
+from typing import Final
 
 
 def _build_table() -> tuple[int, ...]:
@@ -21,12 +28,37 @@ def _build_table() -> tuple[int, ...]:
 _TABLE = _build_table()
 
 
+def _build_word_table() -> array[int]:
+    """The register after a little-endian word ``w`` went in, indexed by register ^ ``w``:
+    the low byte's step, then the high byte's (built a row at a time: no big temporary)."""
+    table: array[int] = array("H")
+    low = _TABLE
+    steps = [(crc >> 8, crc & 0xFF) for crc in low]  # the low byte's step, by low byte
+    for high in range(256):
+        table.extend([shifted ^ low[high ^ rest] for shifted, rest in steps])
+    return table
+
+
+_WORD_TABLE: Final = _build_word_table()
+#: Words are read in the machine's order (``memoryview.cast``): little-endian only.
+_BY_WORD: Final = sys.byteorder == "little"
+
+
 def crc16(data: bytes | bytearray | memoryview) -> int:
-    """Return the CRC-16/MODBUS of ``data`` as an integer (low byte is sent first)."""
+    """Return the CRC-16/MODBUS of ``data`` (contiguous bytes) as an integer (low byte is
+    sent first)."""
     crc = 0xFFFF
-    table = _TABLE
-    for byte in data:
-        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
+    size = len(data)
+    if size < 4 or not _BY_WORD:
+        table = _TABLE
+        for byte in data:
+            crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
+        return crc
+    words = _WORD_TABLE
+    for word in memoryview(data)[: size & ~1].cast("H"):
+        crc = words[crc ^ word]
+    if size & 1:
+        crc = (crc >> 8) ^ _TABLE[(crc ^ data[size - 1]) & 0xFF]
     return crc
 
 

@@ -41,10 +41,11 @@ from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .link import Link, LinkError, TlsLink
 from .serial_port import SerialLink
-from .tally import LineTally
+from .tally import LineTally, wall_clock
 from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
+_OK = Outcome.OK  # a module global: read once per answer
 
 #: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``, where
 #: ``reply(pdu, outcome)`` takes the answer and its ``Outcome``.
@@ -70,6 +71,9 @@ class Bus:
         self._loop = loop
         self._clock = clock
         self._timer_at = 0.0  # the deadline the clock is armed for (``_on_timer``)
+        #: When the core last took bytes or time (monotonic): the instant its answers were
+        #: heard, for the tally (a clock read per event, not per answer).
+        self._heard_at = 0.0
         self._core = new_line_core(
             config,
             time.monotonic(),
@@ -77,6 +81,8 @@ class Bus:
             framing_for(config.kind),
             config.max_in_flight,
         )
+        self._wire = self._core.wire  # the core's parts the pump reads (``core.idle``)
+        self._queue = self._core.queue
         self._link: Link | None = None
         self._port = LinePort(self, metrics, loop)
         self._stopping = False
@@ -242,7 +248,8 @@ class Bus:
 
     def on_data(self, data: bytes) -> None:
         """Bytes read from the link."""
-        self._core.receive(data, time.monotonic())
+        self._heard_at = now = time.monotonic()
+        self._core.receive(data, now)
         self._pump()
 
     def _on_timer(self) -> None:
@@ -251,7 +258,8 @@ class Bus:
         # after a spin: nothing else runs in between).
         at = self._timer_at
         now = time.monotonic()
-        self._core.handle_timer(at if now < at else now)
+        self._heard_at = now = at if now < at else now  # an answer ends on silence here
+        self._core.handle_timer(now)
         self._pump(not_before=at)
 
     def on_lost(self, error: OSError) -> None:
@@ -310,14 +318,14 @@ class Bus:
             self._pumping = False
         deadline = core.get_timer()
         if deadline is None:
-            if self._clock.deadline:
-                self._clock.disarm()
+            self._clock.disarm()  # cheap when not armed: no test of ``deadline`` first
         else:
             self._timer_at = deadline
             self._clock.arm(deadline, self._on_timer, ahead=True)
         if self._watch_wire and not core.wire_busy:
             self._wire_free.set()
-        if core.idle is not self._idle:
+        # ``core.idle``, inline (a property costs a call, and this runs after every pump).
+        if (not self._wire.outstanding and not self._queue.queued) is not self._idle:
             self._idle = idle = not self._idle
             if idle and self._idle_waiters:
                 waiters, self._idle_waiters = self._idle_waiters, []
@@ -326,31 +334,37 @@ class Bus:
                         waiter.set_result(None)
 
     def _transmit(self, transmits: list[Transmit]) -> None:
-        for transmit in transmits:
+        for frame, _request, queue_wait, retry in transmits:  # unpacked: no field look-ups
             link = self._link
             if link is None or link.closed:
                 return  # the core has been told (port_lost) and answered 0x0A
-            if not transmit.retry:
-                self._m_queue_wait.observe(transmit.queue_wait)
+            if not retry:
+                self._m_queue_wait.observe(queue_wait)
             try:
-                link.write(transmit.frame)
+                link.write(frame)
             except LinkError:
                 return  # the link called ``_on_lost``: the core answered 0x0A
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
         observe = self._m_wire.observe
-        count = self.tally.count
-        for delivery in deliveries:
-            if delivery.wire_time >= 0.0:
-                observe(delivery.wire_time)
-            request = delivery.request
-            count(request.slave, delivery.pdu, delivery.outcome)
+        tallies = self.tally.slaves
+        heard_at = self._heard_at
+        for request, pdu, outcome, wire_time in deliveries:  # unpacked: no field look-ups
+            if wire_time >= 0.0:
+                observe(wire_time)
+            # ``tally.count``, its usual case inline: once per answer.
+            tally = tallies.get(request.slave)
+            if tally is not None and outcome is _OK:
+                tally.requests += 1
+                tally.last_seen = heard_at
+            else:
+                self.tally.count(request.slave, pdu, outcome, heard_at)
             # A second answer goes nowhere, and the request is freed at once: a master's
             # reply callback usually refers to its own request, a reference cycle the
             # garbage collector would otherwise have to find, one per transaction.
             reply, request.reply = request.reply, no_reply
             try:
-                reply(delivery.pdu, delivery.outcome)
+                reply(pdu, outcome)
             except Exception:  # a boundary: one master's broken reply path must not cost
                 # the rest of this batch their answers; logged in full, not swallowed
                 log.exception("line %s: handing an answer back failed", self.name)
@@ -419,7 +433,7 @@ class Bus:
             heard=tally.last_seen is not None,
             requests=tally.requests,
             exceptions=dict(tally.exceptions),
-            last_seen=tally.last_seen,
+            last_seen=wall_clock(tally.last_seen),
         )  # fmt: skip
 
     def _settings(self) -> str:

@@ -89,7 +89,8 @@ class PreciseClock:
         self._deadline = deadline
         now = time.monotonic()
         if self._fd < 0 or deadline - now > COARSE_LIMIT:
-            self._disarm_timerfd()
+            if self._fd_armed:  # ``_disarm_timerfd``, its test inline: once per transaction
+                self._disarm_timerfd()
             wake_at = deadline - _FALLBACK_MARGIN
             if self._fallback is not None:
                 if self._fallback_at <= wake_at:
@@ -111,7 +112,8 @@ class PreciseClock:
         """
         self._deadline = 0.0
         self._callback = None
-        self._disarm_timerfd()
+        if self._fd_armed:  # ``_disarm_timerfd``, its test inline: once per transaction
+            self._disarm_timerfd()
 
     def _arm_timerfd(self, deadline: float) -> None:
         timerfd.arm_at(self._fd, max(deadline - SPIN_MARGIN, 1e-6))  # 0 would disarm it

@@ -404,7 +404,8 @@ class SerialLink:
         self._on_data = on_data
         self._on_lost = on_lost
         self._fd = self._file_descriptor(port)
-        self._closed = False
+        #: True once the link was closed or lost (a plain attribute: read per frame sent).
+        self.closed = False
         loop.add_reader(self._fd, self._readable)
 
     @staticmethod
@@ -420,18 +421,13 @@ class SerialLink:
             return int(sock.fileno())
         raise SerialPortError(f"{port.name}: this port type has no file descriptor to watch")
 
-    @property
-    def closed(self) -> bool:
-        """True once the link was closed or lost."""
-        return self._closed
-
     def uart_errors(self) -> dict[UartError, int] | None:
         """The kernel's error counters of the port (``None`` on a pty, a socket, or closed)."""
-        return None if self._closed else uart_errors(self._fd)
+        return None if self.closed else uart_errors(self._fd)
 
     def write(self, data: bytes) -> None:
         """Write a whole frame; a frame is small enough for the kernel buffer to take at once."""
-        if self._closed:
+        if self.closed:
             raise SerialPortError(f"{self._port.name}: line is closed")
         written = 0
         try:
@@ -448,9 +444,9 @@ class SerialLink:
 
     def close(self) -> None:
         """Stop watching the port and close it."""
-        if self._closed:
+        if self.closed:
             return
-        self._closed = True
+        self.closed = True
         self._loop.remove_reader(self._fd)
         _release(self._port)
 
@@ -468,7 +464,7 @@ class SerialLink:
         self._on_data(data)
 
     def _lost(self, error: OSError) -> None:
-        if self._closed:
+        if self.closed:
             return
         self.close()
         self._on_lost(error)

@@ -153,7 +153,8 @@ class Router:
         by_line = {target.bus.name: target.bus for target in self.routes.values()}
         by_line.update((bus.name, bus) for bus in broadcast_buses)
         self.buses = list(by_line.values())
-        self._by_line = by_line
+        #: The running line of each line name (``bus``; read directly once per request).
+        self.by_line = by_line
         self.admitter = Admitter.of(
             {unit: CoreTarget(target.bus.name, target.slave) for unit, target in routes.items()},
             [bus.name for bus in broadcast_buses],
@@ -165,7 +166,7 @@ class Router:
 
     def bus(self, line: str) -> Bus:
         """The running line called ``line`` (a name from the routing table)."""
-        return self._by_line[line]
+        return self.by_line[line]
 
 
 def count_local_answer(
@@ -316,7 +317,8 @@ class MasterConnection(asyncio.BufferedProtocol):
 
     def _run_batch(self) -> None:
         """Handle at most ``max_pipeline`` requests, minus those in flight; write replies once."""
-        budget = self._server.config.max_pipeline - self._in_flight
+        max_pipeline = self._server.max_pipeline
+        budget = max_pipeline - self._in_flight
         batch: list[bytes] = []
         self._batch = batch
         try:
@@ -336,7 +338,7 @@ class MasterConnection(asyncio.BufferedProtocol):
                 self._transport.write(b"".join(batch))  # may call pause_writing at once
         if self._closed:
             return
-        if self._in_flight >= self._server.config.max_pipeline:
+        if self._in_flight >= max_pipeline:
             self._pause(ReadPause.PIPELINE)
         elif self._pauses:
             self._resume(ReadPause.PIPELINE)
@@ -385,7 +387,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         )
         if isinstance(result, Submit):
             target = result.target
-            bus = router.bus(target.line)
+            bus = router.by_line[target.line]  # ``router.bus``, inline: once per request
             self._submit(transaction_id, unit, pdu, bus, target.slave, arrived, ticket)
         elif isinstance(result, Broadcast):
             buses = [router.bus(line) for line in result.lines]
@@ -662,6 +664,8 @@ class ModbusTcpServer:
         if self.one_at_a_time:
             value = replace(value, max_pipeline=1, broadcast_reply=False)
         self._config = value
+        #: ``config.max_pipeline``, a plain attribute: every batch reads it.
+        self.max_pipeline = value.max_pipeline
 
     @property
     def connections(self) -> int:

@@ -19,7 +19,7 @@ from .. import pdu as fc
 from ..errors import ResponseError
 from ..outcome import DiscardReason
 from .fair_queue import Master
-from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
+from .records import DISCARD_KINDS, FRAME_CACHE_SIZE, INFINITY, Attempt, LineRequest
 from .response_timing import DECAY_EVERY
 
 if TYPE_CHECKING:
@@ -187,11 +187,18 @@ class SerialWire(Wire):
         line = self.line
         slave = request.slave
         pdu = request.pdu
-        # ``line.frame``, inline when known: once per transaction.
+        # ``line.frame``, inline: once per transaction (a poll of many addresses misses).
         frames = line._frames
-        frame = frames.get((slave, pdu)) if frames is not None else None
-        if frame is None:
-            frame = line.frame(slave, pdu)
+        if frames is None:
+            frame = line.encode(slave, pdu)
+        else:
+            key = (slave, pdu)
+            cached = frames.get(key)
+            if cached is None:
+                if len(frames) >= FRAME_CACHE_SIZE:
+                    frames.clear()  # a bound, not an LRU: polling refills it with what is used
+                cached = frames[key] = line.encode(slave, pdu)
+            frame = cached
         sent_by = now + len(frame) * line.char_time
         timing = line.timing
         # ``timing.deadline``, inline for a request heard before: once per transaction.
