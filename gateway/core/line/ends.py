@@ -147,7 +147,7 @@ class AttemptEnds:
             self.lane.spend(wire, now)
         self.lane.last_loss = now
         self._charge(attempt, wire, now)
-        self._retry_or_answer(request, record, now)
+        self._retry_or_answer(request, record, now, heard=error is not None)
         if before is not record.state:
             keep = (
                 1 if record.state is SlaveState.SUSPECT and slave not in self.lane.requests else 0
@@ -197,14 +197,17 @@ class AttemptEnds:
         self._lane_put(request, now, first_contact=True)
         return True
 
-    def _retry_or_answer(self, request: LineRequest, record: SlaveRecord, now: float) -> None:
+    def _retry_or_answer(
+        self, request: LineRequest, record: SlaveRecord, now: float, heard: bool
+    ) -> None:
         """Only requests without side effects go again, and not to a down slave, nor to a
-        slave never heard from (no answer seen: the retry's doubled wait buys nothing)."""
+        slave never heard from that stayed silent (no answer seen: the retry's doubled wait
+        buys nothing; a damaged answer (``heard``) shows the slave is there)."""
         policy = self.policy
         retryable = (
             not self._stopping
             and not request.single
-            and (bool(record.answered) or not self.timing.first_contact(request.slave))
+            and (heard or bool(record.answered) or not self.timing.first_contact(request.slave))
             and request.attempts <= policy.retries
             and request.wanted
             and (policy.retry_unsafe or fc.is_safe_to_retry(request.pdu))
