@@ -39,7 +39,7 @@ from gateway.core.errors import ResponseError
 from gateway.core.framing import ResponseDecoder
 from gateway.sim import LineStats, PtyPair, SimulatedDevice, SimulatedLine, UnitFaults
 from gateway.sim import open_pty_pair as _open_pty_pair
-from gateway.sim.pki import Pki
+from gateway.sim.pki import Pki, make_pki
 
 T = TypeVar("T")
 
@@ -469,6 +469,12 @@ class RawClient:
             return False
         assert not data, f"expected the connection to close, got {data.hex()}"
         return True
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    """A test PKI (roots, intermediate, server and client chains), made once per module."""
+    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def client_context(

@@ -26,12 +26,12 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory
+from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory, client_context
 
 from gateway.core.crc import append_crc, check_crc
-from gateway.sim import open_pty_pair, plc
+from gateway.sim import PtyPair, open_pty_pair, plc
 from gateway.sim.device import SimulatedDevice
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 BAUD = 19200
 #: Long beside t3.5 and the simulated line's answer: nothing coming within it is a silence.
@@ -236,6 +236,19 @@ def tcp_master(address: tuple[str, int], context: ssl.SSLContext | None = None) 
     return MbapMaster(sock)
 
 
+def serial_slave_master(gateway: RunningGateway, pair: PtyPair) -> RtuOverWire:
+    """The RTU master on the far end of ``pair``, once the gateway's serial slave ``field``
+    listens on it (it opens the pty in the background)."""
+    slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
+    deadline = time.monotonic() + DEADLINE_S
+    while not gateway.call(lambda: slave.up):
+        assert time.monotonic() < deadline, "the serial-slave listener did not open"
+        time.sleep(0.01)
+    return RtuOverWire(
+        pair.sim_fd, lambda data: os.write(pair.sim_fd, data), lambda n: os.read(pair.sim_fd, n)
+    )
+
+
 def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
     sock = socket.create_connection(address, timeout=DEADLINE_S)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -243,11 +256,6 @@ def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
 
 
 # --------------------------------------------------------------------------- the gateway
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 @dataclass
@@ -286,21 +294,11 @@ def every_listener(
         if rules:
             raw["policies"] = {"matrix": {"rules": RULES}}
         gateway = make_gateway(raw)
-        slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
-        deadline = time.monotonic() + DEADLINE_S
-        while not gateway.call(lambda: slave.up):
-            assert time.monotonic() < deadline, "the serial-slave listener did not open"
-            time.sleep(0.01)
-        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        context.load_verify_locations(cafile=str(pki.ca))
-        context.load_cert_chain(*pki.client("operator"))
+        serial = serial_slave_master(gateway, pair)
         address = gateway.gateway.listener_address
-        serial = RtuOverWire(
-            pair.sim_fd, lambda data: os.write(pair.sim_fd, data), lambda n: os.read(pair.sim_fd, n)
-        )
         masters: dict[str, Master] = {
             "tcp": tcp_master(gateway.address),
-            "tls": tcp_master(address("tls"), context),
+            "tls": tcp_master(address("tls"), client_context(pki)),
             "rtu-over-tcp": rtu_over_tcp_master(address("rtu")),
             "serial-slave": serial,
         }

@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime as dt
 import socket
 import ssl
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -39,16 +40,11 @@ from gateway.core.crc import append_crc, check_crc
 from gateway.io.tls import certificate_facts
 from gateway.sim import plc
 from gateway.sim.line import UnitFaults
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
 NO_PATH = bytes.fromhex("83 0A")
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def sample(gw: RunningGateway, name: str, labels: dict[str, str] | None = None) -> float:
@@ -214,27 +210,46 @@ def pem(*certificates: x509.Certificate) -> bytes:
     return b"".join(c.public_bytes(serialization.Encoding.PEM) for c in certificates)
 
 
+def tls_tables(make_sim: SimFactory, pki: Pki, ca: Path | str) -> dict[str, Any]:
+    """The tables of a gateway with one tls listener (``tls``) trusting the CA file ``ca``."""
+    sim = make_sim({1: plc(1)})
+    listener: dict[str, Any] = {
+        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
+        "key": str(pki.server_key), "ca": str(ca),
+    }  # fmt: skip
+    return {
+        "server": {"listen": "127.0.0.1:0"},
+        "metrics": {"listen": "off"},
+        "lines": {"a": sim.line_table([1])},
+        "listeners": [listener],
+    }
+
+
+def gateway_trusting_two_cas(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> tuple[RunningGateway, Callable[[], None]]:
+    """A gateway whose tls listener trusts CA-A (the test root) and CA-B (another root), and
+    the reload that trusts only CA-B."""
+    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
+    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
+    only_b.write_bytes(pem(pki.other_root.certificate))
+    tables = tls_tables(make_sim, pki, both)
+    gw = make_gateway(tables)
+
+    def withdraw_ca_a() -> None:
+        tables["listeners"][0]["ca"] = str(only_b)
+        reload(gw, tables)
+
+    return gw, withdraw_ca_a
+
+
 def test_a_withdrawn_ca_closes_its_clients_and_spares_the_other_cas(
     make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path,
     access_log: LogCollector,
 ) -> None:  # fmt: skip
     """CA-A (the test root, through its intermediate) and CA-B (another root) trusted;
     a reload trusts only CA-B: the CA-A client is closed, the CA-B client stays."""
-    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
-    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
-    only_b.write_bytes(pem(pki.other_root.certificate))
-    sim = make_sim({1: plc(1)})
-    listener: dict[str, Any] = {
-        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(both),
-    }  # fmt: skip
-    tables: dict[str, Any] = {
-        "server": {"listen": "127.0.0.1:0"},
-        "metrics": {"listen": "off"},
-        "lines": {"a": sim.line_table([1])},
-        "listeners": [listener],
-    }
-    gw = make_gateway(tables)
+    gw, withdraw_ca_a = gateway_trusting_two_cas(make_sim, make_gateway, pki, tmp_path)
     address = address_of(gw, "tls")
     with (
         RawClient(address, context=client_context(pki, "operator")) as of_a,
@@ -242,8 +257,7 @@ def test_a_withdrawn_ca_closes_its_clients_and_spares_the_other_cas(
     ):
         assert of_a.request(1, READ) == READ_ANSWER
         assert of_b.request(1, READ) == READ_ANSWER
-        listener["ca"] = str(only_b)
-        reload(gw, tables)
+        withdraw_ca_a()
         assert of_a.is_closed_by_peer()
         assert of_b.request(1, READ) == READ_ANSWER
     with (
@@ -260,17 +274,7 @@ def test_a_reload_with_the_same_cas_closes_no_tls_client(
     make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
 ) -> None:
     """The chain the handshake verified (leaf, intermediate, root) still reaches the CA file."""
-    sim = make_sim({1: plc(1)})
-    listener: dict[str, Any] = {
-        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(pki.ca),
-    }  # fmt: skip
-    tables: dict[str, Any] = {
-        "server": {"listen": "127.0.0.1:0"},
-        "metrics": {"listen": "off"},
-        "lines": {"a": sim.line_table([1])},
-        "listeners": [listener],
-    }
+    tables = tls_tables(make_sim, pki, pki.ca)
     gw = make_gateway(tables)
     with RawClient(address_of(gw, "tls"), context=client_context(pki, "viewer")) as master:
         reload(gw, tables)
@@ -340,26 +344,11 @@ def test_a_handshake_under_way_at_the_reload_is_judged_when_it_ends(
 ) -> None:
     """Accepted before the reload, its handshake runs with the old CAs: it is closed as soon
     as it is done, since the new CAs no longer admit it."""
-    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
-    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
-    only_b.write_bytes(pem(pki.other_root.certificate))
-    sim = make_sim({1: plc(1)})
-    listener: dict[str, Any] = {
-        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(both),
-    }  # fmt: skip
-    tables: dict[str, Any] = {
-        "server": {"listen": "127.0.0.1:0"},
-        "metrics": {"listen": "off"},
-        "lines": {"a": sim.line_table([1])},
-        "listeners": [listener],
-    }
-    gw = make_gateway(tables)
+    gw, withdraw_ca_a = gateway_trusting_two_cas(make_sim, make_gateway, pki, tmp_path)
     server = next(s for s in gw.gateway.servers if s.name == "tls")
     with socket.create_connection(address_of(gw, "tls"), DEADLINE_S) as raw:
         wait_until(lambda: gw.call(lambda: server.connections) == 1, "accepted, no hello yet")
-        listener["ca"] = str(only_b)
-        reload(gw, tables)
+        withdraw_ca_a()
         assert gw.call(lambda: server.connections) == 1  # its certificate is not known yet
         with client_context(pki, "operator").wrap_socket(raw, server_hostname="localhost") as tls:
             assert closed_by_peer(tls)  # the handshake succeeded (old CAs); then the door shut

@@ -37,7 +37,7 @@ from conftest import (
 
 from gateway.config import build_config
 from gateway.sim import plc
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 PLANT_RULES: list[dict[str, Any]] = [
     {"role": "operator", "units": [1], "functions": [3, "write_single_register", 16],
@@ -45,11 +45,6 @@ PLANT_RULES: list[dict[str, Any]] = [
     {"role": "viewer", "units": [1, 2], "access": "read"},
     {"role": "operator", "units": [0], "functions": [6]},
 ]  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def tls_listener(pki: Pki, **options: Any) -> dict[str, Any]:

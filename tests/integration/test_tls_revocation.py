@@ -33,15 +33,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from gateway.config import build_config
 from gateway.io.tls import TlsSetupError, certificate_facts, server_context
 from gateway.sim import plc
-from gateway.sim.pki import DAY, Pki, make_pki
+from gateway.sim.pki import DAY, Pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def tables_with(make_sim: SimFactory, pki: Pki, crl: Path) -> dict[str, Any]:

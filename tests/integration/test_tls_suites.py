@@ -39,6 +39,7 @@ from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
 OPENSSL = shutil.which("openssl")
+NEEDS_OPENSSL = pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
 
 
 def tls_of(client: RawClient) -> ssl.SSLSocket:
@@ -94,17 +95,22 @@ def s_client(address: tuple[str, int], pki: Pki, *options: str) -> str:
     return done.stdout.decode(errors="replace") + done.stderr.decode(errors="replace")
 
 
+def over_tls12(gw: RunningGateway, pki: Pki, *options: str) -> str:
+    """``openssl s_client -tls1_2 options`` against the gateway's tls listener; its output."""
+    return s_client(tls_address(gw), pki, "-tls1_2", *options)
+
+
 # -- suites ---------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_a_client_offering_only_the_required_suite_connects(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    out = over_tls12(gw, rsa_pki, "-cipher", "AES128-SHA256")
     assert "Cipher is AES128-SHA256" in out, out
-    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")  # the ECDHE suites come first
+    default = over_tls12(gw, rsa_pki)  # the ECDHE suites come first
     assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
     context = client_context(rsa_pki)  # and such a master is served
     context.maximum_version = ssl.TLSVersion.TLSv1_2
@@ -115,23 +121,23 @@ def test_a_client_offering_only_the_required_suite_connects(
         assert cipher is not None and cipher[0] == "AES128-SHA256"
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_forward_secrecy_only_refuses_the_required_suite(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki, forward_secrecy_only=True)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    out = over_tls12(gw, rsa_pki, "-cipher", "AES128-SHA256")
     assert "Cipher is (NONE)" in out and "Cipher is AES128" not in out, out
-    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")
+    default = over_tls12(gw, rsa_pki)
     assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_null_suites_are_refused(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "NULL-SHA256:@SECLEVEL=0")
+    out = over_tls12(gw, rsa_pki, "-cipher", "NULL-SHA256:@SECLEVEL=0")
     assert "Cipher is NULL" not in out and "Cipher is (NONE)" in out, out
 
 
