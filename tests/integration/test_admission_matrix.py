@@ -249,6 +249,19 @@ def serial_slave_master(gateway: RunningGateway, pair: PtyPair) -> RtuOverWire:
     )
 
 
+def masters_by_listener(gateway: RunningGateway, pair: PtyPair, pki: Pki) -> dict[str, Master]:
+    """A master on each of the listeners ``tcp``, ``tls`` (the operator's certificate), ``rtu``
+    (RTU over TCP) and ``field`` (the serial slave on ``pair``), by listener name."""
+    serial = serial_slave_master(gateway, pair)
+    address = gateway.gateway.listener_address
+    return {
+        "tcp": tcp_master(gateway.address),
+        "tls": tcp_master(address("tls"), client_context(pki)),
+        "rtu": rtu_over_tcp_master(address("rtu")),
+        "field": serial,
+    }
+
+
 def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
     sock = socket.create_connection(address, timeout=DEADLINE_S)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -256,6 +269,9 @@ def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
 
 
 # --------------------------------------------------------------------------- the gateway
+
+#: The kind of each listener of the matrix, by name.
+KIND_OF = {"tcp": "tcp", "tls": "tls", "rtu": "rtu-over-tcp", "field": "serial-slave"}
 
 
 @dataclass
@@ -294,14 +310,8 @@ def every_listener(
         if rules:
             raw["policies"] = {"matrix": {"rules": RULES}}
         gateway = make_gateway(raw)
-        serial = serial_slave_master(gateway, pair)
-        address = gateway.gateway.listener_address
-        masters: dict[str, Master] = {
-            "tcp": tcp_master(gateway.address),
-            "tls": tcp_master(address("tls"), client_context(pki)),
-            "rtu-over-tcp": rtu_over_tcp_master(address("rtu")),
-            "serial-slave": serial,
-        }
+        by_listener = masters_by_listener(gateway, pair, pki)
+        masters = {KIND_OF[name]: master for name, master in by_listener.items()}
         opened.extend(masters.values())
         return Setup(gateway, traffic, masters)
 

@@ -19,12 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory, client_context
+from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory
 from test_admission_matrix import (
     Master,
     RtuOverWire,
-    rtu_over_tcp_master,
-    serial_slave_master,
+    masters_by_listener,
     tcp_master,
 )
 
@@ -78,15 +77,8 @@ def audited(
         "audit": {"path": str(path)},
     }
     gateway = make_gateway(raw)
-    serial = serial_slave_master(gateway, pair)
-    address = gateway.gateway.listener_address
-    masters: dict[str, Master] = {
-        "tcp": tcp_master(gateway.address),
-        "tls": tcp_master(address("tls"), client_context(pki)),
-        "rtu": rtu_over_tcp_master(address("rtu")),
-        "ro": tcp_master(address("ro")),
-        "field": serial,
-    }
+    masters = masters_by_listener(gateway, pair, pki)
+    masters["ro"] = tcp_master(gateway.gateway.listener_address("ro"))
     yield Audited(gateway, path, masters, raw)
     for master in masters.values():
         master.close()
