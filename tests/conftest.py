@@ -18,6 +18,7 @@ import os
 import shutil
 import site
 import socket
+import ssl
 import struct
 import subprocess
 import sys
@@ -38,6 +39,7 @@ from gateway.core.errors import ResponseError
 from gateway.core.framing import ResponseDecoder
 from gateway.sim import LineStats, PtyPair, SimulatedDevice, SimulatedLine, UnitFaults
 from gateway.sim import open_pty_pair as _open_pty_pair
+from gateway.sim.pki import Pki, make_pki
 
 T = TypeVar("T")
 
@@ -106,6 +108,18 @@ class LogCollector(logging.Handler):
     def messages(self) -> list[str]:
         """The records' messages, formatted."""
         return [record.getMessage() for record in self.records]
+
+
+@pytest.fixture
+def access_log() -> Iterator[LogCollector]:
+    """The records of the ``gateway.access`` logger while the test runs."""
+    collector = LogCollector()
+    logger = logging.getLogger("gateway.access")
+    logger.addHandler(collector)
+    try:
+        yield collector
+    finally:
+        logger.removeHandler(collector)
 
 
 # --------------------------------------------------------------------------- external tools
@@ -365,9 +379,24 @@ class ConnectionClosedError(AssertionError):
 class RawClient:
     """A blocking Modbus TCP master on a plain socket: exact bytes out, exact bytes in."""
 
-    def __init__(self, address: tuple[str, int], timeout: float = DEADLINE_S) -> None:
-        self.sock = socket.create_connection(address, timeout=timeout)
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    def __init__(
+        self,
+        address: tuple[str, int],
+        timeout: float = DEADLINE_S,
+        *,
+        source: str | None = None,
+        context: ssl.SSLContext | None = None,
+        session: ssl.SSLSession | None = None,
+    ) -> None:
+        """Connect from loopback ``source`` (if given); over TLS when given a ``context``,
+        resuming ``session`` (if given)."""
+        sock = socket.create_connection(
+            address, timeout=timeout, source_address=(source, 0) if source else None
+        )
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if context is not None:
+            sock = context.wrap_socket(sock, server_hostname="localhost", session=session)
+        self.sock = sock
         self.timeout = timeout
         self._next_tid = 1
 
@@ -440,6 +469,28 @@ class RawClient:
             return False
         assert not data, f"expected the connection to close, got {data.hex()}"
         return True
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    """A test PKI (roots, intermediate, server and client chains), made once per module."""
+    return make_pki(tmp_path_factory.mktemp("pki"))
+
+
+def client_context(
+    pki: Pki, name: str | None = "operator", *, maximum: ssl.TLSVersion | None = None
+) -> ssl.SSLContext:
+    """A client context trusting the test CA, presenting client ``name``'s chain (if any);
+    with ``maximum``, any protocol version up to it and every suite, for downgrade tests."""
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cafile=str(pki.ca))
+    if name is not None:
+        context.load_cert_chain(*pki.client(name))
+    if maximum is not None:
+        context.set_ciphers("DEFAULT:@SECLEVEL=0")
+        context.minimum_version = ssl.TLSVersion.TLSv1
+        context.maximum_version = maximum
+    return context
 
 
 def decode_as_the_core_does(decoder: ResponseDecoder, chunks: list[bytes]) -> list[object]:

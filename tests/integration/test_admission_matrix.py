@@ -26,12 +26,12 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory
+from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory, client_context
 
 from gateway.core.crc import append_crc, check_crc
-from gateway.sim import open_pty_pair, plc
+from gateway.sim import PtyPair, open_pty_pair, plc
 from gateway.sim.device import SimulatedDevice
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 BAUD = 19200
 #: Long beside t3.5 and the simulated line's answer: nothing coming within it is a silence.
@@ -236,6 +236,32 @@ def tcp_master(address: tuple[str, int], context: ssl.SSLContext | None = None) 
     return MbapMaster(sock)
 
 
+def serial_slave_master(gateway: RunningGateway, pair: PtyPair) -> RtuOverWire:
+    """The RTU master on the far end of ``pair``, once the gateway's serial slave ``field``
+    listens on it (it opens the pty in the background)."""
+    slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
+    deadline = time.monotonic() + DEADLINE_S
+    while not gateway.call(lambda: slave.up):
+        assert time.monotonic() < deadline, "the serial-slave listener did not open"
+        time.sleep(0.01)
+    return RtuOverWire(
+        pair.sim_fd, lambda data: os.write(pair.sim_fd, data), lambda n: os.read(pair.sim_fd, n)
+    )
+
+
+def masters_by_listener(gateway: RunningGateway, pair: PtyPair, pki: Pki) -> dict[str, Master]:
+    """A master on each of the listeners ``tcp``, ``tls`` (the operator's certificate), ``rtu``
+    (RTU over TCP) and ``field`` (the serial slave on ``pair``), by listener name."""
+    serial = serial_slave_master(gateway, pair)
+    address = gateway.gateway.listener_address
+    return {
+        "tcp": tcp_master(gateway.address),
+        "tls": tcp_master(address("tls"), client_context(pki)),
+        "rtu": rtu_over_tcp_master(address("rtu")),
+        "field": serial,
+    }
+
+
 def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
     sock = socket.create_connection(address, timeout=DEADLINE_S)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -244,10 +270,8 @@ def rtu_over_tcp_master(address: tuple[str, int]) -> RtuOverWire:
 
 # --------------------------------------------------------------------------- the gateway
 
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
+#: The kind of each listener of the matrix, by name.
+KIND_OF = {"tcp": "tcp", "tls": "tls", "rtu": "rtu-over-tcp", "field": "serial-slave"}
 
 
 @dataclass
@@ -286,24 +310,8 @@ def every_listener(
         if rules:
             raw["policies"] = {"matrix": {"rules": RULES}}
         gateway = make_gateway(raw)
-        slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
-        deadline = time.monotonic() + DEADLINE_S
-        while not gateway.call(lambda: slave.up):
-            assert time.monotonic() < deadline, "the serial-slave listener did not open"
-            time.sleep(0.01)
-        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        context.load_verify_locations(cafile=str(pki.ca))
-        context.load_cert_chain(*pki.client("operator"))
-        address = gateway.gateway.listener_address
-        serial = RtuOverWire(
-            pair.sim_fd, lambda data: os.write(pair.sim_fd, data), lambda n: os.read(pair.sim_fd, n)
-        )
-        masters: dict[str, Master] = {
-            "tcp": tcp_master(gateway.address),
-            "tls": tcp_master(address("tls"), context),
-            "rtu-over-tcp": rtu_over_tcp_master(address("rtu")),
-            "serial-slave": serial,
-        }
+        by_listener = masters_by_listener(gateway, pair, pki)
+        masters = {KIND_OF[name]: master for name, master in by_listener.items()}
         opened.extend(masters.values())
         return Setup(gateway, traffic, masters)
 

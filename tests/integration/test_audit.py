@@ -12,10 +12,7 @@ slave as ``unknown``, a reload with its changed keys, and the chain verifies.
 from __future__ import annotations
 
 import json
-import os
 import socket
-import ssl
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,23 +20,23 @@ from typing import Any
 
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory
-from test_admission_matrix import Master, RtuOverWire, rtu_over_tcp_master, tcp_master
+from test_admission_matrix import (
+    Master,
+    RtuOverWire,
+    masters_by_listener,
+    tcp_master,
+)
 
 from gateway.config import build_config
 from gateway.io.audit import verify_files
 from gateway.sim import open_pty_pair, plc
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 BAUD = 19200
 
 
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 @dataclass
@@ -80,25 +77,8 @@ def audited(
         "audit": {"path": str(path)},
     }
     gateway = make_gateway(raw)
-    slave = next(s for s in gateway.gateway.serial_slaves if s.name == "field")
-    deadline = time.monotonic() + DEADLINE_S
-    while not gateway.call(lambda: slave.up):
-        assert time.monotonic() < deadline, "the serial-slave listener did not open"
-        time.sleep(0.01)
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    context.load_verify_locations(cafile=str(pki.ca))
-    context.load_cert_chain(*pki.client("operator"))
-    address = gateway.gateway.listener_address
-    serial = RtuOverWire(
-        pair.sim_fd, lambda data: os.write(pair.sim_fd, data), lambda n: os.read(pair.sim_fd, n)
-    )
-    masters: dict[str, Master] = {
-        "tcp": tcp_master(gateway.address),
-        "tls": tcp_master(address("tls"), context),
-        "rtu": rtu_over_tcp_master(address("rtu")),
-        "ro": tcp_master(address("ro")),
-        "field": serial,
-    }
+    masters = masters_by_listener(gateway, pair, pki)
+    masters["ro"] = tcp_master(gateway.gateway.listener_address("ro"))
     yield Audited(gateway, path, masters, raw)
     for master in masters.values():
         master.close()

@@ -14,10 +14,9 @@ on real certificates.
 from __future__ import annotations
 
 import datetime as dt
-import logging
 import socket
 import ssl
-from collections.abc import Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +29,7 @@ from conftest import (
     RawClient,
     RunningGateway,
     SimFactory,
+    client_context,
     wait_until,
 )
 from cryptography import x509
@@ -40,48 +40,11 @@ from gateway.core.crc import append_crc, check_crc
 from gateway.io.tls import certificate_facts
 from gateway.sim import plc
 from gateway.sim.line import UnitFaults
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
 NO_PATH = bytes.fromhex("83 0A")
-
-
-class Master(RawClient):
-    """A raw Modbus master over TCP or TLS, from a chosen loopback source address."""
-
-    def __init__(
-        self,
-        address: tuple[str, int],
-        *,
-        source: str | None = None,
-        context: ssl.SSLContext | None = None,
-    ) -> None:
-        sock = socket.create_connection(
-            address, timeout=DEADLINE_S, source_address=(source, 0) if source else None
-        )
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        if context is not None:
-            sock = context.wrap_socket(sock, server_hostname="localhost")
-        self.sock = sock
-        self.timeout = DEADLINE_S
-        self._next_tid = 1
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
-
-
-@pytest.fixture
-def log_records() -> Iterator[LogCollector]:
-    collector = LogCollector()
-    logger = logging.getLogger("gateway.access")
-    logger.addHandler(collector)
-    try:
-        yield collector
-    finally:
-        logger.removeHandler(collector)
 
 
 def sample(gw: RunningGateway, name: str, labels: dict[str, str] | None = None) -> float:
@@ -106,7 +69,7 @@ def address_of(gw: RunningGateway, name: str) -> tuple[str, int]:
 
 
 def test_a_narrowed_allow_list_closes_the_banned_master_and_spares_the_other(
-    make_sim: SimFactory, make_gateway: GatewayFactory, log_records: LogCollector
+    make_sim: SimFactory, make_gateway: GatewayFactory, access_log: LogCollector
 ) -> None:
     sim = make_sim({1: plc(1)})
     tables: dict[str, Any] = {
@@ -115,7 +78,7 @@ def test_a_narrowed_allow_list_closes_the_banned_master_and_spares_the_other(
         "lines": {"a": sim.line_table([1])},
     }
     gw = make_gateway(tables)
-    with Master(gw.address, source="127.0.0.2") as banned, Master(gw.address) as kept:
+    with RawClient(gw.address, source="127.0.0.2") as banned, RawClient(gw.address) as kept:
         assert banned.request(1, READ) == READ_ANSWER
         assert kept.request(1, READ) == READ_ANSWER
         tables["server"]["allow"] = ["127.0.0.1/32"]
@@ -123,17 +86,17 @@ def test_a_narrowed_allow_list_closes_the_banned_master_and_spares_the_other(
         assert banned.is_closed_by_peer()
         for _ in range(3):  # the other master is untouched, and keeps being served
             assert kept.request(1, READ) == READ_ANSWER
-    with Master(gw.address, source="127.0.0.2") as again:  # and a new one is refused at accept
+    with RawClient(gw.address, source="127.0.0.2") as again:  # and a new one is refused at accept
         assert again.is_closed_by_peer()
     assert closed_at_reload(gw) == 1
     assert sample(gw, "modbus_gateway_connections_denied_total", {"listener": "tcp"}) == 1
-    closes = [m for m in log_records.messages if "no longer admitted" in m]
+    closes = [m for m in access_log.messages if "no longer admitted" in m]
     assert len(closes) == 1, closes
     assert "127.0.0.2:" in closes[0] and "source_not_allowed" in closes[0]
 
 
 def test_a_queued_request_of_a_closed_master_never_reaches_the_line_nor_another_master(
-    make_sim: SimFactory, make_gateway: GatewayFactory, log_records: LogCollector
+    make_sim: SimFactory, make_gateway: GatewayFactory, access_log: LogCollector
 ) -> None:
     """The banned master's request on the wire finishes unseen; its queued writes are
     answered 0x0A on its own connection (as at a stop), and never sent."""
@@ -145,7 +108,7 @@ def test_a_queued_request_of_a_closed_master_never_reaches_the_line_nor_another_
     }
     gw = make_gateway(tables)
     write_a, write_b = bytes.fromhex("06 0009 0077"), bytes.fromhex("06 000A 0088")
-    with Master(gw.address, source="127.0.0.2") as banned, Master(gw.address) as kept:
+    with RawClient(gw.address, source="127.0.0.2") as banned, RawClient(gw.address) as kept:
         before = sim.stats().requests
         on_wire = banned.send(1, READ, tid=0x0101)
         wait_until(lambda: sim.stats().requests == before + 1, "the first request on the wire")
@@ -166,7 +129,7 @@ def test_a_queued_request_of_a_closed_master_never_reaches_the_line_nor_another_
     assert on_wire == 0x0101
     assert sim.stats().requests == before + 3  # the read on the wire, and the kept master's two
     assert closed_at_reload(gw) == 1
-    closes = [m for m in log_records.messages if "no longer admitted" in m]
+    closes = [m for m in access_log.messages if "no longer admitted" in m]
     assert len(closes) == 1 and "127.0.0.2:" in closes[0]
 
 
@@ -197,7 +160,7 @@ def test_a_narrowed_policy_holds_from_the_open_connections_next_request(
     }
     gw = make_gateway(tables)
     write = bytes.fromhex("06 0009 0001")
-    with Master(gw.address, source="127.0.0.2") as master:
+    with RawClient(gw.address, source="127.0.0.2") as master:
         assert master.request(1, write) == write
         tables["policies"] = {"p": {"rules": [{"units": [1], "access": "read"}]}}
         reload(gw, tables)
@@ -232,7 +195,7 @@ def test_an_rtu_over_tcp_master_outside_a_narrowed_allow_list_is_closed(
     address = address_of(gw, "rtu")
     with socket.create_connection(address, DEADLINE_S, ("127.0.0.2", 0)) as banned:
         assert rtu_request(banned, 1, READ, 7) == READ_ANSWER
-        with Master(gw.address, source="127.0.0.2") as plain:  # another listener: no change
+        with RawClient(gw.address, source="127.0.0.2") as plain:  # another listener: no change
             rtu["allow"] = ["127.0.0.1"]
             reload(gw, tables)
             assert banned.recv(1) == b""
@@ -247,52 +210,63 @@ def pem(*certificates: x509.Certificate) -> bytes:
     return b"".join(c.public_bytes(serialization.Encoding.PEM) for c in certificates)
 
 
-def client_context(pki: Pki, name: str) -> ssl.SSLContext:
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    context.load_verify_locations(cafile=str(pki.ca))
-    context.load_cert_chain(*pki.client(name))
-    return context
-
-
-def test_a_withdrawn_ca_closes_its_clients_and_spares_the_other_cas(
-    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path,
-    log_records: LogCollector,
-) -> None:  # fmt: skip
-    """CA-A (the test root, through its intermediate) and CA-B (another root) trusted;
-    a reload trusts only CA-B: the CA-A client is closed, the CA-B client stays."""
-    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
-    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
-    only_b.write_bytes(pem(pki.other_root.certificate))
+def tls_tables(make_sim: SimFactory, pki: Pki, ca: Path | str) -> dict[str, Any]:
+    """The tables of a gateway with one tls listener (``tls``) trusting the CA file ``ca``."""
     sim = make_sim({1: plc(1)})
     listener: dict[str, Any] = {
         "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(both),
+        "key": str(pki.server_key), "ca": str(ca),
     }  # fmt: skip
-    tables: dict[str, Any] = {
+    return {
         "server": {"listen": "127.0.0.1:0"},
         "metrics": {"listen": "off"},
         "lines": {"a": sim.line_table([1])},
         "listeners": [listener],
     }
+
+
+def gateway_trusting_two_cas(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> tuple[RunningGateway, Callable[[], None]]:
+    """A gateway whose tls listener trusts CA-A (the test root) and CA-B (another root), and
+    the reload that trusts only CA-B."""
+    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
+    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
+    only_b.write_bytes(pem(pki.other_root.certificate))
+    tables = tls_tables(make_sim, pki, both)
     gw = make_gateway(tables)
+
+    def withdraw_ca_a() -> None:
+        tables["listeners"][0]["ca"] = str(only_b)
+        reload(gw, tables)
+
+    return gw, withdraw_ca_a
+
+
+def test_a_withdrawn_ca_closes_its_clients_and_spares_the_other_cas(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path,
+    access_log: LogCollector,
+) -> None:  # fmt: skip
+    """CA-A (the test root, through its intermediate) and CA-B (another root) trusted;
+    a reload trusts only CA-B: the CA-A client is closed, the CA-B client stays."""
+    gw, withdraw_ca_a = gateway_trusting_two_cas(make_sim, make_gateway, pki, tmp_path)
     address = address_of(gw, "tls")
     with (
-        Master(address, context=client_context(pki, "operator")) as of_a,
-        Master(address, context=client_context(pki, "otherca")) as of_b,
+        RawClient(address, context=client_context(pki, "operator")) as of_a,
+        RawClient(address, context=client_context(pki, "otherca")) as of_b,
     ):
         assert of_a.request(1, READ) == READ_ANSWER
         assert of_b.request(1, READ) == READ_ANSWER
-        listener["ca"] = str(only_b)
-        reload(gw, tables)
+        withdraw_ca_a()
         assert of_a.is_closed_by_peer()
         assert of_b.request(1, READ) == READ_ANSWER
     with (
         pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError)),
-        Master(address, context=client_context(pki, "operator")) as again,
+        RawClient(address, context=client_context(pki, "operator")) as again,
     ):
         again.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
     assert closed_at_reload(gw) == 1
-    closes = [m for m in log_records.messages if "no longer admitted" in m]
+    closes = [m for m in access_log.messages if "no longer admitted" in m]
     assert len(closes) == 1 and "ca_not_trusted" in closes[0] and "127.0.0.1:" in closes[0]
 
 
@@ -300,19 +274,9 @@ def test_a_reload_with_the_same_cas_closes_no_tls_client(
     make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
 ) -> None:
     """The chain the handshake verified (leaf, intermediate, root) still reaches the CA file."""
-    sim = make_sim({1: plc(1)})
-    listener: dict[str, Any] = {
-        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(pki.ca),
-    }  # fmt: skip
-    tables: dict[str, Any] = {
-        "server": {"listen": "127.0.0.1:0"},
-        "metrics": {"listen": "off"},
-        "lines": {"a": sim.line_table([1])},
-        "listeners": [listener],
-    }
+    tables = tls_tables(make_sim, pki, pki.ca)
     gw = make_gateway(tables)
-    with Master(address_of(gw, "tls"), context=client_context(pki, "viewer")) as master:
+    with RawClient(address_of(gw, "tls"), context=client_context(pki, "viewer")) as master:
         reload(gw, tables)
         reload(gw, tables)
         assert master.request(1, READ) == READ_ANSWER
@@ -380,26 +344,11 @@ def test_a_handshake_under_way_at_the_reload_is_judged_when_it_ends(
 ) -> None:
     """Accepted before the reload, its handshake runs with the old CAs: it is closed as soon
     as it is done, since the new CAs no longer admit it."""
-    both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
-    both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
-    only_b.write_bytes(pem(pki.other_root.certificate))
-    sim = make_sim({1: plc(1)})
-    listener: dict[str, Any] = {
-        "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
-        "key": str(pki.server_key), "ca": str(both),
-    }  # fmt: skip
-    tables: dict[str, Any] = {
-        "server": {"listen": "127.0.0.1:0"},
-        "metrics": {"listen": "off"},
-        "lines": {"a": sim.line_table([1])},
-        "listeners": [listener],
-    }
-    gw = make_gateway(tables)
+    gw, withdraw_ca_a = gateway_trusting_two_cas(make_sim, make_gateway, pki, tmp_path)
     server = next(s for s in gw.gateway.servers if s.name == "tls")
     with socket.create_connection(address_of(gw, "tls"), DEADLINE_S) as raw:
         wait_until(lambda: gw.call(lambda: server.connections) == 1, "accepted, no hello yet")
-        listener["ca"] = str(only_b)
-        reload(gw, tables)
+        withdraw_ca_a()
         assert gw.call(lambda: server.connections) == 1  # its certificate is not known yet
         with client_context(pki, "operator").wrap_socket(raw, server_hostname="localhost") as tls:
             assert closed_by_peer(tls)  # the handshake succeeded (old CAs); then the door shut

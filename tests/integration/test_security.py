@@ -13,12 +13,10 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import logging
 import socket
 import ssl
 import subprocess
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -32,13 +30,14 @@ from conftest import (
     RunningGateway,
     SimBus,
     SimFactory,
+    client_context,
     require_tool,
     wait_until,
 )
 
 from gateway.config import build_config
 from gateway.sim import plc
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 PLANT_RULES: list[dict[str, Any]] = [
     {"role": "operator", "units": [1], "functions": [3, "write_single_register", 16],
@@ -48,11 +47,6 @@ PLANT_RULES: list[dict[str, Any]] = [
 ]  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
-
-
 def tls_listener(pki: Pki, **options: Any) -> dict[str, Any]:
     table = {
         "name": "tls", "protocol": "tls", "listen": "127.0.0.1:0", "cert": str(pki.server_chain),
@@ -60,43 +54,6 @@ def tls_listener(pki: Pki, **options: Any) -> dict[str, Any]:
     }  # fmt: skip
     table.update(options)
     return table
-
-
-class Master(RawClient):
-    """A raw Modbus master over TCP or TLS, optionally from another loopback source address."""
-
-    def __init__(
-        self,
-        address: tuple[str, int],
-        *,
-        source: str | None = None,
-        context: ssl.SSLContext | None = None,
-        timeout: float = DEADLINE_S,
-    ) -> None:
-        sock = socket.create_connection(
-            address, timeout=timeout, source_address=(source, 0) if source else None
-        )
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        if context is not None:
-            sock = context.wrap_socket(sock, server_hostname="localhost")
-        self.sock = sock
-        self.timeout = timeout
-        self._next_tid = 1
-
-
-def client_context(
-    pki: Pki, name: str | None, *, maximum: ssl.TLSVersion | None = None
-) -> ssl.SSLContext:
-    """A client context trusting the test CA, presenting client ``name``'s chain (if any)."""
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    context.load_verify_locations(cafile=str(pki.ca))
-    if name is not None:
-        context.load_cert_chain(*pki.client(name))
-    if maximum is not None:
-        context.set_ciphers("DEFAULT:@SECLEVEL=0")
-        context.minimum_version = ssl.TLSVersion.TLSv1
-        context.maximum_version = maximum
-    return context
 
 
 def sample(gw: RunningGateway, name: str, labels: dict[str, str] | None = None) -> float:
@@ -166,7 +123,7 @@ def test_each_roles_rights_request_by_request(
     sim, gw = plant
     address = listener_address(gw, "tls")
     masters = {
-        name: Master(address, context=client_context(pki, name))
+        name: RawClient(address, context=client_context(pki, name))
         for name in ("operator", "viewer", "norole", "tworoles", "integer", "admin")
     }
     expected = sim.stats().requests
@@ -234,7 +191,7 @@ def test_handshakes_that_fail(
     # refusal then arrives as an alert on the first read.
     with (
         pytest.raises((ssl.SSLError, ConnectionClosedError, ConnectionResetError, OSError)),
-        Master(address, context=client_context(pki, client, maximum=maximum)) as master,
+        RawClient(address, context=client_context(pki, client, maximum=maximum)) as master,
     ):
         master.request(1, bytes.fromhex("03 0000 0001"))
     assert sim.stats().requests == before
@@ -349,9 +306,9 @@ def test_source_rules_and_read_only_from_other_loopback_addresses(
     })  # fmt: skip
     write, read = bytes.fromhex("06 0007 0042"), bytes.fromhex("03 0007 0001")
     with (
-        Master(gw.address, source="127.0.0.2") as writer,
-        Master(gw.address, source="127.0.0.3") as reader,
-        Master(gw.address) as stranger,
+        RawClient(gw.address, source="127.0.0.2") as writer,
+        RawClient(gw.address, source="127.0.0.3") as reader,
+        RawClient(gw.address) as stranger,
     ):
         assert writer.request(1, write) == write
         assert reader.request(1, read) == bytes.fromhex("03 02 0042")
@@ -360,7 +317,7 @@ def test_source_rules_and_read_only_from_other_loopback_addresses(
         assert stranger.request(1, read) == exception(3)  # 127.0.0.1: no rule names it
         assert sim.stats().requests == before
     read_only = listener_address(gw, "ro")
-    with Master(read_only, source="127.0.0.2") as writer:
+    with RawClient(read_only, source="127.0.0.2") as writer:
         before = sim.stats().requests
         assert writer.request(1, write) == exception(6)
         assert sim.stats().requests == before
@@ -369,19 +326,8 @@ def test_source_rules_and_read_only_from_other_loopback_addresses(
     assert denials(gw, "tcp", "none", "write_single_register") == 1
 
 
-@pytest.fixture
-def log_records() -> Iterator[LogCollector]:
-    collector = LogCollector()
-    logger = logging.getLogger("gateway.access")
-    logger.addHandler(collector)
-    try:
-        yield collector
-    finally:
-        logger.removeHandler(collector)
-
-
 def test_allow_list_closes_other_sources_at_accept(
-    make_sim: SimFactory, make_gateway: GatewayFactory, log_records: LogCollector
+    make_sim: SimFactory, make_gateway: GatewayFactory, access_log: LogCollector
 ) -> None:
     sim = make_sim({1: plc(1)})
     gw = make_gateway({
@@ -389,15 +335,15 @@ def test_allow_list_closes_other_sources_at_accept(
         "lines": {"a": sim.line_table([1])},
     })  # fmt: skip
     read = bytes.fromhex("03 0000 0001")
-    with Master(gw.address, source="127.0.0.2") as inside:
+    with RawClient(gw.address, source="127.0.0.2") as inside:
         assert inside.request(1, read) == bytes.fromhex("03 02 0000")
     for _ in range(5):
-        with Master(gw.address, source="127.0.0.3") as outside:
+        with RawClient(gw.address, source="127.0.0.3") as outside:
             outside.send(1, read)  # the bytes are never read: the connection is already closed
             assert outside.is_closed_by_peer()
     assert sample(gw, "modbus_gateway_connections_denied_total", {"listener": "tcp"}) == 5
     assert sample(gw, "modbus_gateway_connections_accepted_total") == 1
-    refusals = [m for m in log_records.messages if "outside the allow list" in m]
+    refusals = [m for m in access_log.messages if "outside the allow list" in m]
     assert len(refusals) == 1 and "127.0.0.3" in refusals[0]  # then counted, not logged
 
 
@@ -413,13 +359,13 @@ def test_a_reload_changes_rights_and_allow_lists_of_open_listeners(
     }
     gw = make_gateway(tables)
     write = bytes.fromhex("06 0009 0001")
-    with Master(gw.address, source="127.0.0.2") as master:
+    with RawClient(gw.address, source="127.0.0.2") as master:
         assert master.request(1, write) == exception(6)
         tables["policies"] = {"p": {"rules": [{"units": [1]}]}}
         tables["server"]["allow"] = ["127.0.0.2"]
         gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
         assert master.request(1, write) == write  # the open connection has the new rights
-    with Master(gw.address, source="127.0.0.3") as outsider:
+    with RawClient(gw.address, source="127.0.0.3") as outsider:
         assert outsider.is_closed_by_peer()
     assert sample(gw, "modbus_gateway_connections_denied_total", {"listener": "tcp"}) == 1
 
@@ -430,10 +376,10 @@ def test_garbage_instead_of_a_client_hello_is_counted_and_closed(
     """Plain Modbus (and noise) sent to the tls port: closed, counted, honest masters served."""
     _, gw = plant
     address = listener_address(gw, "tls")
-    with Master(address, context=client_context(pki, "viewer")) as honest:
+    with RawClient(address, context=client_context(pki, "viewer")) as honest:
         for noise in (bytes.fromhex("0001 0000 0006 01 03 0000 0001"), b"GET / HTTP/1.0\r\n\r\n"):
             for _ in range(10):
-                with Master(address) as confused:  # a plain Modbus TCP master on port 802
+                with RawClient(address) as confused:  # a plain Modbus TCP master on port 802
                     confused.send_raw(noise)
                     assert closed_soon(confused.sock)
                 assert honest.request(1, bytes.fromhex("03 0000 0001"))[0] == 3
@@ -468,7 +414,7 @@ def test_silent_tls_clients_are_cut_off_at_the_handshake_timeout(
     silent = [socket.create_connection(address, timeout=DEADLINE_S) for _ in range(8)]
     try:
         started = time.monotonic()
-        with Master(address, context=client_context(pki, "operator")) as honest:
+        with RawClient(address, context=client_context(pki, "operator")) as honest:
             assert honest.request(1, bytes.fromhex("03 0000 0001"))[0] == 3
         assert all(closed_soon(sock) for sock in silent)
         waited = time.monotonic() - started
@@ -499,6 +445,6 @@ def test_a_denied_request_gets_0x01_even_when_it_is_malformed(
 ) -> None:
     """A master without the right learns nothing: not even that its request was invalid."""
     _, gw = plant
-    with Master(listener_address(gw, "tls"), context=client_context(pki, "viewer")) as viewer:
+    with RawClient(listener_address(gw, "tls"), context=client_context(pki, "viewer")) as viewer:
         assert viewer.request(1, bytes.fromhex("06 0000")) == exception(6)  # short: 0x01
         assert viewer.request(1, bytes.fromhex("03 0000 0000")) == exception(3, 3)  # granted

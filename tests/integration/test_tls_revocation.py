@@ -12,21 +12,19 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-import socket
 import ssl
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import (
-    DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
     LogCollector,
     RawClient,
     RunningGateway,
     SimFactory,
+    client_context,
     wait_until,
 )
 from cryptography import x509
@@ -35,39 +33,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from gateway.config import build_config
 from gateway.io.tls import TlsSetupError, certificate_facts, server_context
 from gateway.sim import plc
-from gateway.sim.pki import DAY, Pki, make_pki
+from gateway.sim.pki import DAY, Pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
-
-
-class Master(RawClient):
-    """A raw Modbus master over TLS with a client certificate of the test PKI."""
-
-    def __init__(self, address: tuple[str, int], pki: Pki, name: str) -> None:
-        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        context.load_verify_locations(cafile=str(pki.ca))
-        context.load_cert_chain(*pki.client(name))
-        sock = socket.create_connection(address, timeout=DEADLINE_S)
-        self.sock = context.wrap_socket(sock, server_hostname="localhost")
-        self.timeout = DEADLINE_S
-        self._next_tid = 1
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
-
-
-@pytest.fixture
-def access_log() -> Iterator[LogCollector]:
-    collector = LogCollector()
-    logger = logging.getLogger("gateway.access")
-    logger.addHandler(collector)
-    try:
-        yield collector
-    finally:
-        logger.removeHandler(collector)
 
 
 def tables_with(make_sim: SimFactory, pki: Pki, crl: Path) -> dict[str, Any]:
@@ -95,7 +64,10 @@ def test_a_client_revoked_in_mid_session_is_closed_at_the_reload_and_refused_aft
     tables = tables_with(make_sim, pki, crl)
     gw = make_gateway(tables)
     address = gw.call(lambda: gw.gateway.listener_address("tls"))
-    with Master(address, pki, "operator") as revoked, Master(address, pki, "viewer") as kept:
+    with (
+        RawClient(address, context=client_context(pki, "operator")) as revoked,
+        RawClient(address, context=client_context(pki, "viewer")) as kept,
+    ):
         assert revoked.request(1, READ) == READ_ANSWER
         assert kept.request(1, READ) == READ_ANSWER
         pki.write_crl(crl, revoked=("operator",))
@@ -105,7 +77,7 @@ def test_a_client_revoked_in_mid_session_is_closed_at_the_reload_and_refused_aft
             assert kept.request(1, READ) == READ_ANSWER
     with (
         pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError)),
-        Master(address, pki, "operator") as again,
+        RawClient(address, context=client_context(pki, "operator")) as again,
     ):
         again.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
     closed = {"reason": "no_longer_admitted"}
@@ -139,11 +111,13 @@ def test_an_expired_or_unreadable_crl_refuses_start_and_reload(
     good = pki.write_crl(tmp_path / "good.pem")
     gw = make_gateway(tables_with(make_sim, pki, good))
     address = gw.call(lambda: gw.gateway.listener_address("tls"))
-    with Master(address, pki, "operator") as master:
+    with RawClient(address, context=client_context(pki, "operator")) as master:
         assert master.request(1, READ) == READ_ANSWER
         gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))  # rejected: expired
         assert master.request(1, READ) == READ_ANSWER
-    with Master(address, pki, "operator") as again:  # the running list still serves
+    with RawClient(
+        address, context=client_context(pki, "operator")
+    ) as again:  # the running list still serves
         assert again.request(1, READ) == READ_ANSWER
 
 

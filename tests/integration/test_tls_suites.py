@@ -10,13 +10,11 @@ ClientHello, evicted or closed while in their handshake, for the descriptors.
 
 from __future__ import annotations
 
-import logging
 import os
 import shutil
 import socket
 import ssl
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +27,7 @@ from conftest import (
     RawClient,
     RunningGateway,
     SimFactory,
+    client_context,
     wait_until,
 )
 
@@ -40,25 +39,7 @@ from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")
 OPENSSL = shutil.which("openssl")
-
-
-class Master(RawClient):
-    """A raw Modbus master over TLS from a chosen loopback source, with an optional session."""
-
-    def __init__(
-        self,
-        address: tuple[str, int],
-        context: ssl.SSLContext,
-        *,
-        source: str | None = None,
-        session: ssl.SSLSession | None = None,
-    ) -> None:
-        sock = socket.create_connection(
-            address, timeout=DEADLINE_S, source_address=(source, 0) if source else None
-        )
-        self.sock = context.wrap_socket(sock, server_hostname="localhost", session=session)
-        self.timeout = DEADLINE_S
-        self._next_tid = 1
+NEEDS_OPENSSL = pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
 
 
 def tls_of(client: RawClient) -> ssl.SSLSocket:
@@ -75,17 +56,6 @@ def rsa_pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
 @pytest.fixture(scope="module")
 def ec_pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
     return make_pki(tmp_path_factory.mktemp("ec-pki"))
-
-
-@pytest.fixture
-def access_log() -> Iterator[LogCollector]:
-    collector = LogCollector()
-    logger = logging.getLogger("gateway.access")
-    logger.addHandler(collector)
-    try:
-        yield collector
-    finally:
-        logger.removeHandler(collector)
 
 
 def tls_tables(make_sim: SimFactory, pki: Pki, **options: Any) -> dict[str, Any]:
@@ -113,13 +83,6 @@ def tls_address(gw: RunningGateway) -> tuple[str, int]:
     return str(host), int(port)
 
 
-def client_context(pki: Pki, name: str = "operator") -> ssl.SSLContext:
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    context.load_verify_locations(cafile=str(pki.ca))
-    context.load_cert_chain(*pki.client(name))
-    return context
-
-
 def s_client(address: tuple[str, int], pki: Pki, *options: str) -> str:
     """Run ``openssl s_client`` with the operator's certificate; its whole output."""
     assert OPENSSL is not None
@@ -132,44 +95,49 @@ def s_client(address: tuple[str, int], pki: Pki, *options: str) -> str:
     return done.stdout.decode(errors="replace") + done.stderr.decode(errors="replace")
 
 
+def over_tls12(gw: RunningGateway, pki: Pki, *options: str) -> str:
+    """``openssl s_client -tls1_2 options`` against the gateway's tls listener; its output."""
+    return s_client(tls_address(gw), pki, "-tls1_2", *options)
+
+
 # -- suites ---------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_a_client_offering_only_the_required_suite_connects(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    out = over_tls12(gw, rsa_pki, "-cipher", "AES128-SHA256")
     assert "Cipher is AES128-SHA256" in out, out
-    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")  # the ECDHE suites come first
+    default = over_tls12(gw, rsa_pki)  # the ECDHE suites come first
     assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
     context = client_context(rsa_pki)  # and such a master is served
     context.maximum_version = ssl.TLSVersion.TLSv1_2
     context.set_ciphers("AES128-SHA256")
-    with Master(tls_address(gw), context) as master:
+    with RawClient(tls_address(gw), context=context) as master:
         assert master.request(1, READ) == READ_ANSWER
         cipher = tls_of(master).cipher()
         assert cipher is not None and cipher[0] == "AES128-SHA256"
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_forward_secrecy_only_refuses_the_required_suite(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki, forward_secrecy_only=True)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "AES128-SHA256")
+    out = over_tls12(gw, rsa_pki, "-cipher", "AES128-SHA256")
     assert "Cipher is (NONE)" in out and "Cipher is AES128" not in out, out
-    default = s_client(tls_address(gw), rsa_pki, "-tls1_2")
+    default = over_tls12(gw, rsa_pki)
     assert "Cipher is ECDHE-RSA-AES256-GCM-SHA384" in default, default
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="needs the openssl command")
+@NEEDS_OPENSSL
 def test_null_suites_are_refused(
     make_sim: SimFactory, make_gateway: GatewayFactory, rsa_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, rsa_pki)
-    out = s_client(tls_address(gw), rsa_pki, "-tls1_2", "-cipher", "NULL-SHA256:@SECLEVEL=0")
+    out = over_tls12(gw, rsa_pki, "-cipher", "NULL-SHA256:@SECLEVEL=0")
     assert "Cipher is NULL" not in out and "Cipher is (NONE)" in out, out
 
 
@@ -177,7 +145,7 @@ def test_the_ec_pki_is_served_with_forward_secrecy(
     make_sim: SimFactory, make_gateway: GatewayFactory, ec_pki: Pki
 ) -> None:
     gw = tls_gateway(make_sim, make_gateway, ec_pki)
-    with Master(tls_address(gw), client_context(ec_pki)) as master:
+    with RawClient(tls_address(gw), context=client_context(ec_pki)) as master:
         assert master.request(1, READ) == READ_ANSWER
         cipher = tls_of(master).cipher()
         assert cipher is not None and (cipher[1] == "TLSv1.3" or "ECDHE" in cipher[0])
@@ -191,10 +159,10 @@ def resumed(gw: RunningGateway, pki: Pki, version: ssl.TLSVersion) -> bool:
     handshake), connect again offering it; whether the second one was resumed."""
     context = client_context(pki)
     context.minimum_version = context.maximum_version = version
-    with Master(tls_address(gw), context) as first:
+    with RawClient(tls_address(gw), context=context) as first:
         assert first.request(1, READ) == READ_ANSWER
         session = tls_of(first).session
-    with Master(tls_address(gw), context, session=session) as second:
+    with RawClient(tls_address(gw), context=context, session=session) as second:
         assert second.request(1, READ) == READ_ANSWER
         return bool(tls_of(second).session_reused)
 
@@ -226,7 +194,7 @@ def failing_handshake(
     context.maximum_version = version
     with (
         pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)),
-        Master(tls_address(gw), context, source=source) as master,
+        RawClient(tls_address(gw), context=context, source=source) as master,
     ):
         master.request(1, READ)  # TLS 1.3: the refusal may come after the handshake
 
@@ -265,7 +233,7 @@ def test_a_handshake_without_a_certificate_names_no_subject(
     context.load_verify_locations(cafile=str(ec_pki.ca))
     with (
         pytest.raises((ssl.SSLError, ConnectionError, ConnectionClosedError, OSError)),
-        Master(tls_address(gw), context) as master,
+        RawClient(tls_address(gw), context=context) as master,
     ):
         master.request(1, READ)
     wait_until(lambda: any("TLS handshake failed" in m for m in access_log.messages), "logged")
@@ -280,7 +248,7 @@ def test_a_settled_session_is_no_longer_observed(
     message callback then costs nothing per record."""
     gw = tls_gateway(make_sim, make_gateway, ec_pki)
     server = next(s for s in gw.gateway.servers if s.name == "tls")
-    with Master(tls_address(gw), client_context(ec_pki)) as master:
+    with RawClient(tls_address(gw), context=client_context(ec_pki)) as master:
         assert master.request(1, READ) == READ_ANSWER
         transports = gw.call(lambda: [c._transport for c in server._connections])
         contexts = [t.get_extra_info("ssl_object").context for t in transports if t is not None]
@@ -349,10 +317,10 @@ def test_a_resumed_session_is_judged_on_its_full_chain_at_a_reload(
     tables = tls_tables(make_sim, ec_pki, session_resumption=True)
     gw = make_gateway(tables)
     context = client_context(ec_pki)
-    with Master(tls_address(gw), context) as first:
+    with RawClient(tls_address(gw), context=context) as first:
         assert first.request(1, READ) == READ_ANSWER
         session = tls_of(first).session
-    with Master(tls_address(gw), context, session=session) as second:
+    with RawClient(tls_address(gw), context=context, session=session) as second:
         assert second.request(1, READ) == READ_ANSWER
         assert tls_of(second).session_reused
         gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
@@ -365,10 +333,10 @@ def test_a_reload_ends_resumption_of_earlier_sessions(
     tables = tls_tables(make_sim, ec_pki, session_resumption=True)
     gw = make_gateway(tables)
     context = client_context(ec_pki)
-    with Master(tls_address(gw), context) as first:
+    with RawClient(tls_address(gw), context=context) as first:
         assert first.request(1, READ) == READ_ANSWER
         session = tls_of(first).session
     gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
-    with Master(tls_address(gw), context, session=session) as second:
+    with RawClient(tls_address(gw), context=context, session=session) as second:
         assert second.request(1, READ) == READ_ANSWER
         assert not tls_of(second).session_reused
