@@ -456,6 +456,18 @@ def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
     return None
 
 
+def leaf_subject(chain: Sequence[bytes]) -> str | None:
+    """The subject of a verified chain's leaf (DER), for the audit log; ``None``: none."""
+    if not chain:
+        return None
+    from cryptography import x509
+
+    try:
+        return _subject(x509.load_der_x509_certificate(chain[0]))
+    except ValueError:
+        return None
+
+
 def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:
     """(is TLS, role) of an accepted transport: the role read once from the client certificate.
 
