@@ -23,6 +23,7 @@ from .config import (
     read_config_file,
 )
 from .core.framing import is_mbap
+from .io.http import endpoint_tls
 from .io.link import DeviceUnusableError, ListenerDeviceUnusableError
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
@@ -340,6 +341,8 @@ def _check_config(argv: Sequence[str]) -> int:
         for line in config.lines:
             if line.kind == "tls":
                 client_context(line)  # the same for a tls line's client certificate
+        if config.metrics.enabled:
+            endpoint_tls(config.metrics)  # the same for the HTTP endpoint's HTTPS files
     except ConfigError as error:
         print(error, file=sys.stderr)
         return 2

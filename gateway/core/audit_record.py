@@ -64,9 +64,16 @@ class AuditEvent(StrEnum):
 
     REQUEST = "request"  # a request that is not a read
     CONFIG = "config"  # the configuration was loaded or a reload was tried
-    CONNECTION_REFUSED = "connection_refused"  # closed at accept by an allow list
+    CONNECTION_REFUSED = "connection_refused"  # closed by the listener's door (``RefusedAt``)
     OPENED = "audit_opened"  # the gateway opened this file (start, or reopen)
     DROPPED = "records_dropped"  # records lost (queue full, disk full) before this one
+
+
+class RefusedAt(StrEnum):
+    """When a listener's door closed a connection (a ``connection_refused`` record's ``at``)."""
+
+    ACCEPT = "accept"  # at accept, before a byte was read: outside an allow list
+    RELOAD = "reload"  # open, and no longer admitted by a reload (allow list, CA, CRL, dates)
 
 
 class AuditOutcome(StrEnum):
@@ -198,15 +205,25 @@ def config_record(
     return record
 
 
-def refused_record(now: float, listener: str, source: str, reason: str) -> Record:
-    """A connection closed at accept by an allow list."""
-    return {
+def refused_record(
+    now: float, listener: str, source: str, reason: str, at: RefusedAt = RefusedAt.ACCEPT,
+    peer: str | None = None, role: str | None = None, subject: str | None = None,
+) -> Record:  # fmt: skip
+    """A connection the listener's door closed: at accept (an allow list), or at a reload
+    that no longer admits it (``reason``: ``core.connection_admission.NotAdmitted``).
+    ``peer``, TLS ``role`` and certificate ``subject`` appear when known."""
+    record: Record = {
         "event": AuditEvent.CONNECTION_REFUSED.value,
         "time": timestamp(now),
         "listener": listener,
         "source": source,
         "reason": reason,
+        "at": at.value,
     }
+    for key, value in (("peer", peer), ("role", role), ("subject", subject)):
+        if value is not None:
+            record[key] = value
+    return record
 
 
 def opened_record(now: float, prev: str, reason: str) -> Record:

@@ -14,13 +14,15 @@ import asyncio
 import ipaddress
 import logging
 from collections.abc import Sequence
+from typing import Protocol
 
+from ..core.audit_record import RefusedAt
 from ..core.connection_admission import Door, NotAdmitted
-from ..core.policy import IPAddress, IPNetwork
+from ..core.policy import IPAddress, IPNetwork, Principal
 from ..logs import RateLimitedLogger
 from ..metrics import GatewayMetrics
 from .audit import AuditLog
-from .tls import HandshakeFailure
+from .tls import HandshakeFailure, leaf_subject
 
 log = logging.getLogger("gateway.access")
 
@@ -53,6 +55,15 @@ _REASON_TEXT = {
 }
 
 
+class OpenConnection(Protocol):
+    """What a reload closing a connection tells of it (``tcp.MasterConnection`` has it)."""
+
+    peer: str
+    principal: Principal
+    role_text: str | None
+    chain: tuple[bytes, ...]
+
+
 class SourceScreen:
     """Admits sources inside every configured allow list; counts and logs the rest."""
 
@@ -73,18 +84,29 @@ class SourceScreen:
         """The listener's door as it stands now, for ``core.connection_admission.admit``."""
         return Door(self.allow_lists, tls)
 
-    def closed_at_reload(self, peer: str, reason: NotAdmitted) -> None:
-        """Log, once per connection, one closed because it is no longer admitted."""
+    def closed_at_reload(
+        self, connection: OpenConnection, reason: NotAdmitted, audit: AuditLog | None = None
+    ) -> None:
+        """Log (and audit, when configured), once per connection, one closed because it
+        is no longer admitted."""
+        peer = connection.peer
         log.warning(
             "listener %s: master %s closed: no longer admitted (%s)%s", self.listener, peer,
             reason.value, _REASON_TEXT.get(reason, ""),
         )  # fmt: skip
+        if audit is not None:
+            source = connection.principal.source
+            audit.refused(
+                self.listener, str(source if source is not None else peer), reason.value,
+                RefusedAt.RELOAD, peer, connection.role_text, leaf_subject(connection.chain),
+            )  # fmt: skip
 
     def refuse(self, source: IPAddress | None, audit: AuditLog | None = None) -> None:
         """Count, log (and audit, when configured) a connection closed at accept."""
         self._metrics.connections_denied.labels(self.listener).inc()
         if audit is not None:
-            audit.refused(self.listener, str(source), NotAdmitted.SOURCE_NOT_ALLOWED.value)
+            audit.refused(self.listener, str(source), NotAdmitted.SOURCE_NOT_ALLOWED.value,
+                          RefusedAt.ACCEPT)  # fmt: skip
         if self._log is not None:
             self._log.note(
                 f"listener {self.listener}",

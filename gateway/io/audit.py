@@ -30,6 +30,7 @@ from ..core.audit_record import (
     Chain,
     Pending,
     Record,
+    RefusedAt,
     Verifier,
     changed_keys,
     config_record,
@@ -177,9 +178,13 @@ class AuditLog:
         pending = Pending(self._clock(), listener, peer, role, unit, pdu, line, slave)
         return AuditTicket(self, pending)
 
-    def refused(self, listener: str, source: str, reason: str) -> None:
-        """A connection closed at accept by an allow list."""
-        self.put(refused_record(self._clock(), listener, source, reason))
+    def refused(
+        self, listener: str, source: str, reason: str, at: RefusedAt = RefusedAt.ACCEPT,
+        peer: str | None = None, role: str | None = None, subject: str | None = None,
+    ) -> None:  # fmt: skip
+        """A connection closed by the listener's door: at accept, or at a reload."""
+        self.put(refused_record(self._clock(), listener, source, reason, at, peer, role,
+                                subject))  # fmt: skip
 
     def configured(
         self, action: str, path: str, config: object | None, error: str | None = None

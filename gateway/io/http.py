@@ -47,6 +47,7 @@ import ssl
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from http import HTTPStatus
 from typing import Protocol
 
@@ -58,7 +59,7 @@ from prometheus_client.registry import Collector
 from ..config import MetricsConfig
 from ..logs import RateLimitedLogger
 from .http_guard import Access, Guard, HttpRefusal
-from .tls import TlsSetupError, cipher_string
+from .tls import check_chain, cipher_string, load_authorities, load_key_pair
 
 log = logging.getLogger("gateway.http")
 
@@ -265,25 +266,15 @@ def endpoint_tls(config: MetricsConfig) -> ssl.SSLContext | None:
     the key at fault."""
     if config.tls_cert is None or config.tls_key is None:
         return None
+    check_chain(config.tls_cert, "metrics.tls_cert", datetime.now(UTC))  # read, and in date
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_2
     context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
     context.options |= ssl.OP_CIPHER_SERVER_PREFERENCE
     context.set_ciphers(cipher_string(forward_secrecy_only=True))  # browsers have ECDHE
-    try:
-        context.load_cert_chain(config.tls_cert, config.tls_key)
-    except (ssl.SSLError, OSError) as error:
-        raise TlsSetupError(
-            f"metrics.tls_cert = {config.tls_cert!r}, metrics.tls_key = {config.tls_key!r}: "
-            f"cannot be used ({error}); give a PEM chain (leaf first) and its unencrypted key"
-        ) from None
+    load_key_pair(context, config.tls_cert, config.tls_key, ("metrics.tls_cert", "metrics.tls_key"))
     if config.tls_ca is not None:
-        try:
-            context.load_verify_locations(cafile=config.tls_ca)
-        except (ssl.SSLError, OSError) as error:
-            raise TlsSetupError(
-                f"metrics.tls_ca = {config.tls_ca!r}: cannot be used ({error})"
-            ) from None
+        load_authorities(context, config.tls_ca, "metrics.tls_ca")
         context.verify_mode = ssl.CERT_REQUIRED
     return context
 

@@ -967,7 +967,7 @@ class ModbusTcpServer:
         return admit(self.screen.door(self.listener.tls), facts, now)
 
     def _close_unadmitted(self, connection: MasterConnection, reason: NotAdmitted) -> None:
-        self.screen.closed_at_reload(connection.peer, reason)
+        self.screen.closed_at_reload(connection, reason, self.audit)
         self.events.note("closed at reload", connection.source)
         connection.close(CloseReason.NO_LONGER_ADMITTED)
 

@@ -156,6 +156,10 @@ def _subject(certificate: x509.Certificate) -> str:
     return certificate.subject.rfc4514_string() or "(no subject)"
 
 
+#: The fix of a TLS file the gateway cannot read.
+_READ_FIX = "; check the path, and that the gateway's user may read the file"
+
+
 def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
     from cryptography import x509
 
@@ -163,7 +167,9 @@ def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
         with open(path, "rb") as handle:
             data = handle.read()
     except OSError as error:
-        raise TlsSetupError(f"{key} = {path!r}: cannot read: {error.strerror or error}") from None
+        raise TlsSetupError(
+            f"{key} = {path!r}: cannot read: {error.strerror or error}{_READ_FIX}"
+        ) from None
     try:
         certificates = x509.load_pem_x509_certificates(data)
     except ValueError:
@@ -243,29 +249,67 @@ class ServerTls:
     revocations: tuple[x509.CertificateRevocationList, ...] = ()
 
 
-def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
-    """Build the TLS context of a ``tls`` listener; raise ``TlsSetupError`` naming the fault."""
-    assert listener.cert and listener.key and listener.ca
-    prefix = listener.key_prefix
-    moment = now or datetime.now(UTC)
-    chain = _read_pem_certificates(listener.cert, f"{prefix}cert")
-    infos: list[CertificateInfo] = []
+def check_chain(path: str, key: str, moment: datetime) -> list[x509.Certificate]:
+    """The certificates in the chain file ``path`` (configuration key ``key``), each valid at
+    ``moment``; raise ``TlsSetupError`` naming the key, the file and the fix."""
+    chain = _read_pem_certificates(path, key)
     for index, certificate in enumerate(chain):
         kind = "server" if index == 0 else "chain"
         subject = _subject(certificate)
         if moment < certificate.not_valid_before_utc:
             raise TlsSetupError(
-                f"{prefix}cert = {listener.cert!r}: the {kind} certificate {subject!r} is not "
-                f"valid before {certificate.not_valid_before_utc:%Y-%m-%d %H:%M:%S} UTC; check "
-                "the clock or issue it again"
+                f"{key} = {path!r}: the {kind} certificate {subject!r} is not valid before "
+                f"{certificate.not_valid_before_utc:%Y-%m-%d %H:%M:%S} UTC; check the clock or "
+                "issue it again"
             )
         if moment > certificate.not_valid_after_utc:
             raise TlsSetupError(
-                f"{prefix}cert = {listener.cert!r}: the {kind} certificate {subject!r} expired on "
+                f"{key} = {path!r}: the {kind} certificate {subject!r} expired on "
                 f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC; renew it, then reload "
                 "(SIGHUP)"
             )
-        infos.append(CertificateInfo(listener.name, kind, subject, certificate.not_valid_after_utc))
+    return chain
+
+
+def load_key_pair(context: ssl.SSLContext, cert: str, key: str, names: tuple[str, str]) -> None:
+    """Load the chain ``cert`` and its private ``key`` (their configuration keys: ``names``)
+    into ``context``; raise ``TlsSetupError`` naming the key, the file and the fix."""
+    cert_name, key_name = names
+    try:
+        context.load_cert_chain(cert, key)
+    except ssl.SSLError as error:
+        raise TlsSetupError(
+            f"{key_name} = {key!r}: cannot be used with {cert_name} = {cert!r} "
+            f"({error.reason or error}); give the private key of the certificate's first "
+            "(leaf) entry, unencrypted PEM"
+        ) from None
+    except OSError as error:
+        raise TlsSetupError(
+            f"{key_name} = {key!r}: cannot read: {error.strerror or error}{_READ_FIX}"
+        ) from None
+
+
+def load_authorities(context: ssl.SSLContext, path: str, key: str) -> None:
+    """Trust the CA certificates in ``path`` (configuration key ``key``) for client
+    certificates; raise ``TlsSetupError`` naming the key and the file."""
+    _read_pem_certificates(path, key)  # a missing file or no PEM: the message with its fix
+    try:
+        context.load_verify_locations(cafile=path)
+    except (ssl.SSLError, OSError) as error:
+        raise TlsSetupError(f"{key} = {path!r}: cannot be used: {error}") from None
+
+
+def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
+    """Build the TLS context of a ``tls`` listener; raise ``TlsSetupError`` naming the fault."""
+    assert listener.cert and listener.key and listener.ca
+    prefix = listener.key_prefix
+    moment = now or datetime.now(UTC)
+    chain = check_chain(listener.cert, f"{prefix}cert", moment)
+    infos = [
+        CertificateInfo(listener.name, "server" if index == 0 else "chain", _subject(certificate),
+                        certificate.not_valid_after_utc)
+        for index, certificate in enumerate(chain)
+    ]  # fmt: skip
     authorities = _read_pem_certificates(listener.ca, f"{prefix}ca")
     for authority in authorities:
         info = CertificateInfo(
@@ -352,22 +396,8 @@ def _load_files(context: ssl.SSLContext, listener: ListenerConfig) -> None:
     """Load the key pair, the CAs and the CRL; raise ``TlsSetupError`` naming the key."""
     assert listener.cert and listener.key and listener.ca
     prefix = listener.key_prefix
-    try:
-        context.load_cert_chain(listener.cert, listener.key)
-    except ssl.SSLError as error:
-        raise TlsSetupError(
-            f"{prefix}key = {listener.key!r}: cannot be used with {prefix}cert = "
-            f"{listener.cert!r} ({error.reason or error}); give the private key of the "
-            "certificate's first (leaf) entry, unencrypted PEM"
-        ) from None
-    except OSError as error:
-        raise TlsSetupError(
-            f"{prefix}key = {listener.key!r}: cannot read: {error.strerror or error}"
-        ) from None
-    try:
-        context.load_verify_locations(cafile=listener.ca)
-    except (ssl.SSLError, OSError) as error:
-        raise TlsSetupError(f"{prefix}ca = {listener.ca!r}: cannot be used: {error}") from None
+    load_key_pair(context, listener.cert, listener.key, (f"{prefix}cert", f"{prefix}key"))
+    load_authorities(context, listener.ca, f"{prefix}ca")
     if listener.crl:
         try:  # checked above with cryptography; OpenSSL reads the same PEM
             context.load_verify_locations(cafile=listener.crl)
@@ -454,6 +484,18 @@ def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
         except ValueError:
             continue
     return None
+
+
+def leaf_subject(chain: Sequence[bytes]) -> str | None:
+    """The subject of a verified chain's leaf (DER), for the audit log; ``None``: none."""
+    if not chain:
+        return None
+    from cryptography import x509
+
+    try:
+        return _subject(x509.load_der_x509_certificate(chain[0]))
+    except ValueError:
+        return None
 
 
 def role_of(transport: asyncio.BaseTransport) -> tuple[bool, str | None]:

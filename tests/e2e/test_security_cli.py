@@ -258,6 +258,39 @@ access = "read"
     assert f"listeners[0].key = '{tmp_path / 'gone.key'}': cannot read" in checked.stderr
 
 
+def check_metrics_tls(
+    tmp_path: Path, cert: Path, key: Path, ca: Path
+) -> subprocess.CompletedProcess[str]:
+    """``modbus-gateway check-config`` on a file whose HTTP endpoint has these TLS files."""
+    metrics = f'[metrics]\nlisten = "127.0.0.1:0"\ntls_cert = "{cert}"\ntls_key = "{key}"\n'
+    return subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config",
+         str(config_file(tmp_path, metrics + f'tls_ca = "{ca}"\n'))],
+        capture_output=True, text=True, timeout=30, check=False,
+    )  # fmt: skip
+
+
+def test_check_config_validates_the_http_endpoints_tls_files(tmp_path: Path, pki: Pki) -> None:
+    """The ``[metrics]`` TLS files are checked as a listener's are: key, file and fix."""
+    assert check_metrics_tls(tmp_path, pki.server_chain, pki.server_key, pki.ca).returncode == 0
+    gone = tmp_path / "gone.pem"
+    checked = check_metrics_tls(tmp_path, gone, pki.server_key, pki.ca)
+    assert checked.returncode == 2
+    assert f"metrics.tls_cert = '{gone}': cannot read: No such file" in checked.stderr
+    assert "check the path, and that the gateway's user may read the file" in checked.stderr
+    now = dt.datetime.now(dt.UTC)
+    chain, key = pki.server_certificate("old-https", now - 10 * DAY, now - DAY)
+    checked = check_metrics_tls(tmp_path, chain, key, pki.ca)
+    assert checked.returncode == 2
+    assert f"metrics.tls_cert = '{chain}': the server certificate" in checked.stderr
+    assert "renew it" in checked.stderr
+    checked = check_metrics_tls(tmp_path, pki.server_chain, pki.ca, pki.ca)  # not its key
+    assert checked.returncode == 2 and f"metrics.tls_key = '{pki.ca}': cannot be" in checked.stderr
+    checked = check_metrics_tls(tmp_path, pki.server_chain, pki.server_key, pki.server_key)
+    assert checked.returncode == 2
+    assert f"metrics.tls_ca = '{pki.server_key}': no PEM certificate" in checked.stderr
+
+
 def docs_block(marker: str) -> str:
     """The first ```sh block after ``marker`` in the manual's security page."""
     docs = Path(__file__).resolve().parents[2] / "docs"

@@ -14,6 +14,7 @@ on real certificates.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import socket
 import ssl
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 
 from gateway.config import build_config
 from gateway.core.crc import append_crc, check_crc
+from gateway.io.audit import verify_files
 from gateway.io.tls import certificate_facts
 from gateway.sim import plc
 from gateway.sim.line import UnitFaults
@@ -55,6 +57,14 @@ def sample(gw: RunningGateway, name: str, labels: dict[str, str] | None = None) 
 def closed_at_reload(gw: RunningGateway) -> float:
     labels = {"reason": "no_longer_admitted"}
     return sample(gw, "modbus_gateway_connections_closed_total", labels)
+
+
+def refusals(gw: RunningGateway, path: Path) -> list[dict[str, Any]]:
+    """The audit log's ``connection_refused`` records, once the writer caught up."""
+    audit = gw.gateway.audit
+    assert audit is not None and audit.flush(DEADLINE_S)
+    records = [json.loads(line) for line in path.read_text().splitlines()]
+    return [r for r in records if r["event"] == "connection_refused"]
 
 
 def reload(gw: RunningGateway, tables: dict[str, Any]) -> None:
@@ -93,6 +103,37 @@ def test_a_narrowed_allow_list_closes_the_banned_master_and_spares_the_other(
     closes = [m for m in access_log.messages if "no longer admitted" in m]
     assert len(closes) == 1, closes
     assert "127.0.0.2:" in closes[0] and "source_not_allowed" in closes[0]
+
+
+def test_a_master_closed_at_a_reload_is_in_the_audit_log(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    """One ``connection_refused`` record per connection the reload closed, with the
+    reason, beside the one at accept; the chain still verifies."""
+    sim = make_sim({1: plc(1)})
+    path = tmp_path / "audit.jsonl"
+    tables: dict[str, Any] = {
+        "server": {"listen": "127.0.0.1:0"},
+        "metrics": {"listen": "off"},
+        "lines": {"a": sim.line_table([1])},
+        "audit": {"path": str(path)},
+    }
+    gw = make_gateway(tables)
+    with RawClient(gw.address, source="127.0.0.2") as banned, RawClient(gw.address) as kept:
+        assert banned.request(1, READ) == READ_ANSWER
+        tables["server"]["allow"] = ["127.0.0.1/32"]
+        reload(gw, tables)
+        assert banned.is_closed_by_peer()
+        assert kept.request(1, READ) == READ_ANSWER
+    with RawClient(gw.address, source="127.0.0.2") as again:
+        assert again.is_closed_by_peer()
+    closed, refused = refusals(gw, path)
+    assert (closed["at"], closed["listener"], closed["source"]) == ("reload", "tcp", "127.0.0.2")
+    assert closed["reason"] == "source_not_allowed" and closed["peer"].startswith("127.0.0.2:")
+    assert "role" not in closed and "subject" not in closed  # plain TCP: no certificate
+    assert (refused["at"], refused["source"]) == ("accept", "127.0.0.2")
+    ok, message = verify_files([str(path)])
+    assert ok, message
 
 
 def test_a_queued_request_of_a_closed_master_never_reaches_the_line_nor_another_master(
@@ -226,14 +267,17 @@ def tls_tables(make_sim: SimFactory, pki: Pki, ca: Path | str) -> dict[str, Any]
 
 
 def gateway_trusting_two_cas(
-    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
-) -> tuple[RunningGateway, Callable[[], None]]:
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path,
+    audit: Path | None = None,
+) -> tuple[RunningGateway, Callable[[], None]]:  # fmt: skip
     """A gateway whose tls listener trusts CA-A (the test root) and CA-B (another root), and
-    the reload that trusts only CA-B."""
+    the reload that trusts only CA-B; with ``audit``, an audit log there."""
     both, only_b = tmp_path / "both.pem", tmp_path / "b.pem"
     both.write_bytes(pem(pki.root.certificate, pki.other_root.certificate))
     only_b.write_bytes(pem(pki.other_root.certificate))
     tables = tls_tables(make_sim, pki, both)
+    if audit is not None:
+        tables["audit"] = {"path": str(audit)}
     gw = make_gateway(tables)
 
     def withdraw_ca_a() -> None:
@@ -268,6 +312,23 @@ def test_a_withdrawn_ca_closes_its_clients_and_spares_the_other_cas(
     assert closed_at_reload(gw) == 1
     closes = [m for m in access_log.messages if "no longer admitted" in m]
     assert len(closes) == 1 and "ca_not_trusted" in closes[0] and "127.0.0.1:" in closes[0]
+
+
+def test_a_tls_master_closed_at_a_reload_is_audited_with_its_role_and_subject(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> None:
+    """A reload withdraws the CA of a TLS master: its record names its role and subject."""
+    path = tmp_path / "audit.jsonl"
+    gw, withdraw_ca_a = gateway_trusting_two_cas(make_sim, make_gateway, pki, tmp_path, path)
+    with RawClient(address_of(gw, "tls"), context=client_context(pki, "operator")) as master:
+        assert master.request(1, READ) == READ_ANSWER
+        withdraw_ca_a()
+        assert master.is_closed_by_peer()
+    [closed] = refusals(gw, path)
+    assert (closed["at"], closed["reason"]) == ("reload", "ca_not_trusted")
+    assert (closed["role"], closed["subject"]) == ("operator", "master-operator")
+    ok, message = verify_files([str(path)])
+    assert ok, message
 
 
 def test_a_reload_with_the_same_cas_closes_no_tls_client(
