@@ -48,6 +48,7 @@ COMPILED_MODULES = [
     "gateway/core/line/order.py",
     "gateway/core/line/pipelined.py",
     "gateway/core/line/records.py",
+    "gateway/core/line/response_timing.py",
     "gateway/core/line/sending.py",
     "gateway/core/line/sharing.py",
     "gateway/core/line/wire.py",
@@ -63,6 +64,7 @@ COMPILED_MODULES = [
     "gateway/io/line_notes.py",
     "gateway/io/rtu_listener.py",
     "gateway/io/serial_port.py",
+    "gateway/io/tally.py",
     "gateway/io/tcp.py",
     "gateway/metrics.py",
 ]

@@ -39,9 +39,12 @@ def _build_word_table() -> array[int]:
     return table
 
 
-_WORD_TABLE: Final = _build_word_table()
-#: Words are read in the machine's order (``memoryview.cast``): little-endian only.
-_BY_WORD: Final = sys.byteorder == "little"
+#: Words are read in the machine's order (``memoryview.cast``): little-endian only. The
+#: compiled build (this module an extension, see setup.py) keeps the byte loop: compiled,
+#: it costs less than the word loop's generic ``memoryview`` and ``array`` accesses
+#: (measured: 74.5k against 86.3k user-space instructions per transaction).
+_BY_WORD: Final = sys.byteorder == "little" and __file__.endswith(".py")
+_WORD_TABLE: Final = _build_word_table() if _BY_WORD else array("H")
 
 
 def crc16(data: bytes | bytearray | memoryview) -> int:
