@@ -564,12 +564,6 @@ def test_a_grace_shorter_than_the_wire_transaction_still_answers_it(lab: Lab) ->
 # --------------------------------------------------------------------------- SIGHUP reload
 
 
-@pytest.mark.xfail(
-    reason="open defect: since learned response timing landed, the read through the route "
-    "a reload adds is answered 0x0B in about half the runs (slave 2 silent, fixed timeouts "
-    "0.4 then 0.2 s); not yet understood, see CHANGELOG 'Known issues'",
-    strict=False,
-)
 def test_reload_changes_routes_and_timeouts_without_dropping_connections(lab: Lab) -> None:
     pair, sim = lab.sim([1, 2])
     sim.faults(2).silent = True  # unit 2's answers show which timeout is in force

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -46,9 +47,9 @@ def answer_frame(pdu: bytes) -> bytes:
     return encode_rtu(SLAVE, bytes((pdu[0], 2 * quantity)) + bytes(2 * quantity))
 
 
-def transaction_time(pdu: bytes) -> float:
+def transaction_time(pdu: bytes, char: float = CHAR, turnaround: float = TURNAROUND) -> float:
     """The wire time of one read: request, turnaround, answer."""
-    return (len(encode_rtu(SLAVE, pdu)) + len(answer_frame(pdu))) * CHAR + TURNAROUND
+    return (len(encode_rtu(SLAVE, pdu)) + len(answer_frame(pdu))) * char + turnaround
 
 
 @dataclass(order=True)
@@ -61,8 +62,11 @@ class _Event:
 class Wire:
     """A line core and a sequential slave on one simulated clock; the test plays the driver."""
 
-    def __init__(self, **settings: Any) -> None:
-        config = LineConfig(name="t", device="/dev/null", baudrate=BAUD, **settings)
+    def __init__(self, baud: int = BAUD, turnaround: float = TURNAROUND, **settings: Any) -> None:
+        config = LineConfig(name="t", device="/dev/null", baudrate=baud, **settings)
+        self.char = character_time(baud, 8, "N", 1)
+        self.turnaround = turnaround
+        self.silent: set[int] = set()  # slaves that never answer
         self.core = LineCore(config, -1.0)
         self.core.port_opened(-1.0)
         self.now = 0.0
@@ -78,8 +82,8 @@ class Wire:
         self._seq += 1
         heapq.heappush(self._events, _Event(when, self._seq, act))
 
-    def submit(self, master: str, pdu: bytes) -> LineRequest:
-        request = LineRequest(SLAVE, pdu, master, lambda _pdu, _outcome: None)
+    def submit(self, master: str, pdu: bytes, slave: int = SLAVE) -> LineRequest:
+        request = LineRequest(slave, pdu, master, lambda _pdu, _outcome: None)
         self.core.submit(request, self.now)
         self._pump()
         return request
@@ -119,8 +123,10 @@ class Wire:
                 self.on_answer(request, delivery.outcome)
 
     def _answer_later(self, request: LineRequest) -> None:
+        if request.slave in self.silent:
+            return
         frame = answer_frame(request.pdu)
-        when = self.now + transaction_time(request.pdu)
+        when = self.now + transaction_time(request.pdu, self.char, self.turnaround)
 
         def arrive() -> None:
             self.core.receive(frame, self.now)
@@ -222,3 +228,24 @@ def test_masters_with_nothing_waiting_go_next_after_the_transaction_on_the_wire(
     wire.run_until(arrival + 2 * transaction_time(read(0, 125)) + newcomers)
     following = [str(request.master) for request in wire.sent[before:]]
     assert following[:newcomers] == names
+
+
+def test_a_master_that_paid_for_a_timeout_waits_its_debt_in_line_time() -> None:
+    """A timeout costs its master the time it held the line; the others pay the same back
+    in line time, the silence after each answer included. Charged the answers' wire time
+    alone, a fast port's cheap transactions (a pty, a USB adapter at 115200) took several
+    times the debt to pay it back, and the master's next request ran into
+    ``max_queue_wait``."""
+    timeout = 0.4
+    wire = Wire(baud=115200, turnaround=0.0002, timeout=timeout, retries=0)
+    wire.silent.add(2)
+    keep_deep(wire, 1, 4, 1)  # one master polling a live slave, four reads in flight
+    wire.run_until(0.2)
+    wire.submit("probe", read(0, 10), slave=2)  # no answer: the line held for the timeout
+    wire.run_until(0.2 + timeout + 0.01)
+    assert wire.waits["probe"] == [pytest.approx(timeout, abs=0.01)]
+    wire.submit("probe", read(0, 10))
+    wire.run_until(0.2 + 4 * timeout)
+    waited = wire.waits["probe"][1]
+    # The debt is the timeout; the other master earns it back in about as much line time.
+    assert waited <= 1.25 * timeout, waited

@@ -54,6 +54,7 @@ class AttemptEnds:
     wire: Wire
     retries: deque[LineRequest]
     garbled_wait: float
+    _gap: float
     timing: ResponseTiming
     _stopping: bool
 
@@ -144,7 +145,7 @@ class AttemptEnds:
             and record.state is not SlaveState.UP
             and not attempt.from_credit
         ):
-            self.lane.spend(wire, now)
+            self.lane.spend(wire + self._gap, now)
         self.lane.last_loss = now
         self._charge(attempt, wire, now)
         self._retry_or_answer(request, record, now, heard=error is not None)
@@ -234,7 +235,11 @@ class AttemptEnds:
                 self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
 
     def _charge(self, attempt: Attempt, wire: float, now: float) -> None:
-        """Account the wire time to the master who used it (or to the isolated share)."""
+        """Account the line time to the master who used it (or to the isolated share): the
+        attempt's time on the wire and the silence the line keeps after it. Without the
+        silence an answer on a fast port would cost next to nothing, and a master that paid
+        for one timeout would wait behind thousands of cheap transactions."""
+        wire += self._gap
         queue = self.queue
         master = queue.masters.get(attempt.request.master)
         if attempt.from_credit:
