@@ -22,6 +22,7 @@ from ..framing import RTU, Framing, LineKind
 from ..outcome import LineEvent, Outcome, SlaveState
 from ..timing import character_time
 from .fair_queue import FairQueue, Master
+from .foreign import ForeignMasters
 from .health import ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
@@ -74,6 +75,7 @@ class LineCore(Sending):
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
         self.timing = ResponseTiming(policy, framing, 0.0)
+        self.foreign = ForeignMasters(ascii=framing.kind is LineKind.ASCII)
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
         self._wanting_since: float | None = None
@@ -103,6 +105,7 @@ class LineCore(Sending):
         self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
+        self.foreign.configure(policy.silence, policy.max_timeout)
         self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
@@ -187,6 +190,8 @@ class LineCore(Sending):
                     when = min(when, self.late.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
+        if self.foreign.shared:
+            when = min(when, self.foreign.shared_until)
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
@@ -395,6 +400,8 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
+        if self.foreign.shared and self.foreign.decays(now):
+            self.notes.append(Note(LineEvent.LINE_NOT_SHARED, 0))
         if self.queue.queued:
             arrivals = self.queue.arrivals
             if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:

@@ -28,6 +28,8 @@ DISCARD_KINDS: Final = frozenset({
 })  # fmt: skip
 #: The answer decoders' fault kind for a bad CRC or LRC (noted, never discarded).
 BAD_CHECK: Final = "crc"
+#: An attempt's fault kind for an answer a foreign master's request may own (``foreign``).
+SHARED_ANSWER: Final = "shared_answer"
 
 
 def answer_signature(request: bytes) -> bytes:
@@ -257,6 +259,7 @@ class Attempt:
     silence_at: float
     garbled_at: float
     garbled: ResponseError | None
+    heard: bytes  # bytes the answer's decoder took without a verdict yet (``foreign``)
     tid: int
     epoch: int
     charged: float
@@ -285,6 +288,7 @@ class Attempt:
         self.silence_at = INFINITY
         self.garbled_at = INFINITY
         self.garbled = None
+        self.heard = b""
         self.tid = tid
         self.epoch = epoch
         self.charged = charged

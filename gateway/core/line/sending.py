@@ -9,17 +9,16 @@ from collections.abc import Callable
 
 from ..errors import ExceptionCode
 from ..outcome import LineEvent, Outcome
-from .ends import AttemptEnds
 from .fair_queue import Master
+from .listening import Listening
 from .records import FRAME_CACHE_SIZE, INFINITY, LineRequest, Note, Transmit, tuple_new
 
 
-class Sending(AttemptEnds):
+class Sending(Listening):
     """Which request goes next, and sending it (see the module doc)."""
 
     transmits: list[Transmit]
     quiet_since: float
-    char_time: float
     echo: bool
     encode: Callable[[int, bytes], bytes]
     _frames: dict[tuple[int, bytes], bytes] | None

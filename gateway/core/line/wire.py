@@ -255,6 +255,7 @@ class SerialWire(Wire):
         attempt = self.attempt
         if attempt is None:
             line.discard(DiscardReason.LATE, len(data))
+            line.hear(data, now)  # another master's frames, or its slaves' answers
             if line.late.windows:
                 line.late_bytes(data, now)
                 line.service(now)
@@ -268,10 +269,14 @@ class SerialWire(Wire):
         or note that it was garbled."""
         line = self.line
         decoder = attempt.decoder
+        chunk = data
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
+                if chunk:  # not the answer (or not only): perhaps another master's frames
+                    line.hear(attempt.heard + chunk, now)
+                    attempt.heard = chunk = b""
                 if error.kind in DISCARD_KINDS:
                     # Another unit's frame, a late answer to an earlier request, or noise
                     # in front of the answer: drop it and keep decoding what followed it.
@@ -300,7 +305,10 @@ class SerialWire(Wire):
             self.outstanding = 0
             line.complete(attempt, frame, now)
             line.service(now)
-        elif decoder.waits_for_silence:
+            return
+        if chunk:
+            attempt.heard += chunk  # heard by ``line.hear`` if they turn out not to be the answer
+        if decoder.waits_for_silence:
             attempt.silence_at = now + line.silence
 
     def expire(self, now: float) -> None:
@@ -326,13 +334,21 @@ class SerialWire(Wire):
                 self.end(attempt)
                 line.complete(attempt, frame, now)
         if self.attempt is attempt and now >= attempt.garbled_at:
+            self._unheard(attempt, now)
             line.fail(attempt, attempt.garbled, now)
         if self.attempt is attempt and now >= attempt.deadline:
+            self._unheard(attempt, now)
             if attempt.decoder.buffered:
                 line.discard(
                     DiscardReason.INCOMPLETE, attempt.decoder.buffered, attempt.request.slave
                 )
             line.fail(attempt, attempt.garbled, now)
+
+    def _unheard(self, attempt: Attempt, now: float) -> None:
+        """The attempt fails: the bytes its decoder kept without a verdict were no answer."""
+        if attempt.heard:
+            self.line.hear(attempt.heard, now)
+            attempt.heard = b""
 
     def _strip_echo(self, data: bytes) -> bytes:
         """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""

@@ -1,0 +1,300 @@
+"""Foreign masters: request frames on a shared line that this gateway did not send.
+
+Theory of operation. RS-485 has no arbitration: a second master on the bus (another
+gateway, a forgotten PLC, an engineer's laptop) talks over this one, and its slaves'
+answers look exactly like answers to this gateway's requests. A line of a shared-medium
+kind (``rtu``, ``ascii``, ``rtu-over-tcp``: answers named by their shape, not by a
+transaction id) therefore frames what it hears besides the answers it waits for:
+
+* while nothing of ours is on the wire, every byte (our own echo removed);
+* while our attempt is on the wire, the bytes its answer decoder refused (an intact
+  answer goes to the attempt as before, without passing here: the usual answer costs
+  nothing more).
+
+An intact frame (valid CRC or LRC) is classified, first match wins:
+
+1. the answer to one of *our* requests (the attempt on the wire, or a lost attempt
+   whose late-answer window is open): ours. An exact echo of our own outstanding
+   FC 5 or 6 request is our answer, not a foreign master;
+2. the answer to a *pending* foreign request of that slave (its length): that
+   request is answered; its turnaround (answer start minus request end, as the line
+   measures its own) is learned;
+3. a request (a function code whose request length the frame has): a *foreign master
+   frame*. A foreign request awaits its answer until an answer with its signature is
+   seen or ``max_timeout`` passed;
+4. anything else: a frame, nothing more.
+
+The line is *shared* while a foreign master frame was heard within ``SHARED_FOR_S``.
+While *listening* (a standby gateway that never transmits), foreign master frames are
+the active peer's: they are timed and learned from, never counted as foreign.
+
+RTU frames have no delimiter but silence: bytes are cut at the front into frames
+whose length the function code (and byte count) gives and whose CRC checks; a byte
+that starts no frame is skipped. Bytes after a gap longer than ``SPLIT_AFTER_S`` (or
+the line's silence, if longer) start afresh: what waited before it is searched once
+more, as a whole, then dropped. Functions whose request length cannot be told from
+the frame (FC 8, user codes) are not recognised as requests.
+
+This part keeps its state and answers questions; the machine notes and learns.
+"""
+
+from __future__ import annotations
+
+import binascii
+from dataclasses import dataclass
+from enum import Enum
+from typing import Final
+
+from .. import pdu as fc
+from ..ascii import MAX_ASCII_FRAME, lrc
+from ..crc import crc16
+from ..rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, request_length, response_length
+from .records import INFINITY, answer_signature
+
+#: A line is *shared* while a foreign master frame was heard this recently.
+SHARED_FOR_S: Final = 10.0
+#: RTU bytes after at least this much silence (or the line's silence, if longer) begin a
+#: new frame: scheduling delays between two reads of one frame stay below it.
+SPLIT_AFTER_S: Final = 0.02
+#: Requests kept awaiting their answers per slave (a bound: a master polls one at a time).
+PENDING_PER_SLAVE: Final = 8
+
+
+class HeardKind(Enum):
+    """What an intact frame heard on the line was."""
+
+    OURS = "ours"  # an answer to one of this gateway's requests
+    ANSWER = "answer"  # the answer to a pending foreign request
+    MASTER = "master"  # a request this gateway did not send
+    FRAME = "frame"  # an intact frame, none of the above
+
+
+@dataclass(slots=True, eq=False)
+class ForeignRequest:
+    """A foreign master's request heard on the line, awaiting its answer."""
+
+    slave: int
+    pdu: bytes
+    heard_at: float  # the end of its frame
+    until: float  # no answer is taken for it after this
+
+
+@dataclass(slots=True, eq=False)
+class Heard:
+    """One intact frame heard, classified; ``request`` is the foreign one it concerns."""
+
+    kind: HeardKind
+    slave: int
+    pdu: bytes
+    at: float
+    request: ForeignRequest | None = None
+
+
+#: Requests whose answers are this gateway's: (slave, request PDU).
+Own = list[tuple[int, bytes]]
+
+
+class ForeignMasters:
+    """What the line heard that it did not send (see the module doc)."""
+
+    def __init__(self, ascii: bool) -> None:
+        self.ascii = ascii
+        self.buffer = bytearray()
+        self.last_at = -INFINITY  # when the last byte framed here arrived
+        self.split_after = SPLIT_AFTER_S
+        self.keep_for = 3.0  # how long a foreign request awaits its answer (``max_timeout``)
+        #: slave -> its foreign requests awaiting an answer, oldest first.
+        self.pending: dict[int, list[ForeignRequest]] = {}
+        self.listening = False
+        self.shared = False
+        self.shared_until = -INFINITY
+        #: The end of the last foreign master frame heard (listening or not), ``None``: never.
+        self.last_master_frame_at: float | None = None
+        #: The end of the last intact frame heard here (``None``: never).
+        self.last_frame_at: float | None = None
+        self.foreign_frames = 0  # foreign master frames heard while not listening
+        self.heard_master_frames = 0  # master frames heard while listening (the peer's)
+
+    def configure(self, silence: float, keep_for: float) -> None:
+        self.split_after = max(SPLIT_AFTER_S, silence)
+        self.keep_for = keep_for
+
+    # -- framing ---------------------------------------------------------------------------
+
+    def feed(self, data: bytes, now: float, char_time: float, own: Own) -> list[Heard]:
+        """Bytes heard at ``now``: the intact frames they complete, classified."""
+        buffer = self.buffer
+        heard: list[Heard] = []
+        if self.ascii:
+            buffer += data
+            for frame in self._ascii_frames():
+                heard.append(self._classify(frame[0], frame[1:], now, own))
+            self.last_at = now
+            return heard
+        started = now - len(data) * char_time
+        if buffer and started - self.last_at > self.split_after:
+            at = self.last_at
+            stale = self._rtu_frames(own, final=True)
+            heard.extend(self._classify(f[0], f[1:-2], at, own) for f in stale)
+            buffer.clear()  # what waited for more before the gap: no frame ends there
+        buffer += data
+        self.last_at = now
+        heard.extend(self._classify(f[0], f[1:-2], now, own) for f in self._rtu_frames(own))
+        del buffer[: max(0, len(buffer) - 2 * MAX_RTU_FRAME)]
+        return heard
+
+    def _rtu_frames(self, own: Own, final: bool = False) -> list[bytes]:
+        """Intact frames cut from the buffer's front (a byte that starts none is skipped);
+        ``final``: no more bytes will come for them (a gap followed)."""
+        buffer = self.buffer
+        frames: list[bytes] = []
+        while len(buffer) >= MIN_RTU_FRAME:
+            length = self._rtu_length(buffer, own, final)
+            if length == NEED_MORE:
+                break
+            if length == 0:
+                del buffer[0]
+                continue
+            frames.append(bytes(buffer[:length]))
+            del buffer[:length]
+        return frames
+
+    def _rtu_length(self, buffer: bytearray, own: Own, final: bool) -> int:
+        """The length of the intact frame at the buffer's front, ``NEED_MORE`` while one
+        may still be completing, 0 when none starts there."""
+        unit = buffer[0]
+        candidates: list[int | None] = [
+            response_length(pdu, buffer) for slave, pdu in own if slave == unit
+        ]
+        candidates.extend(response_length(r.pdu, buffer) for r in self.pending.get(unit, ()))
+        candidates.append(request_length(buffer))
+        candidates.append(response_length(bytes(buffer[1:2]), buffer))
+        waiting = False
+        for length in candidates:
+            if length is None:
+                continue
+            if length == NEED_MORE or length > len(buffer):
+                waiting = waiting or length <= MAX_RTU_FRAME
+            elif length >= MIN_RTU_FRAME and not crc16(bytes(buffer[:length])):
+                return length
+        return NEED_MORE if waiting and not final and len(buffer) < MAX_RTU_FRAME else 0
+
+    def _ascii_frames(self) -> list[bytes]:
+        """Unit, PDU (LRC removed) of each whole ':' ... CR LF frame with a valid LRC."""
+        buffer = self.buffer
+        frames: list[bytes] = []
+        while True:
+            start = buffer.find(b":")
+            if start < 0:
+                buffer.clear()
+                break
+            del buffer[:start]
+            end = buffer.find(b"\n")
+            restart = buffer.find(b":", 1)
+            if restart >= 0 and (end < 0 or restart < end):
+                del buffer[:restart]  # a ':' inside a frame: a new frame began
+                continue
+            if end < 0:
+                del buffer[: max(0, len(buffer) - MAX_ASCII_FRAME)]
+                break
+            text = bytes(buffer[1 : end - 1]) if buffer[end - 1 : end] == b"\r" else b""
+            del buffer[: end + 1]
+            try:
+                raw = binascii.unhexlify(text)
+            except (binascii.Error, ValueError):
+                continue
+            if len(raw) >= 3 and lrc(raw[:-1]) == raw[-1]:
+                frames.append(raw[:-1])
+        return frames
+
+    # -- what a frame is ------------------------------------------------------------------
+
+    def _classify(self, slave: int, pdu: bytes, at: float, own: Own) -> Heard:
+        self.last_frame_at = at
+        frame = bytes((slave,)) + pdu
+        length = len(frame) + 2  # as an RTU frame (ASCII's LRC is one byte, RTU's CRC two)
+        for owner, request in own:
+            if (
+                owner == slave
+                and response_length(request, frame) == length
+                and _may_answer(request, pdu)
+            ):
+                return Heard(HeardKind.OURS, slave, pdu, at)
+        waiting = self.pending.get(slave)
+        if waiting:
+            for foreign in waiting:
+                if (
+                    at < foreign.until
+                    and response_length(foreign.pdu, frame) == length
+                    and _may_answer(foreign.pdu, pdu)
+                ):
+                    self._answered(foreign)
+                    return Heard(HeardKind.ANSWER, slave, pdu, at, foreign)
+        if pdu and request_length(frame) == length:
+            return self._master_frame(slave, pdu, at)
+        return Heard(HeardKind.FRAME, slave, pdu, at)
+
+    def _master_frame(self, slave: int, pdu: bytes, at: float) -> Heard:
+        """A request this gateway did not send: it awaits its answer (not a broadcast)."""
+        self.last_master_frame_at = at
+        request = ForeignRequest(slave, pdu, at, at + self.keep_for)
+        if slave:
+            waiting = self.pending.setdefault(slave, [])
+            waiting[:] = [r for r in waiting if at < r.until][-(PENDING_PER_SLAVE - 1) :]
+            waiting.append(request)
+        if self.listening:
+            self.heard_master_frames += 1
+        else:
+            self.foreign_frames += 1
+            self.shared = True
+            self.shared_until = at + SHARED_FOR_S
+        return Heard(HeardKind.MASTER, slave, pdu, at, request)
+
+    def _answered(self, request: ForeignRequest) -> None:
+        waiting = self.pending[request.slave]
+        waiting.remove(request)
+        if not waiting:
+            del self.pending[request.slave]
+
+    # -- questions --------------------------------------------------------------------------
+
+    def claims(self, slave: int, request: bytes, answer: bytes, now: float) -> bool:
+        """True when ``answer``, taken for our ``request`` to ``slave``, may be a pending
+        foreign request's answer (same slave, same function and answer signature): that
+        foreign request is then answered, and ours must not be. An exact echo of an
+        identical write is ours either way (the same write)."""
+        waiting = self.pending.get(slave)
+        if not waiting:
+            return False
+        signature = answer_signature(request)
+        for foreign in list(waiting):
+            if now >= foreign.until:
+                self._answered(foreign)
+                continue
+            if foreign.pdu == request and request[0] in fc.ECHOED_WRITES:
+                continue
+            if answer[0] & fc.EXCEPTION_FLAG:
+                same = foreign.pdu[0] == request[0]
+            else:
+                same = answer_signature(foreign.pdu) == signature
+            if same:
+                self._answered(foreign)
+                return True
+        return False
+
+    def decays(self, now: float) -> bool:
+        """True when the line stops being shared now (no foreign master frame for a while)."""
+        if self.shared and now >= self.shared_until:
+            self.shared = False
+            return True
+        return False
+
+
+def _may_answer(request: bytes, answer: bytes) -> bool:
+    """True when ``answer`` (the right length) may answer ``request``: its function, and for
+    the writes that echo, the echo itself."""
+    if answer[0] & 0x7F != request[0]:
+        return False
+    if answer[0] & fc.EXCEPTION_FLAG or request[0] not in fc.ECHOED_WRITES:
+        return True
+    return answer == fc.write_response(request)
