@@ -125,6 +125,11 @@ class Bus:
         return self._core.noisy
 
     @property
+    def shared(self) -> bool:
+        """True while another master's frames were heard on the line lately."""
+        return self._core.shared
+
+    @property
     def queued(self) -> int:
         """Requests waiting for the line."""
         return self._core.queued
@@ -406,6 +411,8 @@ class Bus:
             state = LineState.DOWN
         elif self._core.noisy:
             state = LineState.NOISY
+        elif self._core.shared:
+            state = LineState.SHARED
         else:
             state = LineState.UP
         return LineStatus(

@@ -1,8 +1,8 @@
 """What a line's notes mean for metrics and logs: the event side of a ``Bus``.
 
 The line core notes events (timeouts, CRC errors, discarded input, slave states, a
-noisy line); this collaborator counts them and logs each fault once, then counts
-repeats (``RateLimitedLogger``). It decides nothing about the line.
+noisy line, a foreign master's frames); this collaborator counts them and logs each
+fault once, then counts repeats (``RateLimitedLogger``). It decides nothing about the line.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from ..core.line import Note
+from ..core.line.foreign import SHARED_FOR_S
 from ..core.outcome import DiscardReason, LineEvent, SlaveState
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
@@ -32,6 +33,7 @@ class LineNotes:
         self._m_coalesced = metrics.coalesced.labels(bus.name)
         self._m_noisy = metrics.line_noisy.labels(bus.name)
         self._m_noisy.set(0)
+        self._m_foreign = metrics.foreign_master_frames.labels(bus.name)
         self.fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     def flush(self) -> None:
@@ -84,6 +86,21 @@ class LineNotes:
         elif event is LineEvent.LINE_QUIET:
             self._m_noisy.set(0)
             log.info("line %s: quiet again, serving requests", self._bus.name)
+        elif event is LineEvent.FOREIGN_MASTER:
+            self._m_foreign.inc()
+            self.fault_log.note(
+                f"line {self._bus.name}",
+                "foreign master frame",
+                f"a request to unit {unit} ({note.detail}) this gateway did not send: the line "
+                "is shared; answers that may be the other master's are not delivered",
+            )
+        elif event is LineEvent.SHARED_ANSWER:
+            self.fault_log.note(
+                subject, "answer not delivered", note.detail,
+                level=logging.INFO, plural="answers not delivered",
+            )  # fmt: skip
+        elif event is LineEvent.LINE_NOT_SHARED:
+            log.info("line %s: no other master heard for %g s", self._bus.name, SHARED_FOR_S)
 
     def _slave_state(self, note: Note) -> None:
         unit = UNIT_LABELS[note.slave]
