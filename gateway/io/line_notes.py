@@ -21,6 +21,10 @@ if TYPE_CHECKING:
     from .bus import Bus
 
 log = logging.getLogger("gateway.bus")
+#: The notes of a line that another master shares (``LineNotes._shared_line``).
+_SHARED_LINE_EVENTS = frozenset(
+    {LineEvent.FOREIGN_MASTER, LineEvent.SHARED_ANSWER, LineEvent.LINE_NOT_SHARED}
+)
 
 
 class LineNotes:
@@ -86,7 +90,13 @@ class LineNotes:
         elif event is LineEvent.LINE_QUIET:
             self._m_noisy.set(0)
             log.info("line %s: quiet again, serving requests", self._bus.name)
-        elif event is LineEvent.FOREIGN_MASTER:
+        elif event in _SHARED_LINE_EVENTS:
+            self._shared_line(note, unit, subject)
+
+    def _shared_line(self, note: Note, unit: str, subject: str) -> None:
+        """Another master on the line: its frames, the answers held back, and its silence."""
+        event = note.event
+        if event is LineEvent.FOREIGN_MASTER:
             self._m_foreign.inc()
             self.fault_log.note(
                 f"line {self._bus.name}",
@@ -99,7 +109,7 @@ class LineNotes:
                 subject, "answer not delivered", note.detail,
                 level=logging.INFO, plural="answers not delivered",
             )  # fmt: skip
-        elif event is LineEvent.LINE_NOT_SHARED:
+        else:
             log.info("line %s: no other master heard for %g s", self._bus.name, SHARED_FOR_S)
 
     def _slave_state(self, note: Note) -> None:

@@ -316,3 +316,32 @@ def test_our_request_never_takes_an_answer_a_pending_foreign_request_may_own(
     pdu, outcome = line.answer_of(request)
     if outcome == Outcome.OK:
         assert pdu == answer[1:-2]
+
+
+def test_a_reload_keeps_what_the_line_heard() -> None:
+    line = Line()
+    line.core.set_listening(True)
+    line.receive(encode_rtu(1, read(0)), 1.0)  # the peer's read, awaiting its answer
+    line.core.set_listening(False)
+    line.receive(encode_rtu(2, read(0)), 1.5)
+    handover = line.core.handover()
+    fresh = Line()
+    fresh.core.take_over(handover, 2.0)
+    core = fresh.core
+    assert core.shared and core.listening is False
+    assert (core.heard_master_frames, core.foreign_frames) == (1, 1)
+    assert core.last_master_frame_at == 1.5
+    request = fresh.submit(1, read(100), 2.0)
+    fresh.receive(registers_answer(1, read(0), 500), 2.02)  # still may be the peer's
+    assert request.answered is False
+    assert fresh.core.get_timer() is not None
+
+
+def test_last_frame_at_counts_the_answers_to_our_own_requests_too() -> None:
+    line = Line()
+    line.submit(1, read(100), 0.0)
+    line.receive(registers_answer(1, read(100), 7), 0.03)
+    assert line.core.last_frame_at == 0.03
+    assert line.core.last_master_frame_at is None
+    line.receive(registers_answer(9, read(0), 7), 0.5)  # another master's slave, heard
+    assert line.core.last_frame_at == 0.5

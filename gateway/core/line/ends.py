@@ -59,6 +59,7 @@ class AttemptEnds:
     _gap: float
     timing: ResponseTiming
     foreign: ForeignMasters
+    answered_at: float | None
     _stopping: bool
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
@@ -71,6 +72,7 @@ class AttemptEnds:
         slave = request.slave
         function = request.pdu[0]
         self.stats.frames_received += 1
+        self.answered_at = now  # the last intact frame heard, with ``foreign``'s
         record = self.health.slaves.get(slave)  # ``health.record``, inline: once per answer
         if record is None:
             record = self.health.record(slave)

@@ -49,7 +49,7 @@ from .. import pdu as fc
 from ..ascii import MAX_ASCII_FRAME, lrc
 from ..crc import crc16
 from ..rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, request_length, response_length
-from .records import INFINITY, answer_signature
+from .records import INFINITY, HeardBus, answer_signature
 
 #: A line is *shared* while a foreign master frame was heard this recently.
 SHARED_FOR_S: Final = 10.0
@@ -116,6 +116,7 @@ class ForeignMasters:
         self.heard_master_frames = 0  # master frames heard while listening (the peer's)
 
     def configure(self, silence: float, keep_for: float) -> None:
+        """The line's silence, and how long a foreign request awaits its answer."""
         self.split_after = max(SPLIT_AFTER_S, silence)
         self.keep_for = keep_for
 
@@ -281,6 +282,32 @@ class ForeignMasters:
                 self._answered(foreign)
                 return True
         return False
+
+    def handover(self) -> HeardBus:
+        pending = tuple(
+            (r.slave, r.pdu, r.heard_at, r.until)
+            for waiting in self.pending.values()
+            for r in waiting
+        )
+        return HeardBus(
+            self.last_master_frame_at, self.last_frame_at,
+            self.shared_until if self.shared else -INFINITY,
+            self.foreign_frames, self.heard_master_frames, self.listening, pending,
+        )  # fmt: skip
+
+    def take_over(self, heard: HeardBus, now: float) -> None:
+        """Go on from what the line this one replaces heard (a reload that reopens it)."""
+        self.last_master_frame_at = heard.last_master_frame_at
+        self.last_frame_at = heard.last_frame_at
+        self.foreign_frames = heard.foreign_frames
+        self.heard_master_frames = heard.heard_master_frames
+        self.listening = heard.listening
+        self.shared = now < heard.shared_until
+        self.shared_until = heard.shared_until
+        for slave, pdu, heard_at, until in heard.pending:
+            if now < until:
+                request = ForeignRequest(slave, pdu, heard_at, until)
+                self.pending.setdefault(slave, []).append(request)
 
     def decays(self, now: float) -> bool:
         """True when the line stops being shared now (no foreign master frame for a while)."""

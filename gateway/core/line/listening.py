@@ -66,8 +66,11 @@ class Listening(AttemptEnds):
 
     @property
     def last_frame_at(self) -> float | None:
-        """The end of the last intact frame heard besides the answers to our attempts."""
-        return self.foreign.last_frame_at
+        """The end of the last intact frame heard: an answer to our attempts or any other."""
+        heard, answered = self.foreign.last_frame_at, self.answered_at
+        if heard is None or answered is None:
+            return answered if heard is None else heard
+        return max(heard, answered)
 
     @property
     def heard_master_frames(self) -> int:

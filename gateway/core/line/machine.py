@@ -76,6 +76,7 @@ class LineCore(Sending):
         self.max_in_flight = self.wire.capacity
         self.timing = ResponseTiming(policy, framing, 0.0)
         self.foreign = ForeignMasters(ascii=framing.kind is LineKind.ASCII)
+        self.answered_at: float | None = None  # when the last answer to our attempts came
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
         self._wanting_since: float | None = None
@@ -105,7 +106,9 @@ class LineCore(Sending):
         self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
-        self.foreign.configure(policy.silence, policy.max_timeout)
+        # A foreign request awaits its answer as long as any of ours may wait for one.
+        longest = max(policy.max_timeout, policy.timeout_for(0), *policy.slave_timeouts.values())
+        self.foreign.configure(policy.silence, longest)
         self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
@@ -366,12 +369,14 @@ class LineCore(Sending):
         turnaround still runs, and the slaves' lost answers may still come. An MBAP line
         hands on no late-answer windows: its lost answers went with the old connection."""
         windows = self.late.handover() if self.framing.transaction_ids is None else []
-        return Handover(self.quiet_since, tuple(windows))
+        return Handover(self.quiet_since, tuple(windows), self.foreign.handover())
 
     def take_over(self, handover: Handover, now: float) -> None:
         """Start where the line this one replaces left the wire: quiet no earlier than it
         was, its late-answer windows kept as if opened here."""
         self.quiet_since = max(self.quiet_since, handover.quiet_since)
+        if handover.heard is not None:
+            self.foreign.take_over(handover.heard, now)
         if self.framing.transaction_ids is None:  # else answers carry transaction ids
             for window in handover.windows:
                 if window.until > now:

@@ -227,11 +227,24 @@ class LateWindow(NamedTuple):
     pending: int  # its attempts whose answers may still come
 
 
+class HeardBus(NamedTuple):
+    """What a line heard of other masters, handed on to the line that replaces it."""
+
+    last_master_frame_at: float | None
+    last_frame_at: float | None
+    shared_until: float  # ``-INFINITY``: not shared
+    foreign_frames: int
+    heard_master_frames: int
+    listening: bool
+    pending: tuple[tuple[int, bytes, float, float], ...]  # slave, PDU, heard at, until
+
+
 class Handover(NamedTuple):
     """The wire as a line leaves it to the line that replaces it (``LineCore.handover``)."""
 
     quiet_since: float  # no frame before this plus the gap (a broadcast's turnaround)
     windows: tuple[LateWindow, ...]
+    heard: HeardBus | None = None  # other masters heard (``foreign``)
 
 
 class Note(NamedTuple):
