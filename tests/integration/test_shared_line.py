@@ -59,11 +59,14 @@ def test_a_foreign_master_is_named_and_its_answer_is_not_ours(
     assert counted == 1
     theirs = encode_rtu(1, bytes.fromhex("0304AAAABBBB"))
     ours = encode_rtu(1, bytes.fromhex("030400010002"))
+    os.write(pair.sim_fd, theirs)  # the other master's request is answered: ours may go
     with gw.connect() as client:
         tid = client.send(1, READ)
         assert read_exactly(pair.sim_fd, 8) == encode_rtu(1, READ)
-        os.write(pair.sim_fd, theirs)  # the other master's answer? The gateway cannot tell
-        assert read_exactly(pair.sim_fd, 8) == encode_rtu(1, READ)  # so it asks again
+        os.write(pair.sim_fd, encode_rtu(1, READ))  # the other master again, over our wait
+        os.write(pair.sim_fd, theirs)  # an answer: whose? The gateway cannot tell
+        os.write(pair.sim_fd, ours)  # the other one: both have come, so it asks again
+        assert read_exactly(pair.sim_fd, 8) == encode_rtu(1, READ)
         os.write(pair.sim_fd, ours)
         reply = client.receive()
         assert (reply.transaction_id, reply.pdu) == (tid, bytes.fromhex("030400010002"))

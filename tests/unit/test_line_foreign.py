@@ -157,44 +157,77 @@ def test_an_ascii_line_notices_a_foreign_request() -> None:
 # --------------------------------------------------------------------------- no wrong answers
 
 
-def test_an_answer_a_foreign_read_may_own_is_retried_not_delivered() -> None:
+def test_a_look_alike_request_waits_for_the_foreign_requests_answer() -> None:
     line = Line()
     line.receive(encode_rtu(1, read(0)), 0.0)  # another master reads 2 registers of slave 1
-    request = line.submit(1, read(100), 0.01)  # so do we, other registers
+    request = line.submit(1, read(100), 0.01)  # so do we, other registers: same answer shape
+    assert line.frames() == []  # its answer could not be told from the other master's
+    assert line.core.get_timer() == pytest.approx(3.0)  # at most until the foreign one expires
+    other = line.submit(2, read(100), 0.01)  # another slave is served meanwhile
+    assert line.frames() == [encode_rtu(2, read(100))]
+    line.receive(registers_answer(2, read(100), 1), 0.02)
+    assert line.answer_of(other)[1] == Outcome.OK
+    line.receive(registers_answer(1, read(0), 500), 0.03)  # the foreign read's answer
+    line.advance(0.04)
     assert line.frames() == [encode_rtu(1, read(100))]
-    line.receive(registers_answer(1, read(0), 500), 0.03)  # whose? it cannot be told
+    line.receive(registers_answer(1, read(100), 7), 0.06)
+    assert line.answer_of(request) == (registers_answer(1, read(100), 7)[1:-2], Outcome.OK)
+
+
+def test_a_look_alike_goes_once_the_unanswered_foreign_request_expires() -> None:
+    line = Line(learn_timeouts=True, max_timeout=1.0)
+    line.receive(encode_rtu(1, read(0)), 0.0)  # never answered
+    request = line.submit(1, read(100), 0.01)
+    line.advance(0.999)
+    assert line.frames() == []
+    line.advance(1.0)
+    assert line.frames() == [encode_rtu(1, read(100))]
+    line.receive(registers_answer(1, read(100), 7), 1.02)
+    assert line.answer_of(request)[1] == Outcome.OK
+
+
+def ambiguous(line: Line, ours: bytes, theirs: bytes, answer: bytes) -> LineRequest:
+    """Our request goes; another master's look-alike is heard while ours waits; an answer."""
+    request = line.submit(1, ours, 0.0)
+    assert line.frames() == [encode_rtu(1, ours)]
+    line.receive(encode_rtu(1, theirs), 0.005)  # not a damaged answer: ours is still awaited
+    assert line.notes(LineEvent.CRC_ERROR) == [] and request.answered is False
+    line.receive(answer, 0.02)  # whose? it cannot be told
+    return request
+
+
+def test_an_answer_a_foreign_read_may_own_is_retried_not_delivered() -> None:
+    line = Line()
+    request = ambiguous(line, read(100), read(0), registers_answer(1, read(0), 500))
     assert line.answers == {}
     assert len(line.notes(LineEvent.SHARED_ANSWER)) == 1
-    line.advance(0.04)
+    line.advance(0.03)
+    assert line.frames() == []  # the retry waits: the other answer is still to come
+    line.receive(registers_answer(1, read(100), 9), 0.04)  # both answers have come now
+    line.advance(0.05)
     assert line.frames() == [encode_rtu(1, read(100))]  # the retry
-    line.receive(registers_answer(1, read(100), 7), 0.06)  # the foreign one was answered
+    line.receive(registers_answer(1, read(100), 7), 0.07)
     assert line.answer_of(request) == (registers_answer(1, read(100), 7)[1:-2], Outcome.OK)
 
 
 def test_without_retries_the_ambiguous_answer_is_0x0b() -> None:
     line = Line(retries=0)
-    line.receive(encode_rtu(1, read(0)), 0.0)
-    request = line.submit(1, read(100), 0.01)
-    line.receive(registers_answer(1, read(0), 500), 0.03)
+    request = ambiguous(line, read(100), read(0), registers_answer(1, read(100), 500))
     assert line.answer_of(request) == (bytes((0x83, 0x0B)), Outcome.TARGET_FAILED)
 
 
 def test_an_ambiguous_answer_to_a_write_is_0x0b_never_sent_again() -> None:
     line = Line(retries=3)
-    line.receive(encode_rtu(1, write_registers(10, [1, 2])), 0.0)
-    request = line.submit(1, write_registers(10, [3, 4]), 0.01)
-    line.frames()
-    line.receive(encode_rtu(1, write_registers(10, [1, 2])[:5]), 0.03)  # the same echo
+    ours, theirs = write_registers(10, [3, 4]), write_registers(10, [1, 2])
+    request = ambiguous(line, ours, theirs, encode_rtu(1, ours[:5]))  # the same echo
     assert line.answer_of(request) == (bytes((0x90, 0x0B)), Outcome.TARGET_FAILED)
-    line.advance(1.0)
+    line.advance(5.0)
     assert line.frames() == []
 
 
 def test_an_exception_may_be_the_foreign_requests_too() -> None:
     line = Line(retries=0)
-    line.receive(encode_rtu(1, read(0, 5)), 0.0)
-    request = line.submit(1, read(100), 0.01)
-    line.receive(encode_rtu(1, bytes((0x83, 0x02))), 0.03)
+    request = ambiguous(line, read(100), read(0, 5), encode_rtu(1, bytes((0x83, 0x02))))
     assert line.answer_of(request)[1] == Outcome.TARGET_FAILED
 
 
@@ -345,3 +378,38 @@ def test_last_frame_at_counts_the_answers_to_our_own_requests_too() -> None:
     assert line.core.last_master_frame_at is None
     line.receive(registers_answer(9, read(0), 7), 0.5)  # another master's slave, heard
     assert line.core.last_frame_at == 0.5
+
+
+def test_a_held_retry_goes_once_the_foreign_request_expires() -> None:
+    line = Line(learn_timeouts=True, max_timeout=1.0)
+    request = ambiguous(line, read(100), read(0), registers_answer(1, read(0), 500))
+    line.advance(1.004)
+    assert line.frames() == []
+    line.advance(1.006)  # the foreign read, heard at 0.005, is given up
+    assert line.frames() == [encode_rtu(1, read(100))]
+    line.receive(registers_answer(1, read(100), 7), 1.03)
+    assert line.answer_of(request)[1] == Outcome.OK
+
+
+def test_frames_in_one_read_during_our_attempt_are_taken_in_order() -> None:
+    """The other master's request, then two answers, read at once while ours waits: the
+    first answer is refused (whose?), the second settles both, the retry is answered."""
+    line = Line()
+    request = line.submit(1, read(100), 0.0)
+    line.frames()
+    theirs, ours = registers_answer(1, read(0), 500), registers_answer(1, read(100), 7)
+    line.receive(encode_rtu(1, read(0)) + theirs + ours, 0.02)
+    assert line.foreign_notes() == 1 and len(line.notes(LineEvent.SHARED_ANSWER)) == 1
+    line.advance(0.03)
+    assert line.frames() == [encode_rtu(1, read(100))]
+    line.receive(ours, 0.05)
+    assert line.answer_of(request) == (ours[1:-2], Outcome.OK)
+
+
+def test_a_foreign_request_right_behind_our_answer_is_heard() -> None:
+    line = Line()
+    request = line.submit(1, read(100), 0.0)
+    line.frames()
+    line.receive(registers_answer(1, read(100), 7) + encode_rtu(1, read(0)), 0.02)
+    assert line.answer_of(request)[1] == Outcome.OK
+    assert line.foreign_notes() == 1

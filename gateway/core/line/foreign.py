@@ -77,6 +77,7 @@ class ForeignRequest:
     pdu: bytes
     heard_at: float  # the end of its frame
     until: float  # no answer is taken for it after this
+    claimed: bool = False  # an answer that may be its was refused to one of ours
 
 
 @dataclass(slots=True, eq=False)
@@ -122,43 +123,59 @@ class ForeignMasters:
 
     # -- framing ---------------------------------------------------------------------------
 
-    def feed(self, data: bytes, now: float, char_time: float, own: Own) -> list[Heard]:
-        """Bytes heard at ``now``: the intact frames they complete, classified."""
+    def feed(
+        self, data: bytes, now: float, char_time: float, own: Own, stop: bool = False
+    ) -> list[Heard]:
+        """Bytes heard at ``now``: the intact frames they complete, classified. With
+        ``stop``, framing stops after a master frame: what follows it stays unframed (our
+        attempt's decoder takes it: ``take_unframed``)."""
         buffer = self.buffer
         heard: list[Heard] = []
-        if self.ascii:
-            buffer += data
-            for frame in self._ascii_frames():
-                heard.append(self._classify(frame[0], frame[1:], now, own))
-            self.last_at = now
-            return heard
-        started = now - len(data) * char_time
-        if buffer and started - self.last_at > self.split_after:
-            at = self.last_at
-            stale = self._rtu_frames(own, final=True)
-            heard.extend(self._classify(f[0], f[1:-2], at, own) for f in stale)
-            buffer.clear()  # what waited for more before the gap: no frame ends there
+        if not self.ascii:
+            started = now - len(data) * char_time
+            if buffer and started - self.last_at > self.split_after:
+                self._cut(heard, self.last_at, own, False, final=True)
+                buffer.clear()  # what waited for more before the gap: no frame ends there
         buffer += data
         self.last_at = now
-        heard.extend(self._classify(f[0], f[1:-2], now, own) for f in self._rtu_frames(own))
+        self._cut(heard, now, own, stop)
         del buffer[: max(0, len(buffer) - 2 * MAX_RTU_FRAME)]
         return heard
 
-    def _rtu_frames(self, own: Own, final: bool = False) -> list[bytes]:
-        """Intact frames cut from the buffer's front (a byte that starts none is skipped);
-        ``final``: no more bytes will come for them (a gap followed)."""
+    def take_unframed(self) -> bytes:
+        """The bytes heard after the last frame found (now the caller's, not kept here)."""
+        rest = bytes(self.buffer)
+        self.buffer.clear()
+        return rest
+
+    def _cut(
+        self, heard: list[Heard], at: float, own: Own, stop: bool, final: bool = False
+    ) -> None:
+        """Cut intact frames from the buffer's front into ``heard``, classified."""
+        while True:
+            frame = self._next_ascii() if self.ascii else self._next_rtu(own, final)
+            if frame is None:
+                return
+            found = self._classify(frame[0], frame[1:], at, own)
+            heard.append(found)
+            if stop and found.kind is HeardKind.MASTER:
+                return
+
+    def _next_rtu(self, own: Own, final: bool) -> bytes | None:
+        """The next intact frame's unit and PDU (a byte that starts none is skipped);
+        ``final``: no more bytes will come for it (a gap followed)."""
         buffer = self.buffer
-        frames: list[bytes] = []
         while len(buffer) >= MIN_RTU_FRAME:
             length = self._rtu_length(buffer, own, final)
             if length == NEED_MORE:
-                break
+                return None
             if length == 0:
                 del buffer[0]
                 continue
-            frames.append(bytes(buffer[:length]))
+            frame = bytes(buffer[: length - 2])
             del buffer[:length]
-        return frames
+            return frame
+        return None
 
     def _rtu_length(self, buffer: bytearray, own: Own, final: bool) -> int:
         """The length of the intact frame at the buffer's front, ``NEED_MORE`` while one
@@ -180,15 +197,14 @@ class ForeignMasters:
                 return length
         return NEED_MORE if waiting and not final and len(buffer) < MAX_RTU_FRAME else 0
 
-    def _ascii_frames(self) -> list[bytes]:
-        """Unit, PDU (LRC removed) of each whole ':' ... CR LF frame with a valid LRC."""
+    def _next_ascii(self) -> bytes | None:
+        """The next whole ':' ... CR LF frame's unit and PDU (its LRC checked, removed)."""
         buffer = self.buffer
-        frames: list[bytes] = []
         while True:
             start = buffer.find(b":")
             if start < 0:
                 buffer.clear()
-                break
+                return None
             del buffer[:start]
             end = buffer.find(b"\n")
             restart = buffer.find(b":", 1)
@@ -197,7 +213,7 @@ class ForeignMasters:
                 continue
             if end < 0:
                 del buffer[: max(0, len(buffer) - MAX_ASCII_FRAME)]
-                break
+                return None
             text = bytes(buffer[1 : end - 1]) if buffer[end - 1 : end] == b"\r" else b""
             del buffer[: end + 1]
             try:
@@ -205,8 +221,7 @@ class ForeignMasters:
             except (binascii.Error, ValueError):
                 continue
             if len(raw) >= 3 and lrc(raw[:-1]) == raw[-1]:
-                frames.append(raw[:-1])
-        return frames
+                return raw[:-1]
 
     # -- what a frame is ------------------------------------------------------------------
 
@@ -220,6 +235,7 @@ class ForeignMasters:
                 and response_length(request, frame) == length
                 and _may_answer(request, pdu)
             ):
+                self._settle(slave, request)
                 return Heard(HeardKind.OURS, slave, pdu, at)
         waiting = self.pending.get(slave)
         if waiting:
@@ -251,6 +267,13 @@ class ForeignMasters:
             self.shared_until = at + SHARED_FOR_S
         return Heard(HeardKind.MASTER, slave, pdu, at, request)
 
+    def _settle(self, slave: int, request: bytes) -> None:
+        """An answer to our ``request`` came after one that looked the same was refused to
+        it: the two answers awaited (ours, the foreign request's) have both come."""
+        for foreign in list(self.pending.get(slave, ())):
+            if foreign.claimed and answer_signature(foreign.pdu) == answer_signature(request):
+                self._answered(foreign)
+
     def _answered(self, request: ForeignRequest) -> None:
         waiting = self.pending[request.slave]
         waiting.remove(request)
@@ -261,12 +284,32 @@ class ForeignMasters:
 
     def claims(self, slave: int, request: bytes, answer: bytes, now: float) -> bool:
         """True when ``answer``, taken for our ``request`` to ``slave``, may be a pending
-        foreign request's answer (same slave, same function and answer signature): that
-        foreign request is then answered, and ours must not be. An exact echo of an
-        identical write is ours either way (the same write)."""
+        foreign request's answer (same slave, same function and answer signature): ours
+        must not take it. The foreign request keeps waiting: the answer may have been ours,
+        and then the foreign one is still to come (it ends the wait when heard while
+        nothing of ours that looks the same is on the wire, or at its expiry)."""
+        foreign = self._alike(slave, request, now, bool(answer[0] & fc.EXCEPTION_FLAG))
+        if foreign is None:
+            return False
+        if foreign.claimed:
+            self._answered(foreign)  # a second look-alike: its answer has come by now
+        foreign.claimed = True
+        return True
+
+    def holds(self, slave: int, request: bytes, now: float) -> bool:
+        """True when ``request`` to ``slave`` must wait: a pending foreign request's answer
+        would look the same as its answer."""
+        return self._alike(slave, request, now) is not None
+
+    def _alike(
+        self, slave: int, request: bytes, now: float, exception: bool = False
+    ) -> ForeignRequest | None:
+        """The pending foreign request whose answer looks like ours (the same signature, or
+        with ``exception`` the same function). An identical write is not one: the same write,
+        the same answer."""
         waiting = self.pending.get(slave)
         if not waiting:
-            return False
+            return None
         signature = answer_signature(request)
         for foreign in list(waiting):
             if now >= foreign.until:
@@ -274,14 +317,18 @@ class ForeignMasters:
                 continue
             if foreign.pdu == request and request[0] in fc.ECHOED_WRITES:
                 continue
-            if answer[0] & fc.EXCEPTION_FLAG:
-                same = foreign.pdu[0] == request[0]
-            else:
-                same = answer_signature(foreign.pdu) == signature
-            if same:
-                self._answered(foreign)
-                return True
-        return False
+            if exception:
+                if foreign.pdu[0] == request[0]:
+                    return foreign
+            elif answer_signature(foreign.pdu) == signature:
+                return foreign
+        return None
+
+    def earliest(self) -> float:
+        """When the first pending foreign request expires."""
+        return min(
+            (r.until for waiting in self.pending.values() for r in waiting), default=INFINITY
+        )
 
     def handover(self) -> HeardBus:
         pending = tuple(

@@ -22,9 +22,10 @@ class Listening(AttemptEnds):
 
     char_time: float
 
-    def hear(self, data: bytes, now: float) -> None:
+    def hear(self, data: bytes, now: float, stop: bool = False) -> bool:
         """Bytes heard at ``now`` that no attempt took: note foreign master frames, learn
-        from their answers."""
+        from their answers; ``True`` when a master frame was among them (with ``stop``,
+        the bytes after it are left to ``foreign.take_unframed``)."""
         own: Own = [(request.slave, request.pdu) for request in self.wire.requests()]
         if self.late.windows:
             own.extend(
@@ -33,13 +34,17 @@ class Listening(AttemptEnds):
                 if window.owner is not None
             )
         foreign = self.foreign
-        for heard in foreign.feed(data, now, self.char_time, own):
-            if heard.kind is HeardKind.MASTER and not foreign.listening:
-                self.notes.append(
-                    Note(LineEvent.FOREIGN_MASTER, heard.slave, f"function {heard.pdu[0]}")
-                )
+        master = False
+        for heard in foreign.feed(data, now, self.char_time, own, stop):
+            if heard.kind is HeardKind.MASTER:
+                master = True
+                if not foreign.listening:
+                    self.notes.append(
+                        Note(LineEvent.FOREIGN_MASTER, heard.slave, f"function {heard.pdu[0]}")
+                    )
             elif heard.kind is HeardKind.ANSWER and heard.request is not None:
                 self._learn_from(heard.request, heard.at)
+        return master
 
     def _learn_from(self, request: ForeignRequest, answered_at: float) -> None:
         """A foreign request's answer came: its slave's turnaround, measured as the line

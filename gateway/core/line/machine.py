@@ -191,6 +191,8 @@ class LineCore(Sending):
                     when = min(when, lane.earliest())
                 if self.late.windows:
                     when = min(when, self.late.earliest())
+                if self.foreign.pending:
+                    when = min(when, self.foreign.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
         if self.foreign.shared:

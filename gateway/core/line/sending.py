@@ -77,7 +77,9 @@ class Sending(Listening):
     def _pick(self, now: float) -> tuple[LineRequest, Master | None, bool] | None:
         """The next request: a retry, the lane on credit, the fairest master, the lane free."""
         retries = self.retries
-        if retries:
+        if retries and not (
+            self.foreign.pending and self.foreign.holds(retries[0].slave, retries[0].pdu, now)
+        ):
             retry = retries.popleft()
             self.queue.count_waiting(retry, -1)
             return retry, None, False

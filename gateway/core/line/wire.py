@@ -166,6 +166,8 @@ class SerialWire(Wire):
                 blocked[slave] = False
                 continue
             held = bool(late.windows) and late.holds(request, now)
+            if line.foreign.pending and not held:
+                held = line.foreign.holds(slave, request.pdu, now)
             if (
                 not held
                 and (line.sharing.joined or line.lane.requests)
@@ -181,7 +183,10 @@ class SerialWire(Wire):
         return None
 
     def may_go(self, request: LineRequest, now: float) -> bool:
-        return not self.line.late.holds(request, now)
+        line = self.line
+        if line.foreign.pending and line.foreign.holds(request.slave, request.pdu, now):
+            return False
+        return not line.late.holds(request, now)
 
     def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
         line = self.line
@@ -258,7 +263,7 @@ class SerialWire(Wire):
             line.hear(data, now)  # another master's frames, or its slaves' answers
             if line.late.windows:
                 line.late_bytes(data, now)
-                line.service(now)
+            line.service(now)  # a foreign request answered, or a window closed
             return
         if attempt.garbled is not None:
             attempt.garbled_at = now + line.garbled_wait  # the line is not quiet yet
@@ -269,14 +274,20 @@ class SerialWire(Wire):
         or note that it was garbled."""
         line = self.line
         decoder = attempt.decoder
-        chunk = data
+        unheard = data  # what the decoder has that ``line.hear`` has not (after ``heard``)
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
-                if chunk:  # not the answer (or not only): perhaps another master's frames
-                    line.hear(attempt.heard + chunk, now)
-                    attempt.heard = chunk = b""
+                if unheard:  # not the answer (or not only): perhaps another master's frames
+                    master = line.hear(attempt.heard + unheard, now, True)
+                    attempt.heard = unheard = b""
+                    if master:  # no damaged answer: the answer may follow it
+                        decoder.reset()
+                        data = unheard = line.foreign.take_unframed()
+                        if data:
+                            continue
+                        return
                 if error.kind in DISCARD_KINDS:
                     # Another unit's frame, a late answer to an earlier request, or noise
                     # in front of the answer: drop it and keep decoding what followed it.
@@ -297,17 +308,18 @@ class SerialWire(Wire):
                 return
             break
         if frame is not None:
-            if decoder.leftover:
-                line.discard(
-                    DiscardReason.TRAILING_BYTES, len(decoder.leftover), attempt.request.slave
-                )
+            trailing = decoder.leftover
+            if trailing:
+                line.discard(DiscardReason.TRAILING_BYTES, len(trailing), attempt.request.slave)
             self.attempt = None  # ``end``, inline: once per transaction
             self.outstanding = 0
             line.complete(attempt, frame, now)
+            if trailing and unheard:
+                line.hear(trailing, now)  # another master's frame right behind the answer?
             line.service(now)
             return
-        if chunk:
-            attempt.heard += chunk  # heard by ``line.hear`` if they turn out not to be the answer
+        if unheard:
+            attempt.heard += unheard  # heard by ``line.hear`` if they turn out not to be the answer
         if decoder.waits_for_silence:
             attempt.silence_at = now + line.silence
 
