@@ -1,12 +1,13 @@
 """The machine's transitions at the end of an attempt, and the answers it delivers.
 
-``LineCore`` (``machine.py``) is one state machine whose class body is written in three
+``LineCore`` (``machine.py``) is one state machine whose class body is written in four
 layers, each under 400 lines: this one (an attempt ends: the request, the slave's
-health, the late-answer window, the accounts; every delivery), ``sending.py`` (which
-request goes next, sending it) and ``machine.py`` (the masters' side, the port, the
-reload). The layers are not variants: nothing is overridden, and only the machine is
-ever built. The wire strategy (``wire.py``, ``flights.py``) calls ``complete``,
-``garbled``, ``fail``, ``discard``, ``alive``, ``late_bytes`` and ``late_frame``.
+health, the late-answer window, the accounts; every delivery), ``listening.py`` (frames
+heard that no attempt took: other masters), ``sending.py`` (which request goes next,
+sending it) and ``machine.py`` (the masters' side, the port, the reload). The layers
+are not variants: nothing is overridden, and only the machine is ever built. The wire
+strategy (``wire.py``, ``flights.py``) calls ``complete``, ``garbled``, ``fail``,
+``discard``, ``alive``, ``late_bytes``, ``late_frame`` and ``hear``.
 """
 
 from __future__ import annotations

@@ -21,8 +21,14 @@ An intact frame (valid CRC or LRC) is classified, first match wins:
    measures its own) is learned;
 3. a request (a function code whose request length the frame has): a *foreign master
    frame*. A foreign request awaits its answer until an answer with its signature is
-   seen or ``max_timeout`` passed;
+   heard or the line's longest timeout (``max_timeout``) passed;
 4. anything else: a frame, nothing more.
+
+While a foreign request awaits its answer, no request of ours whose answer would look
+the same (same slave, answer signature: ``records.answer_signature``) is sent
+(``holds``), and an answer that looks the same is not taken for ours (``claims``): it
+may be either. That refused answer does not end the foreign request's wait (it may have
+been ours): the next answer of that shape does, whoever it was for, or its expiry.
 
 The line is *shared* while a foreign master frame was heard within ``SHARED_FOR_S``.
 While *listening* (a standby gateway that never transmits), foreign master frames are

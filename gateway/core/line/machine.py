@@ -6,9 +6,10 @@ order rules) keep state and answer questions; the wire strategy (one attempt at 
 time, or flights by transaction id) says which bytes answer which attempt. Every
 change of what becomes of a request is made by ``LineCore``, and only it appends to
 ``transmits``, ``deliveries`` and ``notes`` (h11's "Rule 1"). Its class body is
-written in three layers, each under 400 lines: this module (the masters' side, the
-port, the reload, the timer), ``sending.py`` (which request goes next, sending it)
-and ``ends.py`` (what the end of an attempt does; every delivery).
+written in four layers, each under 400 lines: this module (the masters' side, the
+port, the reload, the timer), ``sending.py`` (which request goes next, sending it),
+``listening.py`` (frames heard that no attempt took) and ``ends.py`` (what the end of
+an attempt does; every delivery).
 """
 
 from __future__ import annotations
