@@ -413,3 +413,14 @@ def test_a_foreign_request_right_behind_our_answer_is_heard() -> None:
     line.receive(registers_answer(1, read(100), 7) + encode_rtu(1, read(0)), 0.02)
     assert line.answer_of(request)[1] == Outcome.OK
     assert line.foreign_notes() == 1
+
+
+def test_an_expired_foreign_request_never_puts_the_timer_in_the_past() -> None:
+    line = Line(learn_timeouts=True, max_timeout=1.0)
+    line.receive(encode_rtu(9, read(0)), 0.0)  # a slave this gateway never asks: until 1.0
+    line.receive(b"\x00", 2.0)  # the line is busy a moment
+    line.submit(1, read(100), 2.0)  # so this waits for the gap
+    line.timer(2.0)  # a driver late for its timer
+    assert line.core.foreign.pending == {}
+    deadline = line.core.get_timer()
+    assert deadline is not None and deadline > 2.0

@@ -330,6 +330,13 @@ class ForeignMasters:
                 return foreign
         return None
 
+    def expire(self, now: float) -> None:
+        """Give up the foreign requests whose answers did not come in time."""
+        for slave, waiting in list(self.pending.items()):
+            waiting[:] = [request for request in waiting if now < request.until]
+            if not waiting:
+                del self.pending[slave]
+
     def earliest(self) -> float:
         """When the first pending foreign request expires."""
         return min(

@@ -408,6 +408,8 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
+        if self.foreign.pending:
+            self.foreign.expire(now)
         if self.foreign.shared and self.foreign.decays(now):
             self.notes.append(Note(LineEvent.LINE_NOT_SHARED, 0))
         if self.queue.queued:
