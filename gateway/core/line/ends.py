@@ -20,7 +20,7 @@ from ..framing import Framing
 from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
-from .foreign import ForeignMasters
+from .foreign import ForeignMasters, ForeignRequest
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
@@ -60,13 +60,15 @@ class AttemptEnds:
     _gap: float
     timing: ResponseTiming
     foreign: ForeignMasters
+    #: ``foreign.pending`` itself (the same dict), one attribute away on the answer's path.
+    foreign_pending: dict[int, list[ForeignRequest]]
     answered_at: float | None
     _stopping: bool
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire (the wire has ended ``attempt``)."""
         request = attempt.request
-        if self.foreign.pending and self.foreign.claims(request.slave, request.pdu, frame.pdu, now):
+        if self.foreign_pending and self.foreign.claims(request.slave, request.pdu, frame.pdu, now):
             self._not_ours(attempt, now)
             return
         wire = now - attempt.sent_at

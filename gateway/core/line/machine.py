@@ -77,6 +77,7 @@ class LineCore(Sending):
         self.max_in_flight = self.wire.capacity
         self.timing = ResponseTiming(policy, framing, 0.0)
         self.foreign = ForeignMasters(ascii=framing.kind is LineKind.ASCII)
+        self.foreign_pending = self.foreign.pending
         self.answered_at: float | None = None  # when the last answer to our attempts came
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
@@ -192,7 +193,7 @@ class LineCore(Sending):
                     when = min(when, lane.earliest())
                 if self.late.windows:
                     when = min(when, self.late.earliest())
-                if self.foreign.pending:
+                if self.foreign_pending:
                     when = min(when, self.foreign.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
@@ -408,7 +409,7 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
-        if self.foreign.pending:
+        if self.foreign_pending:
             self.foreign.expire(now)
         if self.foreign.shared and self.foreign.decays(now):
             self.notes.append(Note(LineEvent.LINE_NOT_SHARED, 0))

@@ -78,7 +78,7 @@ class Sending(Listening):
         """The next request: a retry, the lane on credit, the fairest master, the lane free."""
         retries = self.retries
         if retries and not (
-            self.foreign.pending and self.foreign.holds(retries[0].slave, retries[0].pdu, now)
+            self.foreign_pending and self.foreign.holds(retries[0].slave, retries[0].pdu, now)
         ):
             retry = retries.popleft()
             self.queue.count_waiting(retry, -1)

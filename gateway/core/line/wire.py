@@ -166,7 +166,7 @@ class SerialWire(Wire):
                 blocked[slave] = False
                 continue
             held = bool(late.windows) and late.holds(request, now)
-            if line.foreign.pending and not held:
+            if line.foreign_pending and not held:
                 held = line.foreign.holds(slave, request.pdu, now)
             if (
                 not held
@@ -184,7 +184,7 @@ class SerialWire(Wire):
 
     def may_go(self, request: LineRequest, now: float) -> bool:
         line = self.line
-        if line.foreign.pending and line.foreign.holds(request.slave, request.pdu, now):
+        if line.foreign_pending and line.foreign.holds(request.slave, request.pdu, now):
             return False
         return not line.late.holds(request, now)
 
