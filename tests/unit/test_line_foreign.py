@@ -424,3 +424,36 @@ def test_an_expired_foreign_request_never_puts_the_timer_in_the_past() -> None:
     assert line.core.foreign.pending == {}
     deadline = line.core.get_timer()
     assert deadline is not None and deadline > 2.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    requests=st.lists(
+        st.tuples(
+            st.integers(1, 4),
+            st.sampled_from([1, 3, 4]),
+            st.integers(0, 0xFFFF),
+            st.integers(1, 40),
+        ),
+        min_size=1,
+        max_size=6,
+    ),
+    cuts=st.lists(st.integers(0, 200), max_size=6),
+)
+def test_back_to_back_foreign_requests_split_anyhow_are_each_heard_once(
+    requests: list[tuple[int, int, int, int]], cuts: list[int]
+) -> None:
+    """Requests of other masters read in pieces cut anywhere: each one heard, once."""
+    line = Line()
+    stream = b"".join(
+        encode_rtu(slave, read(address, quantity, function))
+        for slave, function, address, quantity in requests
+    )
+    now = 1.0
+    start = 0
+    for cut in sorted({min(cut, len(stream)) for cut in cuts} | {len(stream)}):
+        piece = stream[start:cut]
+        now += len(piece) * CHAR
+        line.receive(piece, now)
+        start = cut
+    assert line.foreign_notes() == len(requests)

@@ -56,6 +56,7 @@ from ..ascii import MAX_ASCII_FRAME, lrc
 from ..crc import crc16
 from ..rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, request_length, response_length
 from .records import INFINITY, HeardBus, answer_signature
+from .response_timing import answer_pdu_length
 
 #: A line is *shared* while a foreign master frame was heard this recently.
 SHARED_FOR_S: Final = 10.0
@@ -378,10 +379,14 @@ class ForeignMasters:
 
 
 def _may_answer(request: bytes, answer: bytes) -> bool:
-    """True when ``answer`` (the right length) may answer ``request``: its function, and for
-    the writes that echo, the echo itself."""
+    """True when ``answer`` may answer ``request``: its function's exception, or its
+    function with the length the request implies (a read's byte count) and, for the writes
+    that echo, the echo itself."""
     if answer[0] & 0x7F != request[0]:
         return False
-    if answer[0] & fc.EXCEPTION_FLAG or request[0] not in fc.ECHOED_WRITES:
+    if answer[0] & fc.EXCEPTION_FLAG:
         return True
-    return answer == fc.write_response(request)
+    if request[0] in fc.ECHOED_WRITES:
+        return answer == fc.write_response(request)
+    expected = answer_pdu_length(request)
+    return expected is None or len(answer) == expected
