@@ -16,7 +16,7 @@ from line_harness import LineHarness
 
 from gateway.config import LineConfig
 from gateway.core.ascii import encode_ascii
-from gateway.core.framing import ASCII, RTU, Framing
+from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.foreign import SHARED_FOR_S
 from gateway.core.line.response_timing import MARGIN
@@ -457,3 +457,11 @@ def test_back_to_back_foreign_requests_split_anyhow_are_each_heard_once(
         line.receive(piece, now)
         start = cut
     assert line.foreign_notes() == len(requests)
+
+
+def test_a_tcp_line_has_no_foreign_masters() -> None:
+    """Answers on an MBAP line carry their transaction ids: nothing there is framed as RTU."""
+    config = LineConfig(name="t", device="/dev/null", kind="tcp", host="h", port=502)
+    line = LineHarness(LineCore(config, -1.0, framing=mbap_framing()))
+    line.receive(encode_rtu(7, read(0)), 1.0)
+    assert line.notes(LineEvent.FOREIGN_MASTER) == [] and not line.core.shared

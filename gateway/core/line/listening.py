@@ -26,6 +26,8 @@ class Listening(AttemptEnds):
         """Bytes heard at ``now`` that no attempt took: note foreign master frames, learn
         from their answers; ``True`` when a master frame was among them (with ``stop``,
         the bytes after it are left to ``foreign.take_unframed``)."""
+        if self.framing.transaction_ids is not None:
+            return False  # a tcp or tls line: its answers name their requests
         own: Own = [(request.slave, request.pdu) for request in self.wire.requests()]
         if self.late.windows:
             own.extend(
