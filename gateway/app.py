@@ -303,9 +303,13 @@ class Gateway:
         if down:
             return False, "line(s) down: " + ", ".join(down)
         noisy = [name for name, bus in self.buses.items() if bus.noisy]
-        if noisy:  # still ready (see the README's health semantics), but say which
-            return True, "ok; noisy line(s), requests answered 0x0B: " + ", ".join(noisy)
-        return True, "ok"
+        shared = [name for name, bus in self.buses.items() if bus.shared]
+        notes = []  # still ready (see the README's health semantics), but say which
+        if noisy:
+            notes.append("noisy line(s), requests answered 0x0B: " + ", ".join(noisy))
+        if shared:
+            notes.append("shared line(s), another master heard: " + ", ".join(shared))
+        return True, "; ".join(["ok", *notes])
 
     async def stop(self, grace: float = 5.0) -> None:
         """Graceful stop: see the module docstring."""

@@ -409,6 +409,11 @@ class GatewayMetrics:
             "Read requests served by another master's identical transaction.",
             ["line"], registry=r,
         )  # fmt: skip
+        self.foreign_master_frames = Counter(
+            p + "foreign_master_frames",
+            "Request frames heard on the line that this gateway did not send (another master).",
+            ["line"], registry=r,
+        )  # fmt: skip
 
     def _slave_families(self) -> None:
         r, p = self.registry, "modbus_gateway_"
@@ -563,6 +568,7 @@ class GatewayMetrics:
         for state in ISOLATED_STATES:
             self.slaves_isolated.labels(line, state).set(0)
         self.late_windows.labels(line)
+        self.foreign_master_frames.labels(line)
 
     def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
         """Create the per-slave fault series at 0 for each routed ``(line, slave)``."""

@@ -25,6 +25,7 @@ class LineState(enum.Enum):
     UP = "up"  # the port is open and answers come back clean
     DOWN = "down"  # the port is closed (unplugged, wrong device): requests get 0x0A
     NOISY = "noisy"  # open, but no usable gap for noisy_after: requests get 0x0B
+    SHARED = "shared"  # open, and another master's frames were heard lately (served, guarded)
 
 
 @dataclass(frozen=True, slots=True)

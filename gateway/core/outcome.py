@@ -50,6 +50,9 @@ class LineEvent(StrEnum):
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
     COALESCED = "coalesced"  # a read joined an identical queued read
+    FOREIGN_MASTER = "foreign_master"  # a request frame this gateway did not send
+    LINE_NOT_SHARED = "line_not_shared"  # no foreign master frame heard for ``SHARED_FOR_S``
+    SHARED_ANSWER = "shared_answer"  # an answer another master's request may own: not delivered
 
 
 class DiscardReason(StrEnum):

@@ -125,6 +125,11 @@ class Bus:
         return self._core.noisy
 
     @property
+    def shared(self) -> bool:
+        """True while another master's frames were heard on the line lately."""
+        return self._core.shared
+
+    @property
     def queued(self) -> int:
         """Requests waiting for the line."""
         return self._core.queued
@@ -402,12 +407,7 @@ class Bus:
             for slave in sorted(set(slaves) | set(states) | set(tallies) | set(names))
             if slave  # a broadcast is no slave
         )
-        if not self.up:
-            state = LineState.DOWN
-        elif self._core.noisy:
-            state = LineState.NOISY
-        else:
-            state = LineState.UP
+        state = _line_state(self.up, self._core.noisy, self._core.shared)
         return LineStatus(
             name=self.name,
             kind=config.kind if config.networked else "url" if config.is_url else "serial",
@@ -451,6 +451,15 @@ class Bus:
         stop = f"{config.stop_bits:g}"
         form = f"{config.baudrate} {config.data_bits}{parity}{stop}"
         return f"{config.kind} {form}, {timeout}"
+
+
+def _line_state(up: bool, noisy: bool, shared: bool) -> LineState:
+    """The line's state word: down, noisy (0x0B for all), shared (another master heard), up."""
+    if not up:
+        return LineState.DOWN
+    if noisy:
+        return LineState.NOISY
+    return LineState.SHARED if shared else LineState.UP
 
 
 def _rounded(seconds: float | None) -> float | None:

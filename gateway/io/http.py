@@ -32,7 +32,8 @@ this fails); a missing or noisy serial device does not change it, because a
 restart cannot fix hardware and the gateway reopens the device by itself.
 ``/readyz`` answers 200 only while the TCP listener is up and every configured
 line is open, else 503 naming the lines that are down (readiness: the device
-is missing). A noisy line is open and ready: its faults are in the metrics.
+is missing). A noisy line is open and ready: its faults are in the metrics; so is
+a shared line (another master's frames heard), which ``/readyz`` names.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """What a line's notes mean for metrics and logs: the event side of a ``Bus``.
 
 The line core notes events (timeouts, CRC errors, discarded input, slave states, a
-noisy line); this collaborator counts them and logs each fault once, then counts
-repeats (``RateLimitedLogger``). It decides nothing about the line.
+noisy line, a foreign master's frames); this collaborator counts them and logs each
+fault once, then counts repeats (``RateLimitedLogger``). It decides nothing about the line.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from ..core.line import Note
+from ..core.line.foreign import SHARED_FOR_S
 from ..core.outcome import DiscardReason, LineEvent, SlaveState
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
@@ -20,6 +21,10 @@ if TYPE_CHECKING:
     from .bus import Bus
 
 log = logging.getLogger("gateway.bus")
+#: The notes of a line that another master shares (``LineNotes._shared_line``).
+_SHARED_LINE_EVENTS = frozenset(
+    {LineEvent.FOREIGN_MASTER, LineEvent.SHARED_ANSWER, LineEvent.LINE_NOT_SHARED}
+)
 
 
 class LineNotes:
@@ -32,6 +37,7 @@ class LineNotes:
         self._m_coalesced = metrics.coalesced.labels(bus.name)
         self._m_noisy = metrics.line_noisy.labels(bus.name)
         self._m_noisy.set(0)
+        self._m_foreign = metrics.foreign_master_frames.labels(bus.name)
         self.fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     def flush(self) -> None:
@@ -84,6 +90,27 @@ class LineNotes:
         elif event is LineEvent.LINE_QUIET:
             self._m_noisy.set(0)
             log.info("line %s: quiet again, serving requests", self._bus.name)
+        elif event in _SHARED_LINE_EVENTS:
+            self._shared_line(note, unit, subject)
+
+    def _shared_line(self, note: Note, unit: str, subject: str) -> None:
+        """Another master on the line: its frames, the answers held back, and its silence."""
+        event = note.event
+        if event is LineEvent.FOREIGN_MASTER:
+            self._m_foreign.inc()
+            self.fault_log.note(
+                f"line {self._bus.name}",
+                "foreign master frame",
+                f"a request to unit {unit} ({note.detail}) this gateway did not send: the line "
+                "is shared; answers that may be the other master's are not delivered",
+            )
+        elif event is LineEvent.SHARED_ANSWER:
+            self.fault_log.note(
+                subject, "answer not delivered", note.detail,
+                level=logging.INFO, plural="answers not delivered",
+            )  # fmt: skip
+        else:
+            log.info("line %s: no other master heard for %g s", self._bus.name, SHARED_FOR_S)
 
     def _slave_state(self, note: Note) -> None:
         unit = UNIT_LABELS[note.slave]

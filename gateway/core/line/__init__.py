@@ -53,6 +53,12 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   of the frame just sent are dropped when they come back, exactly those; bytes that
   are not the echo are the line's, and the echo is still expected after them (until
   the next frame is sent).
+* **Another master.** On a shared medium, a request frame the line did not send (its
+  own echo and its own answers excepted) is a foreign master's (``foreign``): noted, the
+  line *shared* for a while. Until that request's answer is heard or it expires, no
+  request whose answer would look the same (same slave, answer signature) is sent, and
+  an answer that looks like it is never delivered to one of ours (a request of ours
+  already on the wire when the foreign one came is retried, or answered 0x0B).
 * **Bounded noise.** If no usable gap appears for ``noisy_after`` seconds while
   requests wait, they are answered 0x0B and the line is *noisy* (new requests are
   answered 0x0B at once) until a gap appears.
@@ -68,8 +74,10 @@ machine changes what becomes of a request and emits actions):
 * ``order``: read-after-write questions over the parts above;
 * ``wire``: the wire strategy, and ``SerialWire`` (one attempt at a time);
   ``flights``: ``FlightWire`` (several attempts by transaction id on a TCP line);
-* ``machine`` (``LineCore``; its class body in three layers: ``ends``, ``sending``,
-  ``machine``) and ``pipelined`` (``LineCore`` holding a ``FlightWire``).
+* ``foreign``: frames heard that no attempt asked for, other masters' requests among
+  them, and those requests awaiting their answers;
+* ``machine`` (``LineCore``; its class body in four layers: ``ends``, ``listening``,
+  ``sending``, ``machine``) and ``pipelined`` (``LineCore`` holding a ``FlightWire``).
 """
 
 from __future__ import annotations

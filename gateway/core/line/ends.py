@@ -1,12 +1,13 @@
 """The machine's transitions at the end of an attempt, and the answers it delivers.
 
-``LineCore`` (``machine.py``) is one state machine whose class body is written in three
+``LineCore`` (``machine.py``) is one state machine whose class body is written in four
 layers, each under 400 lines: this one (an attempt ends: the request, the slave's
-health, the late-answer window, the accounts; every delivery), ``sending.py`` (which
-request goes next, sending it) and ``machine.py`` (the masters' side, the port, the
-reload). The layers are not variants: nothing is overridden, and only the machine is
-ever built. The wire strategy (``wire.py``, ``flights.py``) calls ``complete``,
-``garbled``, ``fail``, ``discard``, ``alive``, ``late_bytes`` and ``late_frame``.
+health, the late-answer window, the accounts; every delivery), ``listening.py`` (frames
+heard that no attempt took: other masters), ``sending.py`` (which request goes next,
+sending it) and ``machine.py`` (the masters' side, the port, the reload). The layers
+are not variants: nothing is overridden, and only the machine is ever built. The wire
+strategy (``wire.py``, ``flights.py``) calls ``complete``, ``garbled``, ``fail``,
+``discard``, ``alive``, ``late_bytes``, ``late_frame`` and ``hear``.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ from ..framing import Framing
 from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
+from .foreign import ForeignMasters, ForeignRequest
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
 from .records import (
     BAD_CHECK,
+    SHARED_ANSWER,
     Attempt,
     Delivery,
     LinePolicy,
@@ -56,15 +59,23 @@ class AttemptEnds:
     garbled_wait: float
     _gap: float
     timing: ResponseTiming
+    foreign: ForeignMasters
+    #: ``foreign.pending`` itself (the same dict), one attribute away on the answer's path.
+    foreign_pending: dict[int, list[ForeignRequest]]
+    answered_at: float | None
     _stopping: bool
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire (the wire has ended ``attempt``)."""
         request = attempt.request
+        if self.foreign_pending and self.foreign.claims(request.slave, request.pdu, frame.pdu, now):
+            self._not_ours(attempt, now)
+            return
         wire = now - attempt.sent_at
         slave = request.slave
         function = request.pdu[0]
         self.stats.frames_received += 1
+        self.answered_at = now  # the last intact frame heard, with ``foreign``'s
         record = self.health.slaves.get(slave)  # ``health.record``, inline: once per answer
         if record is None:
             record = self.health.record(slave)
@@ -98,6 +109,15 @@ class AttemptEnds:
         else:
             outcome = Outcome.OK
         self._deliver(request, response, outcome, wire)
+
+    def _not_ours(self, attempt: Attempt, now: float) -> None:
+        """An answer a foreign master's pending request may own (``foreign``): not delivered.
+        The attempt failed, heard: retried when safe, else 0x0B; its own answer may still
+        come (the late-answer window)."""
+        slave = attempt.request.slave
+        detail = "an answer another master's request may own"
+        self.notes.append(Note(LineEvent.SHARED_ANSWER, slave, detail))
+        self.fail(attempt, ResponseError(SHARED_ANSWER, detail), now)
 
     def garbled(self, attempt: Attempt, error: ResponseError, damaged: bool, now: float) -> None:
         """A garbled frame: fail the attempt at once, or listen a little longer first.
@@ -136,7 +156,7 @@ class AttemptEnds:
             state = self.health.count_timeout(record, request.pdu[0], now, self.policy)
             if state is not None:
                 self._set_state(slave, record, state)
-        elif error.kind != BAD_CHECK:  # a CRC error was noted when it arrived
+        elif error.kind != BAD_CHECK and error.kind != SHARED_ANSWER:  # noted already
             self.notes.append(Note(LineEvent.GARBLED, slave, error.reason))
         # The loss that made it suspect is paid from the lane's share (by ``_charge`` when
         # it was sent on that share).

@@ -6,9 +6,10 @@ order rules) keep state and answer questions; the wire strategy (one attempt at 
 time, or flights by transaction id) says which bytes answer which attempt. Every
 change of what becomes of a request is made by ``LineCore``, and only it appends to
 ``transmits``, ``deliveries`` and ``notes`` (h11's "Rule 1"). Its class body is
-written in three layers, each under 400 lines: this module (the masters' side, the
-port, the reload, the timer), ``sending.py`` (which request goes next, sending it)
-and ``ends.py`` (what the end of an attempt does; every delivery).
+written in four layers, each under 400 lines: this module (the masters' side, the
+port, the reload, the timer), ``sending.py`` (which request goes next, sending it),
+``listening.py`` (frames heard that no attempt took) and ``ends.py`` (what the end of
+an attempt does; every delivery).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from ..framing import RTU, Framing, LineKind
 from ..outcome import LineEvent, Outcome, SlaveState
 from ..timing import character_time
 from .fair_queue import FairQueue, Master
+from .foreign import ForeignMasters
 from .health import ProbeLane, SlaveHealth, SlaveRecord
 from .late import LateWindows
 from .order import OrderRules
@@ -74,6 +76,9 @@ class LineCore(Sending):
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
         self.timing = ResponseTiming(policy, framing, 0.0)
+        self.foreign = ForeignMasters(ascii=framing.kind is LineKind.ASCII)
+        self.foreign_pending = self.foreign.pending
+        self.answered_at: float | None = None  # when the last answer to our attempts came
         self._send_at = INFINITY  # when the next frame may go (set by ``service``)
         self.quiet_since = now
         self._wanting_since: float | None = None
@@ -103,6 +108,9 @@ class LineCore(Sending):
         self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
+        # A foreign request awaits its answer as long as any of ours may wait for one.
+        longest = max(policy.max_timeout, policy.timeout_for(0), *policy.slave_timeouts.values())
+        self.foreign.configure(policy.silence, longest)
         self._max_wait = policy.max_queue_wait or INFINITY  # 0: no limit
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
@@ -185,8 +193,12 @@ class LineCore(Sending):
                     when = min(when, lane.earliest())
                 if self.late.windows:
                     when = min(when, self.late.earliest())
+                if self.foreign_pending:
+                    when = min(when, self.foreign.earliest())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
+        if self.foreign.shared:
+            when = min(when, self.foreign.shared_until)
         return None if when == INFINITY else when
 
     # -- the masters' side ---------------------------------------------------------------
@@ -361,12 +373,14 @@ class LineCore(Sending):
         turnaround still runs, and the slaves' lost answers may still come. An MBAP line
         hands on no late-answer windows: its lost answers went with the old connection."""
         windows = self.late.handover() if self.framing.transaction_ids is None else []
-        return Handover(self.quiet_since, tuple(windows))
+        return Handover(self.quiet_since, tuple(windows), self.foreign.handover())
 
     def take_over(self, handover: Handover, now: float) -> None:
         """Start where the line this one replaces left the wire: quiet no earlier than it
         was, its late-answer windows kept as if opened here."""
         self.quiet_since = max(self.quiet_since, handover.quiet_since)
+        if handover.heard is not None:
+            self.foreign.take_over(handover.heard, now)
         if self.framing.transaction_ids is None:  # else answers carry transaction ids
             for window in handover.windows:
                 if window.until > now:
@@ -395,6 +409,10 @@ class LineCore(Sending):
         if self._noisy and now >= self.quiet_since + self._gap:
             self._noisy = False
             self.notes.append(Note(LineEvent.LINE_QUIET, 0))
+        if self.foreign_pending:
+            self.foreign.expire(now)
+        if self.foreign.shared and self.foreign.decays(now):
+            self.notes.append(Note(LineEvent.LINE_NOT_SHARED, 0))
         if self.queue.queued:
             arrivals = self.queue.arrivals
             if arrivals and arrivals[0].enqueued_at + self._max_wait <= now:

@@ -28,6 +28,8 @@ DISCARD_KINDS: Final = frozenset({
 })  # fmt: skip
 #: The answer decoders' fault kind for a bad CRC or LRC (noted, never discarded).
 BAD_CHECK: Final = "crc"
+#: An attempt's fault kind for an answer a foreign master's request may own (``foreign``).
+SHARED_ANSWER: Final = "shared_answer"
 
 
 def answer_signature(request: bytes) -> bytes:
@@ -225,11 +227,24 @@ class LateWindow(NamedTuple):
     pending: int  # its attempts whose answers may still come
 
 
+class HeardBus(NamedTuple):
+    """What a line heard of other masters, handed on to the line that replaces it."""
+
+    last_master_frame_at: float | None
+    last_frame_at: float | None
+    shared_until: float  # ``-INFINITY``: not shared
+    foreign_frames: int
+    heard_master_frames: int
+    listening: bool
+    pending: tuple[tuple[int, bytes, float, float], ...]  # slave, PDU, heard at, until
+
+
 class Handover(NamedTuple):
     """The wire as a line leaves it to the line that replaces it (``LineCore.handover``)."""
 
     quiet_since: float  # no frame before this plus the gap (a broadcast's turnaround)
     windows: tuple[LateWindow, ...]
+    heard: HeardBus | None = None  # other masters heard (``foreign``)
 
 
 class Note(NamedTuple):
@@ -257,6 +272,7 @@ class Attempt:
     silence_at: float
     garbled_at: float
     garbled: ResponseError | None
+    heard: bytes  # bytes the answer's decoder took without a verdict yet (``foreign``)
     tid: int
     epoch: int
     charged: float
@@ -285,6 +301,7 @@ class Attempt:
         self.silence_at = INFINITY
         self.garbled_at = INFINITY
         self.garbled = None
+        self.heard = b""
         self.tid = tid
         self.epoch = epoch
         self.charged = charged

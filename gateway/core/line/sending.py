@@ -9,17 +9,16 @@ from collections.abc import Callable
 
 from ..errors import ExceptionCode
 from ..outcome import LineEvent, Outcome
-from .ends import AttemptEnds
 from .fair_queue import Master
+from .listening import Listening
 from .records import FRAME_CACHE_SIZE, INFINITY, LineRequest, Note, Transmit, tuple_new
 
 
-class Sending(AttemptEnds):
+class Sending(Listening):
     """Which request goes next, and sending it (see the module doc)."""
 
     transmits: list[Transmit]
     quiet_since: float
-    char_time: float
     echo: bool
     encode: Callable[[int, bytes], bytes]
     _frames: dict[tuple[int, bytes], bytes] | None
@@ -78,7 +77,9 @@ class Sending(AttemptEnds):
     def _pick(self, now: float) -> tuple[LineRequest, Master | None, bool] | None:
         """The next request: a retry, the lane on credit, the fairest master, the lane free."""
         retries = self.retries
-        if retries:
+        if retries and not (
+            self.foreign_pending and self.foreign.holds(retries[0].slave, retries[0].pdu, now)
+        ):
             retry = retries.popleft()
             self.queue.count_waiting(retry, -1)
             return retry, None, False

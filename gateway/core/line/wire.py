@@ -166,6 +166,8 @@ class SerialWire(Wire):
                 blocked[slave] = False
                 continue
             held = bool(late.windows) and late.holds(request, now)
+            if line.foreign_pending and not held:
+                held = line.foreign.holds(slave, request.pdu, now)
             if (
                 not held
                 and (line.sharing.joined or line.lane.requests)
@@ -181,7 +183,10 @@ class SerialWire(Wire):
         return None
 
     def may_go(self, request: LineRequest, now: float) -> bool:
-        return not self.line.late.holds(request, now)
+        line = self.line
+        if line.foreign_pending and line.foreign.holds(request.slave, request.pdu, now):
+            return False
+        return not line.late.holds(request, now)
 
     def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
         line = self.line
@@ -255,9 +260,10 @@ class SerialWire(Wire):
         attempt = self.attempt
         if attempt is None:
             line.discard(DiscardReason.LATE, len(data))
+            line.hear(data, now)  # another master's frames, or its slaves' answers
             if line.late.windows:
                 line.late_bytes(data, now)
-                line.service(now)
+            line.service(now)  # a foreign request answered, or a window closed
             return
         if attempt.garbled is not None:
             attempt.garbled_at = now + line.garbled_wait  # the line is not quiet yet
@@ -268,10 +274,20 @@ class SerialWire(Wire):
         or note that it was garbled."""
         line = self.line
         decoder = attempt.decoder
+        unheard = data  # what the decoder has that ``line.hear`` has not (after ``heard``)
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
+                if unheard:  # not the answer (or not only): perhaps another master's frames
+                    master = line.hear(attempt.heard + unheard, now, True)
+                    attempt.heard = unheard = b""
+                    if master:  # no damaged answer: the answer may follow it
+                        decoder.reset()
+                        data = unheard = line.foreign.take_unframed()
+                        if data:
+                            continue
+                        return
                 if error.kind in DISCARD_KINDS:
                     # Another unit's frame, a late answer to an earlier request, or noise
                     # in front of the answer: drop it and keep decoding what followed it.
@@ -292,15 +308,19 @@ class SerialWire(Wire):
                 return
             break
         if frame is not None:
-            if decoder.leftover:
-                line.discard(
-                    DiscardReason.TRAILING_BYTES, len(decoder.leftover), attempt.request.slave
-                )
+            trailing = decoder.leftover
+            if trailing:
+                line.discard(DiscardReason.TRAILING_BYTES, len(trailing), attempt.request.slave)
             self.attempt = None  # ``end``, inline: once per transaction
             self.outstanding = 0
             line.complete(attempt, frame, now)
+            if trailing and unheard:
+                line.hear(trailing, now)  # another master's frame right behind the answer?
             line.service(now)
-        elif decoder.waits_for_silence:
+            return
+        if unheard:
+            attempt.heard += unheard  # heard by ``line.hear`` if they turn out not to be the answer
+        if decoder.waits_for_silence:
             attempt.silence_at = now + line.silence
 
     def expire(self, now: float) -> None:
@@ -326,13 +346,21 @@ class SerialWire(Wire):
                 self.end(attempt)
                 line.complete(attempt, frame, now)
         if self.attempt is attempt and now >= attempt.garbled_at:
+            self._unheard(attempt, now)
             line.fail(attempt, attempt.garbled, now)
         if self.attempt is attempt and now >= attempt.deadline:
+            self._unheard(attempt, now)
             if attempt.decoder.buffered:
                 line.discard(
                     DiscardReason.INCOMPLETE, attempt.decoder.buffered, attempt.request.slave
                 )
             line.fail(attempt, attempt.garbled, now)
+
+    def _unheard(self, attempt: Attempt, now: float) -> None:
+        """The attempt fails: the bytes its decoder kept without a verdict were no answer."""
+        if attempt.heard:
+            self.line.hear(attempt.heard, now)
+            attempt.heard = b""
 
     def _strip_echo(self, data: bytes) -> bytes:
         """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""
