@@ -43,10 +43,12 @@ histories keep the last ``history`` entries; the counters are never truncated.
 from __future__ import annotations
 
 import errno
+import fcntl
 import heapq
 import itertools
 import os
 import select
+import termios
 import threading
 import time
 from collections import deque
@@ -209,6 +211,9 @@ class BusTimeline:
         self._open: dict[tuple[int, int], _Collision] = {}
         self._two_writer_s = 0.0
         self._max_lateness_s = 0.0
+        # Snapshots of the histories, rebuilt only after they change (``wait_for`` asks often).
+        self._frames_view: tuple[BusFrame, ...] | None = None
+        self._collisions_view: tuple[BusCollision, ...] | None = None
 
     def add_node(
         self, name: str, *, echo: bool = False, turnaround: float = 0.0, whole_runs: bool = False
@@ -244,6 +249,7 @@ class BusTimeline:
             start = end
         frame.data += data
         frame.end = start
+        self._frames_view = None
         node.busy_until = start
         node.bytes += len(data)
 
@@ -283,6 +289,12 @@ class BusTimeline:
     def stats(self) -> BusStats:
         """A snapshot of the counters and histories."""
         nodes = self._nodes
+        if self._frames_view is None:
+            self._frames_view = tuple(frame.frozen() for frame in self._frames)
+        if self._collisions_view is None:
+            self._collisions_view = tuple(
+                BusCollision(c.start, c.end, c.nodes) for c in self._collision_log
+            )
         return BusStats(
             collisions=self._collisions,
             two_writer_s=self._two_writer_s,
@@ -291,8 +303,8 @@ class BusTimeline:
             overruns={node.name: node.overruns for node in nodes},
             in_flight=len(self._heap),
             max_lateness_s=self._max_lateness_s,
-            frames=tuple(frame.frozen() for frame in self._frames),
-            collision_log=tuple(BusCollision(c.start, c.end, c.nodes) for c in self._collision_log),
+            frames=self._frames_view,
+            collision_log=self._collisions_view,
         )
 
     def _open_frame(self, node: _NodeState, start: float) -> _Frame:
@@ -323,6 +335,7 @@ class BusTimeline:
         start = max(new.start, old.start)
         end = min(new.end, old.end)
         self._two_writer_s += end - start
+        self._collisions_view = None
         new.heard |= old.value
         old.heard |= new.value
         first, second = sorted((new.frame, old.frame), key=lambda frame: frame.serial)
@@ -365,6 +378,7 @@ class MultidropBus:
         self._nodes: dict[str, BusNode] = {}
         self._fds: dict[int, int] = {}  # fd the bus reads and writes -> node index
         self._pairs: list[PtyPair] = []
+        self._adapters: dict[str, PtyPair] = {}  # the nodes gateways open, by name
         self._lines: list[SimulatedLine] = []
         self._wake_r, self._wake_w = os.pipe()
         self._stopping = threading.Event()
@@ -384,10 +398,28 @@ class MultidropBus:
         """Add a node a gateway opens by ``path``; ``echo``: it hears its own bytes too."""
         pair = open_pty_pair()
         try:
-            return self._join(name, pair, pair.sim_fd, echo=echo)
+            node = self._join(name, pair, pair.sim_fd, echo=echo)
         except BaseException:
             pair.close()
             raise
+        with self._lock:
+            self._adapters[name] = pair
+        return node
+
+    def replug(self, name: str) -> None:
+        """Make node ``name`` a freshly plugged adapter: not held exclusively, nothing unread.
+
+        A gateway takes its port with TIOCEXCL, and on a pty the flag outlives the process
+        (the bus keeps the tty open): a gateway killed by SIGKILL and started again would
+        get EBUSY (unless root). Call this between the kill and the restart; it also drops
+        the bytes the dead gateway never read.
+        """
+        with self._lock:
+            pair = self._adapters.get(name)
+        if pair is None:
+            raise KeyError(f"no node {name!r} opened by a gateway on this bus")
+        fcntl.ioctl(pair.hold_fd, termios.TIOCNXCL)
+        termios.tcflush(pair.hold_fd, termios.TCIFLUSH)
 
     def attach_slaves(
         self,

@@ -7,8 +7,12 @@ Synchronisation is by bytes arriving and by the bus's own counters, never by sle
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
 import select
+import struct
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -27,6 +31,7 @@ BAUD = 9600
 READ_10 = bytes.fromhex("03 0000 000A")
 PLC_FIRST_10 = bytes.fromhex("03 14 0000 0002 0004 0006 0008 000A 0000 0000 0000 0000")
 MARKER = b"\x7e"
+TIOCGEXCL = 0x80045440  # Linux: is the tty held exclusively (not in the termios module)
 
 Opener = Callable[[str], int]
 
@@ -194,6 +199,44 @@ def test_close_leaves_no_fd_open_and_no_thread_running() -> None:
     assert not [
         t for t in threading.enumerate() if t.name in ("multidrop-bus", "simulated-rtu-line")
     ]
+
+
+def _held_exclusively(path: str) -> bool:
+    """True when TIOCEXCL is set on the tty at ``path`` (an open as root bypasses it: ask)."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError as error:
+        if error.errno == errno.EBUSY:
+            return True
+        raise
+    try:
+        flag = fcntl.ioctl(fd, TIOCGEXCL, b"\0\0\0\0")
+    finally:
+        os.close(fd)
+    return bool(struct.unpack("i", flag)[0])
+
+
+def test_replug_undoes_what_a_killed_gateway_left_on_its_node(
+    bus: MultidropBus, open_port: Opener
+) -> None:
+    """Exclusive open and unread bytes outlive a SIGKILLed gateway on a pty; replug clears both."""
+    node = bus.node("gateway")
+    other = open_port(bus.node("other").path)
+    killed = os.open(node.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        fcntl.ioctl(killed, termios.TIOCEXCL)
+        os.write(other, b"?")
+        assert select.select([killed], [], [], DEADLINE_S)[0]  # queued, never read
+    finally:
+        os.close(killed)  # as the kernel does for a killed process: TIOCEXCL stays
+    assert _held_exclusively(node.path)
+    bus.replug("gateway")
+    assert not _held_exclusively(node.path)
+    restarted = open_port(node.path)
+    os.write(other, MARKER)
+    assert read_exactly(restarted, 1) == MARKER
+    with pytest.raises(KeyError):
+        bus.replug("nobody")
 
 
 def test_the_slaves_line_is_paced_by_the_bus_not_by_itself() -> None:
