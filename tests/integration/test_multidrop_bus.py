@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from conftest import DEADLINE_S
+from conftest import DEADLINE_S, GatewayFactory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -164,6 +164,22 @@ def test_a_gateway_reads_the_slaves_and_a_third_node_hears_both(
     assert answered.start - asked.end >= bus.t35 - 1e-9  # the slave keeps t3.5 before answering
     assert stats.collisions == 0
     assert line.stats().requests == 1
+
+
+def test_a_gateway_serves_a_master_through_the_bus(
+    bus: MultidropBus, make_gateway: GatewayFactory, open_port: Opener
+) -> None:
+    """The gateway itself on a node (``bus`` is set up first, so it stops after the gateway)."""
+    bus.attach_slaves({1: plc(1)})
+    ear = open_port(bus.node("ear").path)
+    node = bus.node("gateway")
+    gw = make_gateway({"lines": {"a": {"device": node.path, "baudrate": BAUD, "units": [1]}}})
+    with gw.connect() as master:
+        assert master.request(1, READ_10) == PLC_FIRST_10
+    assert read_exactly(ear, 8 + 25) == encode_rtu(1, READ_10) + encode_rtu(1, PLC_FIRST_10)
+    stats = bus.wait_for(settled, DEADLINE_S)
+    assert stats.frames_written["gateway"] == stats.frames_written["slaves"] == 1
+    assert stats.collisions == 0
 
 
 def _read_answer(fd: int, read: Callable[[int], bytes], decoder: RtuResponseDecoder) -> RtuFrame:
