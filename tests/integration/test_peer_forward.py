@@ -162,6 +162,32 @@ def test_each_master_has_its_own_connection_and_cancel_closes_only_its_own(
     run(scenario)
 
 
+def test_many_requests_in_flight_each_get_their_own_answer(gateway_with: GatewayOnSim) -> None:
+    """Three masters, 20 reads each in flight at once, each of its own register: every
+    answer is the value of the register its request asked for."""
+    sim, gw = gateway_with({1: plc(1)})
+    holding = sim.device(1).holding
+    for address in range(60):
+        holding[3000 + address] = 0x5000 + address
+
+    async def scenario() -> None:
+        forwarder = forwarder_to(gw.address)
+        masters = [Master(f"m{n}") for n in range(3)]
+        try:
+            asked = {
+                address: ask(forwarder, 1, struct.pack(">BHH", 3, 3000 + address, 1),
+                             masters[address % 3])
+                for address in range(60)
+            }  # fmt: skip
+            for address, request in asked.items():
+                assert await request.answer() == (registers([0x5000 + address]), Outcome.OK)
+            assert forwarder.connections == 3 and forwarder.stats.answered == 60
+        finally:
+            await shut(forwarder)
+
+    run(scenario)
+
+
 def test_a_peer_that_is_not_active_gets_nothing(gateway_with: GatewayOnSim) -> None:
     _sim, gw = gateway_with({1: plc(1)})
 
