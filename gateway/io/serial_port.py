@@ -14,6 +14,16 @@ advisory ``flock`` (what pyserial's ``exclusive=True`` and other tools take) and
 POSIX record lock, whose holder ``F_GETLK`` names by pid even where ``/proc/locks``
 is hidden (systemd's ``ProcSubset=pid``). A device that is taken raises
 ``DeviceBusyError`` naming the holder.
+
+Receive-only (``quiet``): the standby of a redundant pair shares the RS-485 bus with
+the active gateway and must never drive it. Its port is opened with RTS and DTR set
+low before ``open()`` (pyserial applies them inside the open, in place of raising
+them), and a driver with kernel RS485 mode is put into it with RTS at its receive
+level while idle (``TIOCSRS485``); a driver without that mode (USB adapters that
+switch direction themselves, pseudo-terminals) answers ENOTTY or EINVAL, and is left
+as it is. The kernel itself may raise DTR/RTS for the instant of ``open(2)`` on a
+port whose speed is not B0; the RS485 mode, once set, survives on the port across
+opens and keeps RTS at its idle level.
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ import os
 import struct
 import termios
 import time
+from array import array
 from collections.abc import Callable
 from typing import Any
 
@@ -69,6 +80,7 @@ __all__ = [
     "check_listener_device_usable",
     "describe_holder",
     "open_serial",
+    "set_rs485_receive",
 ]
 
 
@@ -212,8 +224,47 @@ def _reason(error: BaseException) -> str:
 _CONFIG_KEY = {"bytesize": "data_bits", "stopbits": "stop_bits", "rs485_mode": "rs485"}
 
 
-def open_serial(line: LineConfig) -> serial.SerialBase:
-    """Open and configure the line's port; raise ``SerialPortError`` with the fix."""
+# ``linux/serial.h``: the RS485 ioctls and ``struct serial_rs485`` (flags, two delays,
+# padding: 8 ints), as pyserial uses them.
+_TIOCGRS485 = 0x542E
+_TIOCSRS485 = 0x542F
+_SER_RS485_ENABLED = 1 << 0
+_SER_RS485_RTS_ON_SEND = 1 << 1
+_SER_RS485_RTS_AFTER_SEND = 1 << 2
+#: What a driver without kernel RS485 mode answers (a USB adapter, a pseudo-terminal).
+_NO_RS485 = frozenset({errno.ENOTTY, errno.EINVAL, errno.EOPNOTSUPP})
+
+
+def set_rs485_receive(fd: int, line: LineConfig) -> bool:
+    """Put a driver with kernel RS485 mode into it, RTS at the line's receive level while
+    idle (``SER_RS485_RTS_AFTER_SEND``), so the port does not drive the bus. ``False``
+    when the driver has no such mode (ENOTTY, EINVAL: left as it is)."""
+    settings = array("i", [0] * 8)
+    try:
+        fcntl.ioctl(fd, _TIOCGRS485, settings)
+        flags = settings[0] | _SER_RS485_ENABLED
+        flags &= ~(_SER_RS485_RTS_ON_SEND | _SER_RS485_RTS_AFTER_SEND)
+        if line.rs485_rts_level_for_tx:
+            flags |= _SER_RS485_RTS_ON_SEND
+        if line.rs485_rts_level_for_rx:
+            flags |= _SER_RS485_RTS_AFTER_SEND
+        settings[0] = flags
+        fcntl.ioctl(fd, _TIOCSRS485, settings)
+    except OSError as error:
+        if error.errno in _NO_RS485:
+            return False
+        raise SerialPortError(
+            f"line {line.name!r}: cannot put {line.device} into RS485 receive: {error}"
+        ) from error
+    return True
+
+
+def open_serial(line: LineConfig, *, quiet: bool = False) -> serial.SerialBase:
+    """Open and configure the line's port; raise ``SerialPortError`` with the fix.
+
+    ``quiet``: receive only (a standby's port): RTS and DTR stay low through the open, and
+    kernel RS485 mode, where the driver has it, holds RTS at the receive level.
+    """
     try:
         port = serial.serial_for_url(line.device, do_not_open=True)
     except (ValueError, serial.SerialException) as error:
@@ -223,6 +274,9 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
         ) from error
     port.timeout = 0
     _apply(line, port, "baudrate", line.baudrate)
+    if quiet:  # applied by ``open()`` itself, in place of raising them
+        port.rts = False
+        port.dtr = False
     try:
         port.open()
     except (serial.SerialException, OSError) as error:
@@ -234,6 +288,8 @@ def open_serial(line: LineConfig) -> serial.SerialBase:
             _lock(line, fd)
             _set_exclusive(fd, True)
             exclusive = True
+            if quiet:  # only once the device is ours: never a mode change on another's
+                set_rs485_receive(fd, line)
         _apply(line, port, "bytesize", line.data_bits)
         _apply(line, port, "parity", _PARITIES[line.parity])
         _apply(line, port, "stopbits", _STOP_BITS[line.stop_bits])
@@ -310,12 +366,15 @@ def check_device_usable(
     settle: float = PERMISSION_SETTLE_S,
     clock: Callable[[], float] = time.monotonic,
     wait: Callable[[float], None] = time.sleep,
+    *,
+    quiet: bool = False,
 ) -> None:
     """At start: raise ``DeviceUnusableError`` for a device that exists but cannot serve the
     line (not a terminal, permission denied, a setting it refuses) and ``DeviceBusyError``
     for one another program holds. A device that does not exist passes: a USB adapter may
     be plugged in later, and the line opens it then. Permission denied is tried again for
     ``settle`` seconds: udev may still be setting the mode of a device that just appeared.
+    ``quiet``: the checking open is receive-only, as a standby's line opens (``open_serial``).
     """
     if line.is_url:
         return
@@ -328,7 +387,7 @@ def check_device_usable(
     finally:
         os.close(fd)
     check_device_free(line)
-    _release(open_serial(line))  # every setting applied once, exactly as the line will
+    _release(open_serial(line, quiet=quiet))  # every setting applied once, as the line will
 
 
 def check_listener_device_usable(listener: ListenerConfig) -> None:
@@ -345,11 +404,11 @@ def check_listener_device_usable(listener: ListenerConfig) -> None:
         ) from error
 
 
-def check_devices_usable(config: GatewayConfig) -> None:
+def check_devices_usable(config: GatewayConfig, *, quiet: bool = False) -> None:
     """At start, every line's device and every ``serial-slave`` listener's, before any is
     opened: one that is held or cannot be used stops the start with the fix."""
     for line in config.lines:
-        check_device_usable(line)
+        check_device_usable(line, quiet=quiet)
     for listener in config.listeners:
         check_listener_device_usable(listener)
 
