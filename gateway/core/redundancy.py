@@ -203,7 +203,7 @@ class RoleMachine:
     ) -> None:
         self.timing = RoleTiming(lease, takeover_after, hearing_delay, keepalive)
         self.priority = priority
-        self.role = Role.STANDBY
+        self._role = Role.STANDBY
         self.peer = PeerView()
         self.contest = Contest(priority)
         #: Role changes not yet drained by the shell, oldest first.
@@ -215,6 +215,11 @@ class RoleMachine:
         self._sent_at = NEVER  # the last frame this gateway sent
         self._active_since = NEVER
         self._expiry = NEVER
+
+    @property
+    def role(self) -> Role:
+        """ACTIVE or STANDBY (a gateway starts STANDBY)."""
+        return self._role
 
     # -- inputs ------------------------------------------------------------------------
 
@@ -359,12 +364,12 @@ class RoleMachine:
         return now >= self._takeover_at()
 
     def _take_over(self, now: float) -> None:
-        self.role = Role.ACTIVE
+        self._role = Role.ACTIVE
         self._active_since = now
         self._expiry = self._lease_until(now)
         self.changes.append(RoleChange(now, Role.ACTIVE, ChangeReason.TAKEOVER))
 
     def _step_down(self, now: float, reason: ChangeReason) -> None:
-        self.role = Role.STANDBY
+        self._role = Role.STANDBY
         self._expiry = NEVER
         self.changes.append(RoleChange(now, Role.STANDBY, reason))
