@@ -5,15 +5,30 @@ gap of more than 0.5 s between inputs is a time jump; the keep-alive is due afte
 without a frame; the active's lease reaches at most 0.7 s past its last frame or its
 takeover (1.5 - hearing_delay 0.3 - 0.5).
 
-The stateful test of two machines on a simulated network and bus lives in
-tests/property/test_redundancy_pair.py.
+At the end, a hypothesis stateful test of two machines on a simulated network and bus
+(``PairOnOneBus``): the exclusion guarantee and the liveness bound of docs/redundancy.md.
 """
 
 from __future__ import annotations
 
+import enum
+import heapq
+import os
+import random
 from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    precondition,
+    rule,
+)
 
 from gateway.core.redundancy import (
     ChangeReason,
@@ -361,3 +376,300 @@ def test_timing_is_checked() -> None:
     machine = RoleMachine(1, start=5.0)
     with pytest.raises(ValueError, match="backwards"):
         machine.tick(4.0)
+
+
+# -- two machines on a simulated network and bus, driven by hypothesis ------------------
+
+POLL_EVERY = 0.25  # the shell polls the peer's /role this often
+POLL_TIMEOUT = 0.2  # and gives a poll up after this long
+BUS_DELAY = 0.25  # a frame is handled by the other gateway at most this late (< hearing_delay)
+LIVENESS_BOUND = 1.0 + 1.5 + 1.0  # lease + takeover_after + one stagger
+
+
+class _Kind(enum.Enum):
+    TICK = "tick"  # the node's deadline
+    POLL = "poll"  # the node polls its peer
+    ARRIVE = "arrive"  # a poll reaches the peer's HTTP endpoint
+    ANSWER = "answer"  # the peer's answer reaches the poller
+    TIMEOUT = "timeout"  # the poller gives up on a poll
+    FRAME = "frame"  # the other gateway's master frame reaches the node's port
+    SLAVE = "slave"  # a slave's answer to it reaches the node's port
+
+
+@dataclass(order=True)
+class _Event:
+    at: float
+    seq: int
+    kind: _Kind = field(compare=False)
+    node: int = field(compare=False)
+    incarnation: int = field(compare=False)  # -1: whichever process is there
+    payload: Any = field(compare=False, default=None)
+
+
+@dataclass
+class _Node:
+    """One gateway's process as the shell runs it, and what the checks need to know."""
+
+    index: int
+    priority: int
+    machine: RoleMachine | None = None
+    incarnation: int = 0
+    frozen: bool = False
+    backlog: list[_Event] = field(default_factory=list)
+    tick_gen: int = 0
+    poll_id: int | None = None
+    reign: int | None = None  # the id of its current reign as active
+    seen: set[int] = field(default_factory=set)  # reigns of the other it heard frames of
+    seen_at_takeover: frozenset[int] = frozenset()
+    took_over_at: float | None = None
+
+
+class PairOnOneBus(RuleBasedStateMachine):
+    """Two role machines, a lossy partitionable network, a shared bus, freezes and kills.
+
+    The shell is modelled: ticks at ``next_deadline``, polls every 0.25 s (given up after
+    0.2 s), a keep-alive whenever due and allowed, masters' requests at random; a frame
+    sent reaches the other gateway within 0.25 s; frames reaching a frozen gateway wait
+    in its kernel buffer and are read after it resumes (in either order with its timer);
+    a resumed gateway that was about to send first asks ``may_transmit``.
+
+    Checked on every event: two gateways that are both alive, unfrozen and allowed to
+    transmit must have taken over each without having heard a frame of the other's
+    current reign (the exact guarantee of docs/redundancy.md: a reign that has been heard
+    is never overlapped; only simultaneous takeovers can be, until either hears the other).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.queue: list[_Event] = []
+        self.seq = 0
+        self.ids = 0
+        self.rng = random.Random(0)
+        self.links = {(0, 1): True, (1, 0): True}
+        self.loss = 0.0
+        self.net_delay = 0.05
+        self.nodes: tuple[_Node, _Node] = (_Node(0, 2), _Node(1, 1))
+
+    @initialize(
+        seed=st.integers(0, 2**32 - 1), priorities=st.sampled_from([(2, 1), (1, 2), (5, 6)])
+    )
+    def start(self, seed: int, priorities: tuple[int, int]) -> None:
+        self.rng = random.Random(seed)
+        self.nodes = (_Node(0, priorities[0]), _Node(1, priorities[1]))
+        for node in self.nodes:
+            self._boot(node)
+
+    # -- the simulated world ------------------------------------------------------------
+
+    def _push(
+        self, at: float, kind: _Kind, node: int, incarnation: int, payload: Any = None
+    ) -> None:
+        self.seq += 1
+        heapq.heappush(self.queue, _Event(at, self.seq, kind, node, incarnation, payload))
+
+    def _boot(self, node: _Node) -> None:
+        node.machine = RoleMachine(node.priority, start=self.now)
+        node.incarnation += 1
+        node.frozen, node.backlog, node.poll_id = False, [], None
+        node.reign, node.seen, node.took_over_at = None, set(), None
+        self._push(
+            self.now + self.rng.uniform(0, POLL_EVERY), _Kind.POLL, node.index, node.incarnation
+        )
+        self._arm(node)
+
+    def _arm(self, node: _Node) -> None:
+        assert node.machine is not None
+        node.tick_gen += 1
+        self._push(
+            node.machine.next_deadline(), _Kind.TICK, node.index, node.incarnation, node.tick_gen
+        )
+
+    def _net(self, src: int, dst: int) -> float | None:
+        """The delay of one HTTP message, or None when it is lost."""
+        if not self.links[(src, dst)] or self.rng.random() < self.loss:
+            return None
+        return self.rng.uniform(0.0, self.net_delay)
+
+    def _run_until(self, until: float) -> None:
+        while self.queue and self.queue[0].at <= until:
+            event = heapq.heappop(self.queue)
+            self.now = max(self.now, event.at)
+            self._dispatch(event)
+            self._check_exclusion()
+        self.now = until
+
+    def _dispatch(self, event: _Event) -> None:
+        node = self.nodes[event.node]
+        if node.machine is None or event.incarnation not in (-1, node.incarnation):
+            return  # dead, or meant for a process that was killed since
+        if node.frozen:
+            node.backlog.append(event)
+            return
+        self._deliver(node, event)
+        self._after_input(node)
+
+    def _deliver(self, node: _Node, event: _Event) -> None:
+        machine, peer = node.machine, self.nodes[1 - node.index]
+        assert machine is not None
+        if event.kind is _Kind.TICK:
+            machine.tick(self.now)
+        elif event.kind is _Kind.POLL:
+            self._poll(node, peer)
+        elif event.kind is _Kind.ARRIVE:
+            report = machine.report(self.now)
+            delay = self._net(node.index, peer.index)
+            if delay is not None:
+                self._push(self.now + delay, _Kind.ANSWER, peer.index, -1, (event.payload, report))
+        elif event.kind is _Kind.ANSWER:
+            poll_id, report = event.payload
+            if node.poll_id == poll_id:
+                node.poll_id = None
+                machine.peer_report(self.now, report.role, report.lease_remaining, report.priority)
+        elif event.kind is _Kind.TIMEOUT:
+            if node.poll_id == event.payload:
+                node.poll_id = None
+                machine.peer_unreachable(self.now)
+        elif event.kind is _Kind.FRAME:
+            node.seen.add(event.payload)
+            machine.master_frame_heard(self.now)
+        else:
+            machine.frame_heard(self.now)
+
+    def _poll(self, node: _Node, peer: _Node) -> None:
+        self.ids += 1
+        node.poll_id = self.ids
+        delay = self._net(node.index, peer.index)
+        if delay is not None:
+            self._push(self.now + delay, _Kind.ARRIVE, peer.index, -1, self.ids)
+        self._push(self.now + POLL_TIMEOUT, _Kind.TIMEOUT, node.index, node.incarnation, self.ids)
+        self._push(self.now + POLL_EVERY, _Kind.POLL, node.index, node.incarnation)
+
+    def _after_input(self, node: _Node) -> None:
+        """The shell after each input: log changes, send a due keep-alive, re-arm the timer."""
+        machine = node.machine
+        assert machine is not None
+        self._note_changes(node)
+        if machine.keepalive_due(self.now) and machine.may_transmit(self.now):
+            self._transmit(node)
+        self._arm(node)
+
+    def _note_changes(self, node: _Node) -> None:
+        assert node.machine is not None
+        for change in node.machine.drain_changes():
+            if change.role is Role.ACTIVE:
+                self.ids += 1
+                node.reign, node.seen_at_takeover = self.ids, frozenset(node.seen)
+                node.took_over_at = change.at
+            else:
+                node.reign = None
+
+    def _transmit(self, node: _Node) -> None:
+        machine, peer = node.machine, self.nodes[1 - node.index]
+        assert machine is not None and machine.may_transmit(self.now)
+        self._check_exclusion()
+        machine.transmitted(self.now)
+        self._note_changes(node)
+        self._push(
+            self.now + self.rng.uniform(0, BUS_DELAY), _Kind.FRAME, peer.index, -1, node.reign
+        )
+        if self.rng.random() < 0.8:  # the slave answers; both gateways hear it
+            for listener in self.nodes:
+                at = self.now + self.rng.uniform(0.01, BUS_DELAY)
+                self._push(at, _Kind.SLAVE, listener.index, -1)
+
+    def _check_exclusion(self) -> None:
+        a, b = self.nodes
+        if not all(n.machine is not None and not n.frozen for n in (a, b)):
+            return
+        assert a.machine is not None and b.machine is not None
+        if a.machine.may_transmit(self.now) and b.machine.may_transmit(self.now):
+            assert a.reign not in b.seen_at_takeover, f"B overlapped A's heard reign at {self.now}"
+            assert b.reign not in a.seen_at_takeover, f"A overlapped B's heard reign at {self.now}"
+
+    # -- rules --------------------------------------------------------------------------
+
+    @rule(dt=st.floats(0.01, 3.0))
+    def advance(self, dt: float) -> None:
+        self._run_until(self.now + dt)
+
+    @rule(index=st.sampled_from([0, 1]))
+    def master_request(self, index: int) -> None:
+        node = self.nodes[index]
+        if node.machine is not None and not node.frozen and node.machine.may_transmit(self.now):
+            self._transmit(node)
+            self._arm(node)
+
+    @precondition(lambda self: any(n.machine is not None and not n.frozen for n in self.nodes))
+    @rule(index=st.sampled_from([0, 1]))
+    def freeze(self, index: int) -> None:
+        node = self.nodes[index]
+        if node.machine is not None:
+            node.frozen = True
+
+    @rule(index=st.sampled_from([0, 1]), frames_first=st.booleans())
+    def resume(self, index: int, frames_first: bool) -> None:
+        node = self.nodes[index]
+        if node.machine is None or not node.frozen:
+            return
+        node.frozen = False
+        machine = node.machine
+        if machine.keepalive_due(self.now) and machine.may_transmit(self.now):
+            self._transmit(node)  # it was about to send: the lease check comes first
+        backlog, node.backlog = node.backlog, []
+        if frames_first:
+            backlog.sort(key=lambda e: e.kind not in (_Kind.FRAME, _Kind.SLAVE))
+        for event in backlog:
+            self._deliver(node, event)
+            self._after_input(node)
+            self._check_exclusion()
+        self._arm(node)
+
+    @rule(index=st.sampled_from([0, 1]))
+    def kill(self, index: int) -> None:
+        node = self.nodes[index]
+        node.machine, node.frozen, node.backlog, node.reign = None, False, [], None
+
+    @rule(index=st.sampled_from([0, 1]))
+    def restart(self, index: int) -> None:
+        if self.nodes[index].machine is None:
+            self._boot(self.nodes[index])
+
+    @rule(up_ab=st.booleans(), up_ba=st.booleans(), loss=st.sampled_from([0.0, 0.3, 1.0]),
+          slow=st.booleans())  # fmt: skip
+    def network(self, up_ab: bool, up_ba: bool, loss: float, slow: bool) -> None:
+        self.links = {(0, 1): up_ab, (1, 0): up_ba}
+        self.loss = loss
+        self.net_delay = 0.5 if slow else 0.05
+
+    @precondition(lambda self: sorted(_roles(self.nodes)) == [Role.ACTIVE, Role.STANDBY])
+    @rule()
+    def kill_the_active_on_a_fine_network(self) -> None:
+        """Liveness: the standby takes over within lease + takeover_after + one stagger."""
+        self.network(True, True, 0.0, slow=False)
+        active = next(n for n in self.nodes if _roles((n,)) == [Role.ACTIVE])
+        survivor = self.nodes[1 - active.index]
+        killed_at = self.now
+        self.kill(active.index)
+        self._run_until(killed_at + LIVENESS_BOUND)
+        assert survivor.machine is not None and survivor.machine.role is Role.ACTIVE
+        assert survivor.took_over_at is not None
+        assert killed_at < survivor.took_over_at <= killed_at + LIVENESS_BOUND
+
+    @invariant()
+    def one_writer(self) -> None:
+        self._check_exclusion()
+
+
+def _roles(nodes: tuple[_Node, ...]) -> list[Role]:
+    """The roles of the alive, unfrozen nodes."""
+    return [n.machine.role for n in nodes if n.machine is not None and not n.frozen]
+
+
+PairOnOneBus.TestCase.settings = settings(
+    max_examples=int(os.environ.get("REDUNDANCY_EXAMPLES", "150")),
+    stateful_step_count=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+TestPairOnOneBus = PairOnOneBus.TestCase
