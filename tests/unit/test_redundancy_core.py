@@ -422,6 +422,7 @@ class _Node:
     seen: set[int] = field(default_factory=set)  # reigns of the other it heard frames of
     seen_at_takeover: frozenset[int] = frozenset()
     took_over_at: float | None = None
+    busy_until: float = 0.0  # the line is held (a slave's answer awaited): no keep-alive
 
 
 class PairOnOneBus(RuleBasedStateMachine):
@@ -503,6 +504,8 @@ class PairOnOneBus(RuleBasedStateMachine):
         node = self.nodes[event.node]
         if node.machine is None or event.incarnation not in (-1, node.incarnation):
             return  # dead, or meant for a process that was killed since
+        if event.kind is _Kind.TICK and event.payload != node.tick_gen:
+            return  # a timer re-armed since
         if node.frozen:
             node.backlog.append(event)
             return
@@ -550,7 +553,8 @@ class PairOnOneBus(RuleBasedStateMachine):
         machine = node.machine
         assert machine is not None
         self._note_changes(node)
-        if machine.keepalive_due(self.now) and machine.may_transmit(self.now):
+        due = self.now >= node.busy_until and machine.keepalive_due(self.now)
+        if due and machine.may_transmit(self.now):
             self._transmit(node)
         self._arm(node)
 
@@ -620,10 +624,27 @@ class PairOnOneBus(RuleBasedStateMachine):
         if frames_first:
             backlog.sort(key=lambda e: e.kind not in (_Kind.FRAME, _Kind.SLAVE))
         for event in backlog:
+            if event.kind is _Kind.TICK and event.payload != node.tick_gen:
+                continue
             self._deliver(node, event)
             self._after_input(node)
             self._check_exclusion()
         self._arm(node)
+
+    @rule(index=st.sampled_from([0, 1]), seconds=st.floats(0.5, 4.0), frames_first=st.booleans())
+    def pause(self, index: int, seconds: float, frames_first: bool) -> None:
+        """SIGSTOP, time passes, SIGCONT."""
+        node = self.nodes[index]
+        if node.machine is None or node.frozen:
+            return
+        node.frozen = True
+        self._run_until(self.now + seconds)
+        self.resume(index, frames_first)
+
+    @rule(index=st.sampled_from([0, 1]), seconds=st.floats(0.1, 3.0))
+    def hold_the_line(self, index: int, seconds: float) -> None:
+        """The line waits for a slave's answer: no keep-alive can go out meanwhile."""
+        self.nodes[index].busy_until = self.now + seconds
 
     @rule(index=st.sampled_from([0, 1]))
     def kill(self, index: int) -> None:
