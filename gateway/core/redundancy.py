@@ -159,7 +159,7 @@ class PeerView:
     def state(self, now: float, stale_until: float, freshness: float) -> PeerState:
         """The peer as evidence received after ``stale_until`` and within ``freshness`` shows it."""
         latest = max(self.answered_at, self.failed_at)
-        if latest <= stale_until or now - latest > freshness:
+        if latest <= stale_until or now > latest + freshness:
             return PeerState.UNKNOWN
         if self.failed_at > self.answered_at or self.role is None:
             return PeerState.UNREACHABLE
@@ -189,7 +189,11 @@ class Contest:
 
 
 class RoleMachine:
-    """One gateway's role: inputs with ``now``, the lease check, the next deadline."""
+    """One gateway's role: inputs with ``now``, the lease check, the next deadline.
+
+    Every comparison with time is written ``now >= instant + span``, the same sum
+    ``next_deadline`` returns, so a tick at the deadline sees it reached despite rounding.
+    """
 
     def __init__(
         self,
@@ -276,7 +280,7 @@ class RoleMachine:
         return (
             self.role is Role.ACTIVE
             and now < self._expiry
-            and now - self._last_input <= self.timing.max_gap
+            and now <= self._last_input + self.timing.max_gap
         )
 
     def lease_remaining(self, now: float) -> float:
@@ -292,7 +296,7 @@ class RoleMachine:
         return (
             self.timing.keepalive
             and self.role is Role.ACTIVE
-            and now - self._sent_at >= self.timing.keepalive_every
+            and now >= self._sent_at + self.timing.keepalive_every
         )
 
     def next_deadline(self) -> float:
@@ -319,7 +323,7 @@ class RoleMachine:
         """Detect a time jump and a lapsed lease before any evidence is taken."""
         if now < self._last_input:
             raise ValueError(f"time went backwards: {now} < {self._last_input}")
-        if now - self._last_input > self.timing.max_gap:
+        if now > self._last_input + self.timing.max_gap:
             self._stale_until = now
             self._watching_since = now
             if self.role is Role.ACTIVE:
@@ -341,7 +345,7 @@ class RoleMachine:
         """Extend the lease while the evidence allows (a foreign frame stepped us down)."""
         if self._peer_state(now) in (PeerState.STANDBY, PeerState.UNREACHABLE):
             self._expiry = self._lease_until(now)
-            if now - self._active_since >= self.timing.takeover_after:
+            if now >= self._active_since + self.timing.takeover_after:
                 self.contest.count = 0
 
     def _lease_until(self, now: float) -> float:
