@@ -687,7 +687,7 @@ def _roles(nodes: tuple[_Node, ...]) -> list[Role]:
 
 
 PairOnOneBus.TestCase.settings = settings(
-    max_examples=int(os.environ.get("REDUNDANCY_EXAMPLES", "150")),
+    max_examples=int(os.environ.get("REDUNDANCY_EXAMPLES", "1000")),
     stateful_step_count=40,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
