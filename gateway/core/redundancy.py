@@ -288,8 +288,13 @@ class RoleMachine:
         return self._expiry - now if self.may_transmit(now) else 0.0
 
     def report(self, now: float) -> RoleReport:
-        """The answer of ``GET /role``."""
-        return RoleReport(self.role, self.lease_remaining(now), self.priority)
+        """The answer of ``GET /role``: active only while the lease holds.
+
+        Answered between a freeze and the next input, a void lease says standby: this
+        gateway will step down at that input, and must not make a new active step down.
+        """
+        role = Role.ACTIVE if self.may_transmit(now) else Role.STANDBY
+        return RoleReport(role, self.lease_remaining(now), self.priority)
 
     def keepalive_due(self, now: float) -> bool:
         """True when the active has sent nothing for half a lease (keep-alive on)."""

@@ -220,6 +220,7 @@ def test_a_frozen_active_may_not_transmit_on_the_first_call_after_the_jump() -> 
     assert machine.may_transmit(3.0)
     assert not machine.may_transmit(8.0)  # 5 s later, before any input
     assert machine.lease_remaining(8.0) == 0.0
+    assert machine.report(8.0) == RoleReport(Role.STANDBY, 0.0, 1)  # /role asked first
     machine.peer_report(8.0, Role.ACTIVE, 1.0, 2)
     assert _role(machine) is Role.STANDBY
     assert machine.drain_changes()[-1] == RoleChange(8.0, Role.STANDBY, ChangeReason.TIME_JUMP)
