@@ -12,14 +12,15 @@ the bus (frames heard). The invariants:
 * **Lease check.** ``may_transmit(now)`` is true only while ACTIVE, before the lease's
   expiry, and when the previous input is at most ``max_gap`` (half a lease) old. The
   shell asks it before every frame; a process resumed after SIGSTOP or a VM pause
-  therefore gets no on a stale lease before anything else happens.
+  therefore gets a no on a stale lease before anything else happens.
 * **Leases follow frames.** With the keep-alive on, the active's lease never reaches
   past its last frame (or its takeover) plus ``frame_reach`` (``takeover_after`` minus
   ``hearing_delay`` minus ``max_gap``). Any frame it sends is thus heard by the standby
   before the standby's quiet wait can end, so a standby that has heard the active's
   current reign can take over only after that reign's lease is gone, whatever the
   network does. Two leases can overlap only when two standbys take over before either
-  heard the other's first frame (see the page); priority staggers that away.
+  heard the other's first frame (see the page); the priority stagger keeps
+  their waits apart when each knows the other's priority.
 * **Time jumps.** An input more than ``max_gap`` after the previous one means the
   process was frozen: an active steps down, and evidence received until then (and at
   that instant, possibly queued during the freeze) no longer counts.
@@ -42,7 +43,6 @@ from enum import StrEnum
 from typing import Final
 
 NEVER: Final = float("-inf")
-INFINITY: Final = float("inf")
 #: Rounds of the tie-break by priority bits when the peer's priority is unknown.
 _PRIORITY_BITS: Final = 32
 
