@@ -78,8 +78,13 @@ class RoleReport:
     """What ``GET /role`` answers: the peer reads it to decide."""
 
     role: Role
+    #: While active: how long the peer must respect this gateway's lease from now on (a
+    #: full lease: the claim the peer acknowledges, see ``peer_lease_remaining``).
     lease_remaining: float
     priority: int
+    #: How long this gateway still respects its peer's lease from now on: the peer's
+    #: acknowledged claim, which lets it keep its lease through a long silence.
+    peer_lease_remaining: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,16 +146,24 @@ class PeerView:
         self.priority: int | None = None
         self.answered_at = NEVER
         self.failed_at = NEVER
+        #: Until when the peer respects this gateway's lease, as a local time: the poll's
+        #: sending time plus what the peer said (it answered later: the safe side).
+        self.acked_until = NEVER
         #: The latest lease expiry it ever reported, as a local time (receipt + remaining:
         #: later than the truth, the answer being late already, so on the safe side).
         self.lease_expiry = NEVER
 
-    def answered(self, now: float, role: Role, lease_remaining: float, priority: int) -> None:
+    def answered(
+        self, now: float, role: Role, lease_remaining: float, priority: int,
+        acked_until: float = NEVER,
+    ) -> None:  # fmt: skip
         """Note a fresh answer."""
+        self.acked_until = acked_until
         self.role = role
         self.priority = priority
         self.answered_at = now
-        self.lease_expiry = max(self.lease_expiry, now + max(0.0, lease_remaining))
+        if lease_remaining > 0:  # a standby claims nothing
+            self.lease_expiry = max(self.lease_expiry, now + lease_remaining)
 
     def failed(self, now: float) -> None:
         """Note a poll that failed or timed out."""
@@ -219,6 +232,7 @@ class RoleMachine:
         self._sent_at = NEVER  # the last frame this gateway sent
         self._active_since = NEVER
         self._expiry = NEVER
+        self._yielding = False  # stepped down, the peer not heard since: the peer goes first
 
     @property
     def role(self) -> Role:
@@ -227,10 +241,16 @@ class RoleMachine:
 
     # -- inputs ------------------------------------------------------------------------
 
-    def peer_report(self, now: float, role: Role, lease_remaining: float, priority: int) -> None:
-        """A fresh answer of the peer's ``/role``."""
+    def peer_report(
+        self, now: float, role: Role, lease_remaining: float, priority: int,
+        peer_lease_remaining: float = 0.0, asked_at: float | None = None,
+    ) -> None:  # fmt: skip
+        """A fresh answer of the peer's ``/role``, asked at ``asked_at`` (default ``now``)."""
         self._advance(now)
-        self.peer.answered(now, role, lease_remaining, priority)
+        asked = now if asked_at is None else min(asked_at, now)
+        acked = asked + peer_lease_remaining if peer_lease_remaining > 0 else NEVER
+        self.peer.answered(now, role, lease_remaining, priority, acked)
+        self._yielding = False
         if role is Role.ACTIVE and self.role is Role.ACTIVE:
             self.contest.count += 1
             self._step_down(now, ChangeReason.PEER_ACTIVE)
@@ -293,8 +313,10 @@ class RoleMachine:
         Answered between a freeze and the next input, a void lease says standby: this
         gateway will step down at that input, and must not make a new active step down.
         """
-        role = Role.ACTIVE if self.may_transmit(now) else Role.STANDBY
-        return RoleReport(role, self.lease_remaining(now), self.priority)
+        respected = max(0.0, self.peer.lease_expiry - now)
+        if self.may_transmit(now):
+            return RoleReport(Role.ACTIVE, self.timing.lease, self.priority, respected)
+        return RoleReport(Role.STANDBY, 0.0, self.priority, respected)
 
     def keepalive_due(self, now: float) -> bool:
         """True when the active has sent nothing for half a lease (keep-alive on)."""
@@ -312,7 +334,8 @@ class RoleMachine:
             if self.timing.keepalive:
                 candidates.append(self._sent_at + self.timing.keepalive_every)
         else:
-            candidates = [max(self._takeover_at(), self.peer.lease_expiry)]
+            claimed = self.peer.lease_expiry + self.timing.hearing_delay
+            candidates = [max(self._takeover_at(), claimed)]
         for at in candidates:
             if self._last_input < at < deadline:
                 deadline = at
@@ -354,19 +377,35 @@ class RoleMachine:
                 self.contest.count = 0
 
     def _lease_until(self, now: float) -> float:
+        """A lease, cut to what the bus or the peer vouches for: the frames' reach past the
+        last frame (heard by the standby before its quiet wait ends), or the time the peer
+        acknowledged it respects (it takes over only a hearing delay after that)."""
         until = now + self.timing.lease
         if self.timing.keepalive:
             reference = max(self._sent_at, self._active_since)
-            until = min(until, reference + self.timing.frame_reach)
+            by_frames = min(until, reference + self.timing.frame_reach)
+            return max(by_frames, min(until, self.peer.acked_until))
         return until
 
     def _takeover_at(self) -> float:
         quiet_since = max(self._watching_since, self._heard_at, self._sent_at)
-        stagger = self.timing.lease * self.contest.rank(self.peer.priority)
-        return quiet_since + self.timing.takeover_after + stagger
+        return quiet_since + self.timing.takeover_after + self.timing.lease * self._rank()
+
+    def _rank(self) -> int:
+        """The stagger: none after the active peer went silent (a kill: no contest), one
+        lease for a gateway that stepped down until the peer answers again, else by
+        priority (``Contest``)."""
+        if self._yielding:
+            return 1
+        peer = self.peer
+        if peer.role is Role.ACTIVE and self._active_since < peer.answered_at:
+            return 0
+        return self.contest.rank(peer.priority)
 
     def _may_take_over(self, now: float) -> bool:
-        if now < self.peer.lease_expiry:
+        # A frame the peer sends before the lease it claimed ends reaches this gateway a
+        # hearing delay later at most: only then has silence proved anything.
+        if now < self.peer.lease_expiry + self.timing.hearing_delay:
             return False
         if self._peer_state(now) not in (PeerState.STANDBY, PeerState.UNREACHABLE):
             return False
@@ -379,6 +418,9 @@ class RoleMachine:
         self.changes.append(RoleChange(now, Role.ACTIVE, ChangeReason.TAKEOVER))
 
     def _step_down(self, now: float, reason: ChangeReason) -> None:
+        # A lease lost to silence or a freeze: the peer may be taking over; let it go first
+        # (two masters that met re-arbitrate by ``Contest`` instead).
+        self._yielding = reason in (ChangeReason.LEASE_EXPIRED, ChangeReason.TIME_JUMP)
         self._role = Role.STANDBY
         self._expiry = NEVER
         self.changes.append(RoleChange(now, Role.STANDBY, reason))

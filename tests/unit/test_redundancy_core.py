@@ -83,6 +83,66 @@ def _active_lone(priority: int = 1) -> RoleMachine:
     return machine
 
 
+def _pair_step(active: RoleMachine, standby: RoleMachine, now: float, network: bool,
+               holding: bool) -> None:  # fmt: skip
+    """One step of a pair: each polls the other (instantly, or the poll fails), and whoever
+    is active sends a keep-alive when due (``active``'s line is held while ``holding``);
+    the other hears it at once."""
+    for asking, asked in ((active, standby), (standby, active)):
+        if network:
+            report = asked.report(now)
+            asking.peer_report(now, report.role, report.lease_remaining, report.priority,
+                               report.peer_lease_remaining, asked_at=now)  # fmt: skip
+        else:
+            asking.peer_unreachable(now)
+    for machine in (active, standby):
+        machine.tick(now)
+    for sender, hearer in ((active, standby), (standby, active)):
+        if holding and sender is active:
+            continue  # its line waits for a slave's answer
+        if sender.keepalive_due(now) and sender.may_transmit(now):
+            sender.transmitted(now)
+            hearer.master_frame_heard(now)
+
+
+def _pair(until: float) -> tuple[RoleMachine, RoleMachine]:
+    """A (priority 2) active and B standby, on a fine network, from 0 to ``until``."""
+    a, b = RoleMachine(2, start=0.0), RoleMachine(1, start=0.0)
+    for now in _times(0.25, until, 0.25):
+        first, second = (a, b) if a.role is Role.ACTIVE or b.role is not Role.ACTIVE else (b, a)
+        _pair_step(first, second, now, network=True, holding=False)
+    assert (a.role, b.role) == (Role.ACTIVE, Role.STANDBY)
+    return a, b
+
+
+def test_an_active_whose_standby_acknowledges_its_lease_keeps_it_through_a_long_silence() -> None:
+    """A slave that takes 2 s (or a first contact waited 1 s): the bus is silent, but the
+    standby, which answers /role, respects the active's claim, so no failover."""
+    a, b = _pair(4.0)
+    for now in _times(4.25, 7.0, 0.25):
+        _pair_step(a, b, now, network=True, holding=True)
+        assert a.may_transmit(now) and not b.may_transmit(now)
+    assert a.changes == [] or all(c.role is Role.ACTIVE for c in a.changes)
+
+
+def test_a_network_cut_during_a_long_silence_never_makes_two_writers() -> None:
+    """The cut comes while the active's line is held: its lease ends by what the standby
+    acknowledged, and the standby takes over only a hearing delay after that."""
+    a, b = _pair(4.0)
+    for now in _times(4.25, 5.0, 0.25):
+        _pair_step(a, b, now, network=True, holding=True)
+    last_ack = a.peer.acked_until
+    took_over = None
+    for now in _times(5.05, 9.0, 0.05):
+        _pair_step(a, b, now, network=False, holding=True)
+        assert not (a.may_transmit(now) and b.may_transmit(now)), now
+        if a.may_transmit(now):
+            assert now < last_ack
+        if took_over is None and b.role is Role.ACTIVE:
+            took_over = now
+    assert took_over is not None and took_over >= last_ack + 0.3
+
+
 def test_a_lone_gateway_takes_over_after_takeover_after_of_quiet_bus() -> None:
     machine = RoleMachine(1, start=0.0)
     assert _role(machine) is Role.STANDBY
@@ -96,7 +156,8 @@ def test_a_lone_gateway_takes_over_after_takeover_after_of_quiet_bus() -> None:
     assert machine.keepalive_due(1.5)  # it announces itself at once
     report = machine.report(1.5)
     assert (report.role, report.priority) == (Role.ACTIVE, 1)
-    assert report.lease_remaining == pytest.approx(0.7)  # 0.7 past the takeover
+    assert report.lease_remaining == 1.0  # the claim the peer is to respect: a full lease
+    assert machine.lease_remaining(1.5) == pytest.approx(0.7)  # its own: 0.7 past the takeover
 
 
 def test_no_takeover_without_any_word_from_the_peer() -> None:
@@ -112,7 +173,8 @@ def test_a_standby_whose_peer_answers_active_never_takes_over() -> None:
     assert _role(machine) is Role.STANDBY
     assert machine.changes == []
     assert not machine.may_transmit(20.0)
-    assert machine.report(20.0) == RoleReport(Role.STANDBY, 0.0, 9)
+    # It respects the active's claimed lease (the acknowledgement the active renews by).
+    assert machine.report(20.0) == RoleReport(Role.STANDBY, 0.0, 9, 1.0)
 
 
 def test_peer_unreachable_but_master_frames_every_half_second_keeps_it_standby() -> None:
@@ -154,8 +216,12 @@ def test_takeover_waits_for_the_lease_the_peer_last_reported() -> None:
     machine.peer_report(0.25, Role.ACTIVE, 2.5, 2)  # the peer's lease runs to 2.75 here
     _run(machine, 0.5, 2.5, _unreachable)
     assert _role(machine) is Role.STANDBY  # the bus has been quiet long enough since 1.5
-    assert machine.next_deadline() == 2.75
-    machine.tick(2.75)
+    # A frame sent just before 2.75 is heard a hearing delay (0.3 s) later at most.
+    for now in (2.75, 3.0):
+        machine.tick(now)
+        assert _role(machine) is Role.STANDBY
+    assert machine.next_deadline() == pytest.approx(3.05)
+    machine.tick(3.05)
     assert _role(machine) is Role.ACTIVE
 
 
@@ -231,9 +297,11 @@ def test_after_a_jump_only_fresh_evidence_and_a_fresh_quiet_wait_count() -> None
     _run(machine, 1.75, 3.0, _unreachable)
     machine.peer_unreachable(8.0)  # possibly queued during the freeze: stale
     assert _role(machine) is Role.STANDBY
-    _run(machine, 8.25, 9.25, _unreachable)
-    assert _role(machine) is Role.STANDBY  # the quiet wait restarted at 8.0
-    machine.peer_unreachable(9.5)
+    _run(machine, 8.25, 10.25, _unreachable)
+    # The quiet wait restarted at 8.0, and a gateway whose lease lapsed in a freeze lets
+    # the peer go first: a lease more (8.0 + 1.5 + 1.0).
+    assert _role(machine) is Role.STANDBY
+    machine.peer_unreachable(10.5)
     assert _role(machine) is Role.ACTIVE
 
 
@@ -418,6 +486,7 @@ class _Node:
     backlog: list[_Event] = field(default_factory=list)
     tick_gen: int = 0
     poll_id: int | None = None
+    poll_sent_at: float = 0.0  # when its pending poll went out (the acknowledgement's base)
     reign: int | None = None  # the id of its current reign as active
     seen: set[int] = field(default_factory=set)  # reigns of the other it heard frames of
     seen_at_takeover: frozenset[int] = frozenset()
@@ -528,7 +597,8 @@ class PairOnOneBus(RuleBasedStateMachine):
             poll_id, report = event.payload
             if node.poll_id == poll_id:
                 node.poll_id = None
-                machine.peer_report(self.now, report.role, report.lease_remaining, report.priority)
+                machine.peer_report(self.now, report.role, report.lease_remaining, report.priority,
+                                    report.peer_lease_remaining, node.poll_sent_at)  # fmt: skip
         elif event.kind is _Kind.TIMEOUT:
             if node.poll_id == event.payload:
                 node.poll_id = None
@@ -542,6 +612,7 @@ class PairOnOneBus(RuleBasedStateMachine):
     def _poll(self, node: _Node, peer: _Node) -> None:
         self.ids += 1
         node.poll_id = self.ids
+        node.poll_sent_at = self.now
         delay = self._net(node.index, peer.index)
         if delay is not None:
             self._push(self.now + delay, _Kind.ARRIVE, peer.index, -1, self.ids)
