@@ -33,6 +33,7 @@ from . import (
     instruction_scenarios,
     kind_scenarios,
     line_scenarios,
+    redundancy,
     reverse_scenarios,
     scenarios,
     slave_kind_scenarios,
@@ -61,6 +62,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **inflight_scenarios.SCENARIOS,
     **timing_scenarios.SCENARIOS,
     **fairness.SCENARIOS,
+    **redundancy.SCENARIOS,
 }
 
 

@@ -16,9 +16,9 @@ import resource
 import signal
 import ssl
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry
 
@@ -38,7 +38,8 @@ from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
 from .io.bus import Bus, Request
 from .io.clock import PreciseClock
-from .io.http import HttpEndpoint, start_http
+from .io.http import HttpEndpoint, role_route, start_http
+from .io.http_guard import Access
 from .io.rtu_listener import rtu_over_tcp_server
 from .io.serial_port import check_devices_usable
 from .io.serial_slave import SerialSlave
@@ -47,8 +48,11 @@ from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
 from .metrics import GatewayMetrics
-from .status import LineStatus, MasterStatus
+from .status import LineStatus, MasterStatus, PairStatus
 from .trace import FrameTrace, Tracer
+
+if TYPE_CHECKING:
+    from .io.pair import Pair
 
 log = logging.getLogger("gateway")
 
@@ -144,6 +148,7 @@ class Gateway:
         self.live: LiveView | None = None  # trace stream, /status and the status page
         self._stopping = False
         self.audit: AuditLog | None = None  #: the audit log (``[audit] path``)
+        self.pair: Pair | None = None  #: one gateway of an active/standby pair
 
     # -- addresses ---------------------------------------------------------------------
 
@@ -215,16 +220,20 @@ class Gateway:
         ensure_file_descriptors(
             config.server.max_connections * len(listeners) + http_connections + _FDS_BESIDES_MASTERS
         )
-        check_devices_usable(config)  # a device held or unusable fails the start
+        check_devices_usable(config, quiet=config.redundancy.paired)  # held or unusable: stop
+        if config.redundancy.paired:  # before the lines open: they open listening
+            self.pair = build_pair(config, self.buses, self.metrics)
         for line in config.lines:
             self._open_bus(line, loop)
         self.metrics.describe_lines([line.name for line in config.lines])
         router = self._build_router()
+        if self.pair is not None:
+            self.pair.start()
         self._build_servers(listeners, router, tls)
         self._start_serial_slaves(router, loop)
         self.live = LiveView(self, self.metrics, self.trace)
         await self._bind()
-        self._log_listening()
+        log_listening(self.servers, len(self.buses), self.metrics_address)
         self.ready.set()
 
     def _build_servers(
@@ -236,7 +245,7 @@ class Gateway:
             kind = rtu_over_tcp_server if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
             server = kind(
                 self.config.server, router, self.metrics, listener,
-                self._policy(self.config, listener), built.context if built else None,
+                listener_policy(self.config, listener), built.context if built else None,
             )  # fmt: skip
             server.tracer, server.audit = self.trace, self.audit
             self.servers.append(server)
@@ -247,7 +256,7 @@ class Gateway:
         for listener in self.config.listeners:
             if listener.serial is not None:
                 slave = SerialSlave(listener, router, self.metrics,
-                                    self._policy(self.config, listener), loop)  # fmt: skip
+                                    listener_policy(self.config, listener), loop)  # fmt: skip
                 slave.tracer, slave.audit = self.trace, self.audit
                 self.serial_slaves.append(slave)
                 slave.start()
@@ -272,44 +281,30 @@ class Gateway:
                     error, "metrics.listen, --metrics", metrics.host, metrics.port
                 ) from error
 
-    def _log_listening(self) -> None:
-        """One line per listener (the CLI's tests and operators wait for it), then metrics."""
-        for server in self.servers:
-            host, port = server.sockets[0]
-            listener = server.listener
-            if listener.tls:
-                protocol = "Modbus/TCP Security"
-            elif listener.protocol == "rtu-over-tcp":
-                protocol = "RTU over TCP"
-            else:
-                protocol = "Modbus TCP"
-            log.info("listening on %s:%d (%s), listener %s, %d line(s)",
-                     host, port, protocol, listener.name, len(self.buses))  # fmt: skip
-        if self.metrics_address is not None:
-            mhost, mport = self.metrics_address
-            log.info("metrics on %s, status page on %s",
-                     http_url(mhost, mport, "/metrics"), http_url(mhost, mport))  # fmt: skip
-
     async def _start_http(self) -> HttpEndpoint:
-        routes = self.live.routes if self.live is not None else None
+        routes = dict(self.live.routes) if self.live is not None else {}
+        routes["/role"] = (role_route(self._role), Access.STATUS)
         return await start_http(self.config.metrics, self.metrics.exposition_registry(),
                                 self.is_ready, routes, self.metrics.http_refusals)  # fmt: skip
+
+    def pair_status(self) -> PairStatus | None:
+        """This gateway's role in its pair, ``None`` without one (``GatewayView``)."""
+        return None if self.pair is None else self.pair.status()
+
+    def _role(self) -> tuple[int, bytes]:
+        """``GET /role``'s status and body: this gateway's role in its pair."""
+        if self.pair is not None:
+            return self.pair.role_body()
+        from .core.redundancy import Role
+        from .io.peer_role import role_body
+
+        return 200, role_body(Role.ACTIVE, 0.0, self.config.redundancy.priority, False)
 
     def is_ready(self) -> tuple[bool, str]:
         """Readiness for /readyz: the listener is up and every line is open."""
         if self.server is None or self._stopping:
             return False, "not listening"
-        down = [name for name, bus in self.buses.items() if not bus.up]
-        if down:
-            return False, "line(s) down: " + ", ".join(down)
-        noisy = [name for name, bus in self.buses.items() if bus.noisy]
-        shared = [name for name, bus in self.buses.items() if bus.shared]
-        notes = []  # still ready (see the README's health semantics), but say which
-        if noisy:
-            notes.append("noisy line(s), requests answered 0x0B: " + ", ".join(noisy))
-        if shared:
-            notes.append("shared line(s), another master heard: " + ", ".join(shared))
-        return True, "; ".join(["ok", *notes])
+        return readiness(self.buses, self.pair)
 
     async def stop(self, grace: float = 5.0) -> None:
         """Graceful stop: see the module docstring."""
@@ -321,6 +316,8 @@ class Gateway:
             server.stop_accepting()
         for slave in self.serial_slaves:
             slave.stop()
+        if self.pair is not None:
+            await self.pair.stop()
         await asyncio.gather(*(bus.stop(grace) for bus in self.buses.values()))
         for server in self.servers:
             server.close_all(CloseReason.SHUTDOWN)
@@ -449,7 +446,7 @@ class Gateway:
                 continue
             server.listener = replace(listener, host=server.listener.host,
                                       port=server.listener.port)  # fmt: skip
-            server.policy = self._policy(config, server.listener)
+            server.policy = listener_policy(config, server.listener)
             server.screen.allow_lists = tuple(
                 tuple(nets) for nets in (config.server.allow, listener.allow) if nets
             )
@@ -461,7 +458,7 @@ class Gateway:
             slave.router = router
             listener = by_name.get(slave.name)
             if listener is not None and listener.serial == slave.listener.serial:
-                slave.policy = self._policy(config, listener)
+                slave.policy = listener_policy(config, listener)
             else:
                 log.warning("reload: serial-slave listener %s: changes to its serial line "
                             "(device, format, framing, echo) need a restart",
@@ -475,6 +472,8 @@ class Gateway:
         bus = Bus(line, self.metrics, loop, clock, self._line_tls.get(line.name))
         self.buses[line.name] = bus
         self._clocks[line.name] = clock
+        if self.pair is not None:
+            self.pair.attach(bus)
         bus.start()
         return bus
 
@@ -501,12 +500,6 @@ class Gateway:
         )
         return {name: tls.context for name, tls in built.items()}
 
-    @staticmethod
-    def _policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
-        rules = config.policies[listener.policy] if listener.policy is not None else None
-        read_only = listener.read_only or config.server.read_only
-        return Policy(rules, read_only, listener.tls, config.routes, config.server.refuse_functions)
-
     def _build_router(self) -> Router:
         routes = {
             unit: Target(self.buses[route.line], route.slave)
@@ -515,6 +508,72 @@ class Gateway:
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
         self.metrics.prepare_units((r.line, r.slave) for r in self.config.routes.values())
         return Router(routes, broadcast)
+
+
+def listener_policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
+    """What a listener's masters may do: its rules, read-only, and the gateway's refusals."""
+    rules = config.policies[listener.policy] if listener.policy is not None else None
+    read_only = listener.read_only or config.server.read_only
+    return Policy(rules, read_only, listener.tls, config.routes, config.server.refuse_functions)
+
+
+def log_listening(
+    servers: list[ModbusTcpServer], lines: int, metrics_address: tuple[str, int] | None
+) -> None:
+    """One line per listener (the CLI's tests and operators wait for it), then metrics."""
+    for server in servers:
+        host, port = server.sockets[0]
+        listener = server.listener
+        if listener.tls:
+            protocol = "Modbus/TCP Security"
+        elif listener.protocol == "rtu-over-tcp":
+            protocol = "RTU over TCP"
+        else:
+            protocol = "Modbus TCP"
+        log.info("listening on %s:%d (%s), listener %s, %d line(s)",
+                 host, port, protocol, listener.name, lines)  # fmt: skip
+    if metrics_address is not None:
+        mhost, mport = metrics_address
+        log.info("metrics on %s, status page on %s",
+                 http_url(mhost, mport, "/metrics"), http_url(mhost, mport))  # fmt: skip
+
+
+def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:
+    """Every line open: ready; noisy, shared and standing by are said, still ready (see the
+    health semantics in docs/observability.md)."""
+    down = [name for name, bus in buses.items() if not bus.up]
+    if down:
+        return False, "line(s) down: " + ", ".join(down)
+    noisy = [name for name, bus in buses.items() if bus.noisy]
+    shared = [name for name, bus in buses.items() if bus.shared]
+    notes = []
+    if noisy:
+        notes.append("noisy line(s), requests answered 0x0B: " + ", ".join(noisy))
+    if shared:
+        notes.append("shared line(s), another master heard: " + ", ".join(shared))
+    if pair is not None and pair.role.value == "standby":
+        notes.append("standby: requests are forwarded to the active peer")
+    return True, "; ".join(["ok", *notes])
+
+
+def build_pair(config: GatewayConfig, buses: dict[str, Bus], metrics: GatewayMetrics) -> Pair:
+    """One gateway of a pair: its role machine, its peer poller and its forwarder (imported
+    only by a paired gateway)."""
+    from .io.pair import Pair, reverse_routes
+    from .io.peer_forward import PeerForwarder
+
+    redundancy = config.redundancy
+    assert redundancy.peer_modbus is not None
+    routes = {unit: (route.line, route.slave) for unit, route in config.routes.items()}
+    # Longer than the active can take: its queue's longest wait, then two attempts at most.
+    waits = [line.max_queue_wait or 5.0 for line in config.lines]
+    timeout = max(waits) + 2 * max(line.max_timeout for line in config.lines)
+    listen = config.server.host
+    local_host = None if listen in ("0.0.0.0", "::", "") else listen
+    forwarder = PeerForwarder(*redundancy.peer_modbus, reverse_routes(routes),
+                              asyncio.get_running_loop(), timeout=timeout,
+                              local_host=local_host)  # fmt: skip
+    return Pair(redundancy, config.metrics, buses, forwarder, metrics)
 
 
 class _Signals:

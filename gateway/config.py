@@ -162,6 +162,27 @@ class AuditConfig:
     path: str | None = None
 
 
+#: How long the active's frame may take to be heard by its standby (``io.pair``).
+PAIR_HEARING_DELAY_S = 0.3
+
+
+@dataclass(frozen=True)
+class RedundancyConfig:
+    """An active/standby pair on one bus (``peer is None``: the gateway runs alone)."""
+
+    peer: tuple[str, int] | None = None
+    peer_modbus: tuple[str, int] | None = None
+    priority: int = 100
+    lease: float = 1.0
+    takeover_after: float = 1.5
+    #: ``None``: off; ``(0, 0)``: "auto"; else (slave address, holding register).
+    keepalive: tuple[int, int] | None = (0, 0)
+
+    @property
+    def paired(self) -> bool:
+        return self.peer is not None
+
+
 @dataclass(frozen=True)
 class CacheRule:
     """Reads of ``unit`` in a range, answered from a response at most ``max_age`` seconds old."""
@@ -337,6 +358,7 @@ class GatewayConfig:
     #: Keys written under a former name: one warning each, naming the new key.
     renamed: tuple[str, ...] = ()
     audit: AuditConfig = field(default_factory=AuditConfig)
+    redundancy: RedundancyConfig = field(default_factory=RedundancyConfig)
 
     def line(self, name: str) -> LineConfig:
         """The line called ``name``."""
@@ -1500,6 +1522,45 @@ def _build_audit(check: _Checker, raw: Mapping[str, Any]) -> AuditConfig:
     return AuditConfig(path)
 
 
+def _build_redundancy(check: _Checker, raw: Mapping[str, Any]) -> RedundancyConfig:
+    prefix = "redundancy."
+    table = check.entry(Table.REDUNDANCY, check.table(raw, "redundancy"), prefix)
+    values = _scalars(check, Table.REDUNDANCY, table, prefix, ("keepalive", "peer", "peer_modbus"))
+    for name in ("peer", "peer_modbus"):
+        if name in table:
+            key = schema.key(Table.REDUNDANCY, name)
+            values[name] = check.read(key, table, prefix, default="127.0.0.1:0")
+    keepalive = _keepalive(check, table.get("keepalive", "auto"), prefix)
+    config = RedundancyConfig(**values, keepalive=keepalive)
+    if config.peer is not None and config.peer_modbus is None:
+        check.fail(f"{prefix}peer_modbus", "set the peer's Modbus TCP listener, HOST:PORT, "
+                   "where a standby forwards its masters' requests")  # fmt: skip
+    if config.peer is None and config.peer_modbus is not None:
+        check.fail(f"{prefix}peer", "set the peer's HTTP endpoint, HOST:PORT, or remove "
+                   "peer_modbus: a pair needs both")  # fmt: skip
+    if config.takeover_after <= config.lease + PAIR_HEARING_DELAY_S:
+        check.fail(f"{prefix}takeover_after", f"must be longer than the lease plus "
+                   f"{PAIR_HEARING_DELAY_S:g} s ({config.lease + PAIR_HEARING_DELAY_S:g} s): "
+                   "the active's frames must reach the standby before its wait ends")  # fmt: skip
+    return config
+
+
+def _keepalive(check: _Checker, value: object, prefix: str) -> tuple[int, int] | None:
+    """``"auto"``, ``"off"`` or ``"SLAVE:REGISTER"``."""
+    if value == "off":
+        return None
+    if value == "auto":
+        return (0, 0)
+    if isinstance(value, str):
+        slave, _, register = value.partition(":")
+        digits = slave.isdigit() and register.isdigit()
+        if digits and 1 <= int(slave) <= 247 and 0 <= int(register) <= 65535:
+            return int(slave), int(register)
+    check.fail(f"{prefix}keepalive", 'write "auto", "off", or "SLAVE:REGISTER" with a slave '
+               'address 1..247 and a holding register 0..65535, like "1:0"')  # fmt: skip
+    return (0, 0)
+
+
 def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> GatewayConfig:
     """Validate raw tables into a ``GatewayConfig``; raise ``ConfigError`` listing every fault."""
     check = _Checker()
@@ -1508,6 +1569,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     metrics = _build_metrics(check, raw)
     log = _build_logging(check, raw)
     audit = _build_audit(check, raw)
+    redundancy = _build_redundancy(check, raw)
     lines_table = check.table(raw, "lines")
     lines = tuple(
         line
@@ -1528,7 +1590,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     if check.problems:
         raise ConfigError(source, check.problems)
     return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies,
-                         tuple(check.renamed), audit)  # fmt: skip
+                         tuple(check.renamed), audit, redundancy)  # fmt: skip
 
 
 def policy_warnings(config: GatewayConfig) -> list[str]:

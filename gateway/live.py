@@ -438,6 +438,7 @@ class StatusView:
             trace_dropped=self._metrics.trace_events_dropped(),
             time=round(time.time(), 3),
             functions=self._functions(),
+            pair=view.pair_status(),
         )
 
     def _units(self) -> dict[tuple[str, int], list[int]]:

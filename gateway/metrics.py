@@ -501,6 +501,23 @@ class GatewayMetrics:
             "function; role is one the rules name, none (NULL role or plain TCP) or other.",
             ["listener", "role", "function"], registry=r,
         )  # fmt: skip
+        self.redundancy_role = Gauge(
+            p + "redundancy_role",
+            "1 while this gateway is the active one of its pair (it transmits), 0 while it "
+            "stands by; 1 for a gateway without a pair.",
+            registry=r,
+        )  # fmt: skip
+        self.redundancy_role.set(1)
+        self.redundancy_takeovers = Counter(
+            p + "redundancy_takeovers",
+            "Times this gateway became the active one of its pair.",
+            registry=r,
+        )  # fmt: skip
+        self.redundancy_refused_frames = Counter(
+            p + "redundancy_refused_frames",
+            "Frames not written because this gateway held no valid lease at that instant.",
+            registry=r,
+        )  # fmt: skip
         self.audit_records_dropped = Counter(
             p + "audit_records_dropped",
             "Audit records lost: the audit queue was full (a slow file) or a write failed.",

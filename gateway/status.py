@@ -84,6 +84,17 @@ class MasterStatus:
 
 
 @dataclass(frozen=True, slots=True)
+class PairStatus:
+    """This gateway's place in an active/standby pair (docs/redundancy.md)."""
+
+    role: str  # "active" (it transmits) or "standby" (it listens and forwards)
+    lease_remaining: float  # seconds left of the active's lease; 0 while standby
+    priority: int
+    peer: str  # the peer's HTTP endpoint
+    peer_role: str | None  # what the peer's /role said last; None while unreachable
+
+
+@dataclass(frozen=True, slots=True)
 class GatewayStatus:
     """Everything ``GET /status`` reports."""
 
@@ -96,6 +107,7 @@ class GatewayStatus:
     trace_dropped: int = 0
     time: float = 0.0  # wall-clock seconds of the snapshot (``last_seen`` is relative to it)
     functions: tuple[str, ...] = ()  # function names masters have sent (trace filters)
+    pair: PairStatus | None = None  # None for a gateway without a pair
 
 
 class GatewayView(Protocol):
@@ -112,6 +124,9 @@ class GatewayView(Protocol):
 
     def listen(self) -> str:
         """``host:port`` of the first Modbus listener (empty before it listens)."""
+
+    def pair_status(self) -> PairStatus | None:
+        """This gateway's role in its pair, ``None`` without one."""
 
 
 def _plain(value: Any) -> Any:

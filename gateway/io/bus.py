@@ -39,6 +39,7 @@ from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock, wait_until
 from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
+from .line_role import LineRole
 from .link import Link, LinkError, TlsLink
 from .serial_port import SerialLink
 from .tally import LineTally, wall_clock
@@ -52,7 +53,7 @@ _OK = Outcome.OK  # a module global: read once per answer
 Request = LineRequest
 
 
-class Bus:
+class Bus(LineRole):
     """One RS485 line: the core that decides and the port it drives."""
 
     def __init__(
@@ -87,8 +88,7 @@ class Bus:
         self._port = LinePort(self, metrics, loop)
         self._stopping = False
         self._pumping = False
-        #: The line that replaced this one (``hand_over``): requests go there from now on.
-        self.successor: Bus | None = None
+        self._init_role()
         self._watch_wire = False  # ``hand_over`` waits for ``_wire_free``
         self._wire_free = asyncio.Event()
         # The core had nothing to do at the last pump. A bool, and futures made only while
@@ -214,8 +214,8 @@ class Bus:
         Always ``True``: the core answers at once what cannot be queued (0x0A line
         down or full, 0x06 the master's queue full, 0x0B isolated slave or noisy line).
         """
-        if self.successor is not None:  # reopened by a reload: routes may still name us
-            return self.successor.submit(request)
+        if self._redirect is not None:  # reopened by a reload, or standing by
+            return self._redirect(request)
         self._core.submit(request, time.monotonic())
         self._pump()
         return True
@@ -225,6 +225,8 @@ class Bus:
         if self.successor is not None:
             self.successor.cancel(master)
             return
+        if self.pair is not None:
+            self.pair.forwarder.cancel(master)
         self._core.cancel(master, time.monotonic())
         self._pump()
 
@@ -254,6 +256,9 @@ class Bus:
     def on_data(self, data: bytes) -> None:
         """Bytes read from the link."""
         self._heard_at = now = time.monotonic()
+        if self.pair is not None:
+            self.hear_paired(data, now)
+            return
         self._core.receive(data, now)
         self._pump()
 
@@ -339,10 +344,13 @@ class Bus:
                         waiter.set_result(None)
 
     def _transmit(self, transmits: list[Transmit]) -> None:
+        pair = self.pair
         for frame, _request, queue_wait, retry in transmits:  # unpacked: no field look-ups
             link = self._link
             if link is None or link.closed:
                 return  # the core has been told (port_lost) and answered 0x0A
+            if pair is not None and not pair.may_transmit():
+                continue  # no lease, no frame: the attempt times out into 0x0B
             if not retry:
                 self._m_queue_wait.observe(queue_wait)
             try:
@@ -415,7 +423,7 @@ class Bus:
             state=state,
             queued=self.queued,
             slaves=listed,
-            settings=self._settings(),
+            settings=line_settings(config),
             uart_errors=self.uart_errors(),
             not_heard=sum(1 for slave in listed if not slave.heard),
         )
@@ -436,21 +444,20 @@ class Bus:
             last_seen=wall_clock(tally.last_seen),
         )  # fmt: skip
 
-    def _settings(self) -> str:
-        """The line's settings as an operator reads them: ``rtu 9600 8E1, timeout 0.367 s``."""
-        config = self.config
-        timeout = (
-            f"timeout learned ({config.initial_timeout:g} s at first, "
-            f"{config.max_timeout:g} s at most)"
-            if config.learn_timeouts
-            else f"timeout {config.timeout:g} s"
-        )
-        if config.networked or config.is_url:
-            return f"{config.kind}, {timeout}"
-        parity = str(config.parity)[:1].upper()
-        stop = f"{config.stop_bits:g}"
-        form = f"{config.baudrate} {config.data_bits}{parity}{stop}"
-        return f"{config.kind} {form}, {timeout}"
+
+def line_settings(config: LineConfig) -> str:
+    """The line's settings as an operator reads them: ``rtu 9600 8E1, timeout 0.367 s``."""
+    timeout = (
+        f"timeout learned ({config.initial_timeout:g} s at first, {config.max_timeout:g} s at most)"
+        if config.learn_timeouts
+        else f"timeout {config.timeout:g} s"
+    )
+    if config.networked or config.is_url:
+        return f"{config.kind}, {timeout}"
+    parity = str(config.parity)[:1].upper()
+    stop = f"{config.stop_bits:g}"
+    form = f"{config.baudrate} {config.data_bits}{parity}{stop}"
+    return f"{config.kind} {form}, {timeout}"
 
 
 def _line_state(up: bool, noisy: bool, shared: bool) -> LineState:

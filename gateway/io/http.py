@@ -597,6 +597,19 @@ class HttpEndpoint:
         await respond(writer, 200, "text/plain", _INDEX, method)
 
 
+def role_route(answer: Callable[[], tuple[int, bytes]]) -> Route:
+    """``GET /role`` (``io.peer_role``): ``answer()`` gives its status and JSON body."""
+
+    async def role(
+        method: str, _target: str, _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+    ) -> None:  # fmt: skip
+        status, body = answer()
+        await respond(writer, status, "application/json", body, method)
+
+    return role
+
+
 async def start_http(
     config: MetricsConfig,
     registry: Collector,

@@ -47,6 +47,7 @@ import socket
 from collections import deque
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass, field
+from typing import cast
 
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode, FramingError, ResponseError
@@ -140,8 +141,13 @@ class PeerForwarder:
         *,
         timeout: float,
         max_pending: int = MAX_PENDING_PER_MASTER,
+        local_host: str | None = None,
     ) -> None:
         self.host = host
+        #: The source address of the connections (this gateway's listener address when it
+        #: is a specific one): the peer then knows them as this gateway's and, standing by
+        #: itself, never forwards them back.
+        self.local_addr = None if local_host is None else (local_host, 0)
         self.port = port
         self.units = dict(units)
         self.timeout = timeout
@@ -259,7 +265,9 @@ class _PeerLink(asyncio.Protocol):
         forwarder = self.forwarder
         try:
             await asyncio.wait_for(
-                self._loop.create_connection(lambda: self, forwarder.host, forwarder.port),
+                self._loop.create_connection(
+                    lambda: self, forwarder.host, forwarder.port, local_addr=forwarder.local_addr
+                ),
                 forwarder.timeout,
             )
         except (OSError, TimeoutError) as error:
@@ -271,7 +279,8 @@ class _PeerLink(asyncio.Protocol):
         self._connecting = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
+        # uvloop's TCP transport is not an ``asyncio.Transport`` subclass: a cast, no check.
+        transport = cast(asyncio.Transport, transport)
         if self.closed:  # cancelled while connecting
             transport.abort()
             return

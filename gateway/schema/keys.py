@@ -9,7 +9,7 @@ from ..core.line import MAX_IN_FLIGHT
 from .model import Flag, Key, Reload, Scope, Show, Table, Type
 
 _S, _LS, _M, _LG = Table.SERVER, Table.LISTENERS, Table.METRICS, Table.LOGGING
-_A = Table.AUDIT
+_A, _PAIR = Table.AUDIT, Table.REDUNDANCY
 _L, _C, _RT, _P, _R = Table.LINES, Table.CACHE, Table.ROUTES, Table.POLICIES, Table.RULES
 _LINE_KINDS = ("rtu", "ascii", "rtu-over-tcp", "tcp", "tls")
 _NETWORK = 'kind = "rtu-over-tcp", "tcp" or "tls"'
@@ -273,6 +273,41 @@ AUDIT = (
                   "denials, reloads, refused connections) to PATH; - for standard error")),
 )  # fmt: skip
 
+REDUNDANCY = (
+    Key(table=_PAIR, name="peer", type=Type.ADDRESS, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"192.0.2.12:9502"',
+        help="The other gateway's HTTP endpoint ([metrics] listen), polled for its role over "
+        "HTTPS when [metrics] tls_cert is set, with status_token when set. None: no pair.",
+        flag=Flag(name="--redundancy-peer", metavar="HOST:PORT",
+                  help="pair with the gateway whose HTTP endpoint is HOST:PORT")),
+    Key(table=_PAIR, name="peer_modbus", type=Type.ADDRESS, reload=Reload.RESTART,
+        show=Show.COMMENTED, example='"192.0.2.12:502"',
+        help="The other gateway's Modbus TCP listener: while standby, masters' requests are "
+        "forwarded there, one connection per master. Required with peer.",
+        flag=Flag(name="--redundancy-peer-modbus", metavar="HOST:PORT",
+                  help="the paired gateway's Modbus TCP listener, for forwarding")),
+    Key(table=_PAIR, name="priority", type=Type.INTEGER, default=100, low=0, high=255,
+        reload=Reload.RESTART,
+        help="Decides only between two gateways that start within one lease of each other "
+        "(higher first); a gateway that starts beside an active peer stays standby.",
+        flag=Flag(name="--redundancy-priority", metavar="N",
+                  help="the pair's priority, 0..255 (default 100; higher goes first)")),
+    Key(table=_PAIR, name="lease", type=Type.SECONDS, default=1.0, low=0.2, high=30.0,
+        reload=Reload.RESTART,
+        help="Seconds the active's claim lasts; it renews it while its evidence allows and "
+        "checks it before every frame it transmits."),
+    Key(table=_PAIR, name="takeover_after", type=Type.SECONDS, default=1.5, low=0.3, high=60.0,
+        reload=Reload.RESTART,
+        help="Seconds of a bus without master frames (besides an expired lease and a peer "
+        "not active) before the standby takes over; longer than the lease plus 0.3 s, the "
+        "time the active's frame may take to be heard."),
+    Key(table=_PAIR, name="keepalive", type=Type.TEXT, default="auto", reload=Reload.RESTART,
+        help='What the active reads when it has sent nothing for half a lease, so that the '
+        'standby hears it: "auto" (one holding register of a slave heard answering), '
+        '"SLAVE:REGISTER" (that holding register of that slave address, on every line) or '
+        '"off".'),
+)  # fmt: skip
+
 LINES = (
     Key(table=_L, name="kind", type=Type.CHOICE, default="rtu", choices=_LINE_KINDS,
         reload=Reload.REOPENS,
@@ -517,4 +552,7 @@ RULES = (
         help="What the rule grants: reads, writes, or both."),
 )  # fmt: skip
 
-KEYS = (*SERVER, *LISTENERS, *METRICS, *LOGGING, *AUDIT, *LINES, *CACHE, *ROUTES, *POLICIES, *RULES)
+KEYS = (
+    *SERVER, *LISTENERS, *METRICS, *LOGGING, *AUDIT, *REDUNDANCY,
+    *LINES, *CACHE, *ROUTES, *POLICIES, *RULES,
+)  # fmt: skip

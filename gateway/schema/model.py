@@ -14,6 +14,7 @@ class Table(enum.Enum):
     METRICS = "metrics"
     LOGGING = "logging"
     AUDIT = "audit"
+    REDUNDANCY = "redundancy"
     LINES = "lines"
     CACHE = "cache"
     ROUTES = "routes"
@@ -37,6 +38,7 @@ _HEADINGS = {
     Table.METRICS: "[metrics]",
     Table.LOGGING: "[logging]",
     Table.AUDIT: "[audit]",
+    Table.REDUNDANCY: "[redundancy]",
     Table.LINES: "[lines.NAME]",
     Table.CACHE: "[[lines.NAME.cache]]",
     Table.ROUTES: "[[routes]]",
@@ -49,6 +51,7 @@ _PREFIXES = {
     Table.METRICS: "metrics.",
     Table.LOGGING: "logging.",
     Table.AUDIT: "audit.",
+    Table.REDUNDANCY: "redundancy.",
     Table.LINES: "lines.NAME.",
     Table.CACHE: "lines.NAME.cache[N].",
     Table.ROUTES: "routes[N].",
@@ -57,7 +60,17 @@ _PREFIXES = {
 }
 
 #: The tables at the top of the file, in the order the parser reads them.
-TOP_LEVEL = ("server", "metrics", "logging", "audit", "lines", "routes", "listeners", "policies")
+TOP_LEVEL = (
+    "server",
+    "metrics",
+    "logging",
+    "audit",
+    "redundancy",
+    "lines",
+    "routes",
+    "listeners",
+    "policies",
+)
 
 
 class Type(enum.Enum):

@@ -32,6 +32,8 @@ _EXAMPLE_TABLES = (
     (Table.METRICS, "[metrics]", ""),
     (Table.LOGGING, "[logging]", ""),
     (Table.AUDIT, "[audit]", ""),
+    (Table.REDUNDANCY, "[redundancy]", "An active/standby pair on one bus (docs/redundancy.md); "
+     "without peer, the gateway runs alone."),
     (Table.LINES, "[lines.a]", 'One table per line. The name ("a") is used in logs, metrics '
      "and routes."),
     (Table.ROUTES, "", ""),
@@ -128,6 +130,8 @@ _REFERENCE_INTROS = {
     Table.LOGGING: "Log level and format.",
     Table.AUDIT: "The audit log: one hash-chained JSON line per write, denial, configuration "
     "change and refused connection (docs/audit.md).",
+    Table.REDUNDANCY: "Two gateways on one bus, one active at a time (docs/redundancy.md). "
+    "Without `peer` the gateway runs alone and is always active.",
     Table.LINES: "One table per line; the name is used in logs, metrics and routes.",
     Table.CACHE: "Read cache rules of a line (see `cache`).",
     Table.ROUTES: "Remapping: a TCP unit id to a slave address on a line.",

@@ -14,7 +14,7 @@ from gateway.core.outcome import Outcome
 from gateway.live import TraceFilter, TraceHub, TraceStream
 from gateway.logs import JsonFormatter
 from gateway.metrics import GatewayMetrics
-from gateway.status import LineStatus, MasterStatus
+from gateway.status import LineStatus, MasterStatus, PairStatus
 from gateway.trace import MAX_PENDING, FrameTrace, Tracer, parse_function, reply_outcome
 
 READ_10 = bytes.fromhex("03 0000 000A")
@@ -233,6 +233,9 @@ class NoGateway:
 
     def listen(self) -> str:
         return ""
+
+    def pair_status(self) -> PairStatus | None:
+        return None
 
 
 def test_the_live_hub_subscribes_while_a_stream_is_open() -> None:

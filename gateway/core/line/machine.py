@@ -354,6 +354,11 @@ class LineCore(Sending):
         self._paused = True
         self.service(now)
 
+    def resume(self, now: float) -> None:
+        """Send again after ``pause`` (a redundancy pair's standby became active)."""
+        self._paused = False
+        self.service(now)
+
     def stop(self, now: float) -> None:
         """Take no more requests; answer the queue 0x0A; the attempt on the wire finishes."""
         self._stopping = True

@@ -1,0 +1,133 @@
+"""The pair's network channel over real loopback: ``GET /role`` polled with the endpoint's
+token, over HTTPS with a test PKI; every failure is *unreachable*, never a role."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import ssl
+from collections.abc import Mapping
+from pathlib import Path
+
+import pytest
+from prometheus_client import CollectorRegistry
+
+from gateway.config import MetricsConfig
+from gateway.core.redundancy import Role
+from gateway.io.http import HttpEndpoint, respond, start_http
+from gateway.io.http_guard import Access
+from gateway.io.peer_role import PeerPoller, PeerRole, parse_role, peer_tls, role_body, split_answer
+from gateway.sim.pki import make_pki
+
+TOKEN = "a-long-random-pair-token"
+DEADLINE_S = 5.0
+
+
+async def role_route(
+    method: str, _target: str, _headers: Mapping[str, str],
+    _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+) -> None:  # fmt: skip
+    await respond(writer, 503, "application/json", role_body(Role.STANDBY, 0.0, 7, True), method)
+
+
+async def endpoint(config: MetricsConfig) -> HttpEndpoint:
+    routes = {"/role": (role_route, Access.STATUS)}
+    return await start_http(config, CollectorRegistry(), lambda: (True, "ok"), routes)
+
+
+async def poll_once(
+    address: tuple[str, int], token: str | None = TOKEN, tls: ssl.SSLContext | None = None
+) -> PeerRole | str:
+    """What one round of a poller hands on: the role, or why the peer is unreachable."""
+    found: asyncio.Future[PeerRole | str] = asyncio.get_running_loop().create_future()
+
+    def settle(result: PeerRole | str) -> None:
+        if not found.done():
+            found.set_result(result)
+
+    poller = PeerPoller(address, interval=0.05, timeout=1.0, on_role=settle,
+                        on_unreachable=settle, token=token, tls=tls)  # fmt: skip
+    poller.start()
+    try:
+        return await asyncio.wait_for(found, DEADLINE_S)
+    finally:
+        await poller.stop()
+
+
+def test_the_role_comes_over_https_with_the_token(tmp_path: Path) -> None:
+    pki = make_pki(tmp_path)
+    config = MetricsConfig(True, "127.0.0.1", 0, status_token=TOKEN,
+                           tls_cert=str(pki.server_chain), tls_key=str(pki.server_key))  # fmt: skip
+
+    async def scenario() -> None:
+        served = await endpoint(config)
+        try:
+            tls = peer_tls(str(pki.server_chain), str(pki.server_key), str(pki.ca))
+            got = await poll_once(served.address, tls=tls)
+            assert got == PeerRole(Role.STANDBY, 0.0, 7)
+            # Without the token the endpoint refuses: the peer is unreachable, not standby.
+            refused = await poll_once(served.address, token=None, tls=tls)
+            assert refused == "ValueError: HTTP 401"
+            # A peer whose certificate the pair's CA did not sign is not believed.
+            untrusted = peer_tls(str(pki.server_chain), str(pki.server_key), None)
+            assert "SSL" in str(await poll_once(served.address, tls=untrusted))
+        finally:
+            await served.close()
+
+    asyncio.run(scenario())
+
+
+def test_no_listener_and_a_stranger_are_unreachable() -> None:
+    async def scenario() -> None:
+        with socket.socket() as hole:  # a port nobody listens on
+            hole.bind(("127.0.0.1", 0))
+            address = hole.getsockname()[:2]
+        assert "ConnectionRefused" in str(await poll_once(address))
+
+        async def stranger(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            await reader.readuntil(b"\r\n\r\n")
+            writer.write(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}")
+            await writer.drain()
+            writer.close()
+
+        server = await asyncio.start_server(stranger, "127.0.0.1", 0)
+        try:
+            got = await poll_once(server.sockets[0].getsockname()[:2])
+            assert str(got).startswith("KeyError")  # a JSON object, but no role in it
+        finally:
+            server.close()
+            await server.wait_closed()
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize(
+    ("status", "body"),
+    [
+        (404, b'{"role": "active", "lease_remaining": 1, "priority": 1}'),
+        (200, b'{"role": "leader", "lease_remaining": 1, "priority": 1}'),
+        (200, b'{"role": "active", "lease_remaining": -1, "priority": 1}'),
+        (200, b'{"role": "active", "lease_remaining": true, "priority": 1}'),
+        (200, b'{"role": "active", "lease_remaining": 1, "priority": "high"}'),
+        (200, b"[1, 2]"),
+        (200, b"not json"),
+    ],
+)
+def test_anything_but_a_role_document_is_refused(status: int, body: bytes) -> None:
+    with pytest.raises((ValueError, KeyError)):
+        parse_role(status, body)
+
+
+def test_an_answer_without_the_end_of_its_head_is_refused() -> None:
+    with pytest.raises(ValueError):
+        split_answer(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n")
+    assert split_answer(b"HTTP/1.1 503 Service Unavailable\r\nA: b\r\n\r\n{}") == (
+        503, {"a": "b"}, b"{}",
+    )  # fmt: skip
+
+
+def test_the_role_document_carries_both_leases() -> None:
+    body = role_body(Role.ACTIVE, 1.0, 5, True, 0.7509)
+    assert parse_role(200, body) == PeerRole(Role.ACTIVE, 1.0, 5, 0.75)  # rounded down
+    older = b'{"role": "standby", "lease_remaining": 0, "priority": 5}'  # no acknowledgement
+    assert parse_role(503, older) == PeerRole(Role.STANDBY, 0.0, 5, 0.0)
