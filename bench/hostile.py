@@ -73,11 +73,12 @@ def connect(port: int, source: str = "127.0.0.1", timeout: float = 5.0) -> socke
 
 def read_reply(sock: socket.socket) -> bytes:
     """One reply's PDU (blocking)."""
-    header = _read(sock, 7)
-    return _read(sock, struct.unpack(">H", header[4:6])[0] - 1)
+    header = read_exactly(sock, 7)
+    return read_exactly(sock, struct.unpack(">H", header[4:6])[0] - 1)
 
 
-def _read(sock: socket.socket, count: int) -> bytes:
+def read_exactly(sock: socket.socket, count: int) -> bytes:
+    """``count`` bytes from a blocking socket (``ConnectionError`` when it closes first)."""
     data = b""
     while len(data) < count:
         chunk = sock.recv(count - len(data))

@@ -25,12 +25,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from gateway.sim import plc
 from gateway.sim.multidrop import MultidropBus
+
+from .hostile import read_exactly
 
 BAUDRATE = 9600
 UNITS = (1, 2)
@@ -322,19 +323,9 @@ class Poller:
 
 
 def _read_answer(sock: socket.socket) -> tuple[int, bytes]:
-    head = _read_exactly(sock, 7)
+    head = read_exactly(sock, 7)
     tid, _protocol, length, _unit = struct.unpack(">HHHB", head)
-    return tid, _read_exactly(sock, length - 1)
-
-
-def _read_exactly(sock: socket.socket, count: int) -> bytes:
-    data = b""
-    while len(data) < count:
-        chunk = sock.recv(count - len(data))
-        if not chunk:
-            raise ConnectionError("closed")
-        data += chunk
-    return data
+    return tid, read_exactly(sock, length - 1)
 
 
 class PairLab:
@@ -413,13 +404,4 @@ class PairLab:
         self.bus.close()
 
 
-@contextlib.contextmanager
-def pair_lab(workdir: Path) -> Iterator[PairLab]:
-    lab = PairLab(workdir)
-    try:
-        yield lab
-    finally:
-        lab.close()
-
-
-__all__ = ["PLC_10", "GatewayProc", "PairLab", "Poller", "Proxy", "Tally", "pair_lab"]
+__all__ = ["PLC_10", "GatewayProc", "PairLab", "Poller", "Proxy", "Tally"]
