@@ -431,6 +431,9 @@ class Gateway:
         if (config.metrics, config.logging) != (running.metrics, running.logging):
             log.warning("reload: [metrics] and [logging] changes need a restart; keeping them")
             config = replace(config, metrics=running.metrics, logging=running.logging)
+        if config.redundancy != running.redundancy:
+            log.warning("reload: [redundancy] changes need a restart; keeping them")
+            config = replace(config, redundancy=running.redundancy)
         return config
 
     def _apply_listeners(

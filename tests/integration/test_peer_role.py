@@ -4,19 +4,22 @@ token, over HTTPS with a test PKI; every failure is *unreachable*, never a role.
 from __future__ import annotations
 
 import asyncio
+import logging
 import socket
 import ssl
 from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
+from conftest import GatewayFactory, SimFactory
 from prometheus_client import CollectorRegistry
 
-from gateway.config import MetricsConfig
+from gateway.config import MetricsConfig, build_config
 from gateway.core.redundancy import Role
 from gateway.io.http import HttpEndpoint, respond, start_http
 from gateway.io.http_guard import Access
 from gateway.io.peer_role import PeerPoller, PeerRole, parse_role, peer_tls, role_body, split_answer
+from gateway.sim import plc
 from gateway.sim.pki import make_pki
 
 TOKEN = "a-long-random-pair-token"
@@ -131,3 +134,18 @@ def test_the_role_document_carries_both_leases() -> None:
     assert parse_role(200, body) == PeerRole(Role.ACTIVE, 1.0, 5, 0.75)  # rounded down
     older = b'{"role": "standby", "lease_remaining": 0, "priority": 5}'  # no acknowledgement
     assert parse_role(503, older) == PeerRole(Role.STANDBY, 0.0, 5, 0.0)
+
+
+def test_a_reload_keeps_the_pair_settings_it_started_with(
+    make_sim: SimFactory, make_gateway: GatewayFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Pairing, or changing a pair, needs a restart: a reload warns and keeps what runs."""
+    sim = make_sim({1: plc(1)})
+    raw = {"lines": {"a": {"device": sim.path, "units": [1]}}}
+    gateway = make_gateway(raw)
+    paired = {**raw, "redundancy": {"peer": "127.0.0.1:1", "peer_modbus": "127.0.0.1:2"}}
+    with caplog.at_level(logging.WARNING, logger="gateway"):
+        gateway.run(gateway.gateway.reload(build_config(paired, "<test>")))
+    assert "[redundancy] changes need a restart" in caplog.text
+    assert not gateway.call(lambda: gateway.gateway.config.redundancy.paired)
+    assert gateway.call(lambda: gateway.gateway.pair) is None
