@@ -172,7 +172,10 @@ class Pair:
         self._apply()
 
     def frame_heard(self) -> None:
+        """A line heard bytes: the bus is busy (a lapsed lease may show here first)."""
         self.machine.frame_heard(self._clock())
+        if self.machine.changes:
+            self._apply()
 
     def _peer_role(self, peer: PeerRole) -> None:
         self._peer = peer
