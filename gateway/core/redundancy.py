@@ -43,8 +43,11 @@ from enum import StrEnum
 from typing import Final
 
 NEVER: Final = float("-inf")
-#: Rounds of the tie-break by priority bits when the peer's priority is unknown.
-_PRIORITY_BITS: Final = 32
+#: The bits of a priority (0..255), and of the random tie-break (``Contest``).
+_PRIORITY_BITS: Final = 8
+_TIEBREAK_BITS: Final = 32
+_TIEBREAK_MASK: Final = (1 << _TIEBREAK_BITS) - 1
+_KEY_BITS: Final = _PRIORITY_BITS + _TIEBREAK_BITS
 
 
 class Role(StrEnum):
@@ -182,23 +185,30 @@ class PeerView:
 class Contest:
     """The re-arbitration back-off: who waits longer after two masters met.
 
-    With the peer's priority known, the lower waits a lease more (rank 1). Unknown (the
-    network down), contest ``n`` ranks by bit ``n - 1`` of the own priority: two distinct
-    priorities differ in some bit, so a round comes where exactly one waits longer.
+    With the peer's priority known and different, the lower waits a lease more (rank 1).
+    Known and equal, contest ``n`` ranks by bit ``n - 1`` of ``tiebreak``, a number each
+    gateway draws at random: two draws differ in some bit, so a round comes where exactly
+    one waits longer (about two rounds on average). Unknown (the network down), by the bits
+    of the priority first (distinct priorities differ in one of their 8 bits), then by
+    those of ``tiebreak``.
     """
 
-    def __init__(self, priority: int) -> None:
+    def __init__(self, priority: int, tiebreak: int = 0) -> None:
         self.priority = priority
+        self.tiebreak = tiebreak & _TIEBREAK_MASK
         self.count = 0
 
     def rank(self, peer_priority: int | None) -> int:
         """0 for the one that goes first, 1 for the one that waits a lease more."""
-        if peer_priority is not None:
+        if peer_priority is not None and peer_priority != self.priority:
             return 1 if peer_priority > self.priority else 0
         if self.count == 0:
             return 0
-        bit = (self.priority >> ((self.count - 1) % _PRIORITY_BITS)) & 1
-        return 1 - bit
+        if peer_priority is None:
+            key, bits = self.priority | self.tiebreak << _PRIORITY_BITS, _KEY_BITS
+        else:
+            key, bits = self.tiebreak, _TIEBREAK_BITS
+        return 1 - ((key >> ((self.count - 1) % bits)) & 1)
 
 
 class RoleMachine:
@@ -217,12 +227,13 @@ class RoleMachine:
         takeover_after: float = 1.5,
         hearing_delay: float = 0.3,
         keepalive: bool = True,
+        tiebreak: int = 0,
     ) -> None:
         self.timing = RoleTiming(lease, takeover_after, hearing_delay, keepalive)
         self.priority = priority
         self._role = Role.STANDBY
         self.peer = PeerView()
-        self.contest = Contest(priority)
+        self.contest = Contest(priority, tiebreak)
         #: Role changes not yet drained by the shell, oldest first.
         self.changes: list[RoleChange] = []
         self._last_input = start

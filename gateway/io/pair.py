@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import secrets
 import struct
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -80,6 +81,7 @@ class Pair:
             config.priority, start=clock(), lease=config.lease,
             takeover_after=config.takeover_after, hearing_delay=HEARING_DELAY_S,
             keepalive=config.keepalive is not None,
+            tiebreak=secrets.randbits(32),  # separates equal priorities (``Contest``)
         )  # fmt: skip
         self.buses = buses
         self.forwarder = forwarder
@@ -92,6 +94,7 @@ class Pair:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._applied: Role | None = None
         self._peer: PeerRole | None = None  # the peer's last /role, None while unreachable
+        self._warned_equal = False
         self.poller = PeerPoller(
             config.peer,
             interval=config.lease / 4,
@@ -178,6 +181,13 @@ class Pair:
             self._apply()
 
     def _peer_role(self, peer: PeerRole) -> None:
+        if peer.priority == self.config.priority and not self._warned_equal:
+            self._warned_equal = True
+            log.warning(
+                "pair: the peer has this gateway's priority (%d): started together, they "
+                "take over together once before a random draw separates them; give them "
+                "different [redundancy] priority values", peer.priority,
+            )  # fmt: skip
         self._peer = peer
         self.machine.peer_report(self._clock(), peer.role, peer.lease_remaining, peer.priority,
                                  peer.peer_lease_remaining, peer.asked_at)  # fmt: skip

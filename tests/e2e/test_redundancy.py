@@ -238,3 +238,18 @@ def test_a_slow_slave_on_the_active_line_causes_no_failover(lab: PairLab) -> Non
     for gateway, start in zip((active, standby), mark, strict=True):
         changes = [line for line in gateway.lines[start:] if "pair: now" in line]
         assert changes == [], changes
+
+
+def test_equal_priorities_are_warned_about_and_still_end_with_one_active(lab: PairLab) -> None:
+    a, b = lab.gateway("a"), lab.gateway("b")
+    lab.configure(a, b, priority=100)
+    lab.configure(b, a, priority=100)
+    a.start()
+    b.start()
+    active, standby = active_and_standby(lab, a, b)
+    for gateway in (a, b):
+        gateway.wait_for(r"WARNING .*the peer has this gateway's priority \(100\)")
+    since = time.monotonic()
+    lab.bus.wait_for(lambda s: len(s.frames_of(active.name)) >= 8, timeout=15.0)
+    assert writers(lab, since) == {active.name}
+    assert standby.role() == "standby"

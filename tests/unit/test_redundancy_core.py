@@ -280,6 +280,52 @@ def test_with_no_priority_known_contests_rank_by_the_bits_of_the_priority() -> N
     assert (one.rank(2), two.rank(1)) == (1, 0)  # a known priority decides
 
 
+def test_equal_priorities_separate_by_their_random_tiebreaks() -> None:
+    one, two = Contest(5, tiebreak=0b0110), Contest(5, tiebreak=0b0101)
+    assert (one.rank(5), two.rank(5)) == (0, 0)  # the first meeting: nobody knows to wait
+    one.count = two.count = 1
+    assert (one.rank(5), two.rank(5)) == (1, 0)  # bit 0 of the draws differs
+    one.count = two.count = 2
+    assert (one.rank(5), two.rank(5)) == (0, 1)  # bit 1
+    # The peer's priority unknown: the priority's 8 bits first, then the draw's.
+    one.count = two.count = 9
+    assert (one.rank(None), two.rank(None)) == (1, 0)
+
+
+def _equal_pair(tiebreaks: tuple[int, int], until: float) -> tuple[RoleMachine, RoleMachine]:
+    """Two gateways of priority 7 started together on a fine network; each frame reaches
+    the other 0.1 s after it is sent (a 30-character frame at 9600 baud)."""
+    a = RoleMachine(7, start=0.0, tiebreak=tiebreaks[0])
+    b = RoleMachine(7, start=0.0, tiebreak=tiebreaks[1])
+    in_flight: list[tuple[float, RoleMachine]] = []  # (heard at, by whom)
+    for now in _times(0.05, until, 0.05):
+        for at, hearer in [item for item in in_flight if item[0] <= now]:
+            in_flight.remove((at, hearer))
+            hearer.master_frame_heard(now)
+        # The two run at once: each answers as it stood before hearing the other.
+        reports = ((a, b.report(now)), (b, a.report(now)))
+        for asking, report in reports:
+            asking.peer_report(now, report.role, report.lease_remaining, report.priority,
+                               report.peer_lease_remaining, asked_at=now)  # fmt: skip
+        for machine in (a, b):
+            machine.tick(now)
+        for sender, hearer in ((a, b), (b, a)):
+            if sender.keepalive_due(now) and sender.may_transmit(now):
+                sender.transmitted(now)
+                in_flight.append((now + 0.1, hearer))
+    return a, b
+
+
+def test_two_gateways_of_equal_priority_started_together_end_with_one_active() -> None:
+    """Both take over at the same instant and hear each other's keep-alive: both step
+    down. Equal priorities used to rank them equal in every contest after that, so they
+    took over together again and again; their random draws now decide the second round."""
+    a, b = _equal_pair((0x1234, 0x4321), 12.0)
+    assert sorted([a.role, b.role]) == [Role.ACTIVE, Role.STANDBY]
+    takeovers = [c.at for c in a.changes + b.changes if c.role is Role.ACTIVE]
+    assert len(takeovers) == 3 and max(takeovers) < 6.0, takeovers  # 2 together, 1 alone
+
+
 def test_a_frozen_active_may_not_transmit_on_the_first_call_after_the_jump() -> None:
     machine = _active_lone()
     _run(machine, 1.75, 3.0, _unreachable)
