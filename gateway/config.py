@@ -1085,7 +1085,48 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             "one. A cap of 16 refuses SCADA and OPC servers that open one connection per "
             "device; delete the line unless you mean to cap each address"
         )
+    return warnings + _pair_warnings(config)
+
+
+def _pair_warnings(config: GatewayConfig) -> list[str]:
+    """A pair whose gateways cannot reach each other, or that names its peer by name."""
+    pair = config.redundancy
+    if pair.peer is None:
+        return []
+    warnings: list[str] = []
+    remote = not _loopback(pair.peer[0])
+    if remote and _loopback(config.metrics.host):
+        warnings.append(
+            f"metrics.listen: {config.metrics.host} is a loopback address: the peer at "
+            f"{pair.peer[0]} cannot poll this gateway's /role; listen on an address it "
+            "reaches"
+        )
+    if remote and _loopback(config.server.host):
+        warnings.append(
+            f"server.listen: {config.server.host} is a loopback address: the peer cannot "
+            "forward its masters' requests here while it stands by; listen on an address it "
+            "reaches"
+        )
+    for key, (host, _) in (("peer", pair.peer), ("peer_modbus", pair.peer_modbus or pair.peer)):
+        try:
+            ipaddress.ip_address(host)
+        except ValueError:
+            warnings.append(
+                f"redundancy.{key}: {host} is a name: write the peer's IP address (a standby "
+                "refuses to forward requests that come from its peer's address, which it "
+                "compares as written)"
+            )
     return warnings
+
+
+def _loopback(host: str) -> bool:
+    """``host`` is a loopback address or name (``localhost``)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _networks(
@@ -1570,6 +1611,9 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     log = _build_logging(check, raw)
     audit = _build_audit(check, raw)
     redundancy = _build_redundancy(check, raw)
+    if redundancy.paired and not metrics.enabled:
+        check.fail("metrics.listen", "a redundancy pair polls each other's HTTP endpoint "
+                   "(GET /role): set it to an address the peer reaches, not off")  # fmt: skip
     lines_table = check.table(raw, "lines")
     lines = tuple(
         line

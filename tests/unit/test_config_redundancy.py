@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 
 from gateway.cli import apply_overrides, build_parser
-from gateway.config import ConfigError, RedundancyConfig, build_config
+from gateway.config import ConfigError, RedundancyConfig, build_config, config_warnings
 
 LINE = {"a": {"device": "/dev/ttyUSB0", "units": [1]}}
 
@@ -74,3 +74,25 @@ def test_the_flags_set_the_pair() -> None:
     assert (pair.peer, pair.peer_modbus, pair.priority) == (
         ("10.0.0.2", 9502), ("10.0.0.2", 502), 150,
     )  # fmt: skip
+
+
+def test_a_pair_needs_the_http_endpoint() -> None:
+    raw = {"lines": LINE, "metrics": {"listen": "off"},
+           "redundancy": {"peer": "192.0.2.12:9502", "peer_modbus": "192.0.2.12:502"}}  # fmt: skip
+    found = problems(raw)
+    assert any(p.startswith("metrics.listen") and "GET /role" in p for p in found), found
+
+
+def test_a_pair_that_cannot_reach_itself_is_warned_about() -> None:
+    raw = {"lines": LINE, "redundancy": {"peer": "plc-gw-2:9502", "peer_modbus": "192.0.2.12:502"},
+           "server": {"listen": "127.0.0.1:502"}}  # fmt: skip
+    warnings = config_warnings(build_config(raw))
+    # [metrics] listen defaults to 127.0.0.1:9502: the peer cannot poll it.
+    assert any(w.startswith("metrics.listen: 127.0.0.1 is a loopback") for w in warnings)
+    assert any(w.startswith("server.listen: 127.0.0.1 is a loopback") for w in warnings)
+    assert any(w.startswith("redundancy.peer: plc-gw-2 is a name") for w in warnings)
+    assert not any(w.startswith("redundancy.peer_modbus") for w in warnings)
+    pair = {"peer": "192.0.2.12:9502", "peer_modbus": "192.0.2.12:502"}
+    reachable = {"lines": LINE, "metrics": {"listen": "0.0.0.0:9502"}, "redundancy": pair}
+    warned = config_warnings(build_config(reachable))
+    assert not [w for w in warned if "redundancy" in w or "loopback" in w], warned
