@@ -210,6 +210,9 @@ class AttemptEnds:
         slave = request.slave
         if self.wire.on_wire_to(slave) or not self.timing.first_contact(slave):
             return False
+        master = self.queue.masters.get(request.master)
+        if master is not None and any(other.slave == slave for other in master.queue):
+            return False  # behind its master's earlier requests to that slave, in order
         if slave in self.lane.requests:
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return True

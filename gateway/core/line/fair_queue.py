@@ -220,7 +220,9 @@ class FairQueue:
         self, unheard: Callable[[int], bool], skip: Container[int]
     ) -> list[LineRequest]:
         """Take from the queues the oldest request for each slave ``unheard`` names and
-        ``skip`` does not (the caller puts them in the lane), oldest first."""
+        ``skip`` does not (the caller puts them in the lane), oldest first. A request its
+        master has sent more requests to that slave after stays queued: moved to the lane,
+        it would be passed by them (a read before the write it follows, or the reverse)."""
         found: list[tuple[Master, LineRequest]] = []
         for master in self.masters.values():
             for request in master.queue:
@@ -233,11 +235,19 @@ class FairQueue:
             if request.slave in slaves:
                 continue
             slaves.add(request.slave)
+            if self.followed(master, request):
+                continue
             master.queue.remove(request)
             self.dequeued(master, request)
             self.reschedule(master)
             taken.append(request)
         return taken
+
+    @staticmethod
+    def followed(master: Master, request: LineRequest) -> bool:
+        """``master`` has another request queued for ``request``'s slave."""
+        slave = request.slave
+        return any(other.slave == slave and other is not request for other in master.queue)
 
     def overdue(self, queued_before: float) -> list[LineRequest]:
         """Take from the queues every request still unsent that was queued before
