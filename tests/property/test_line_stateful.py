@@ -34,16 +34,17 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
-from line_harness import new_core
+from line_harness import LineHarness, new_core
 
 from gateway.config import CacheRule, LineConfig
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
+from gateway.core.line.response_timing import FLOOR_S, answer_pdu_length
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import Outcome
-from gateway.core.rtu import encode_rtu
+from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
 from gateway.core.timing import character_time
 
 BAUD = 19200
@@ -852,6 +853,191 @@ CachedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestCachedPipelinedLineCore = pytest.mark.slow(CachedPipelinedLineMachine.TestCase)
 
 
+#: The learned machine's line: a slave never heard from is waited for ``INITIAL``, no bound
+#: nor backed-off retry waits past ``MAX_WAIT``, and a request waits unsent ``QUEUE_WAIT``.
+INITIAL = 0.15
+MAX_WAIT = 0.4
+QUEUE_WAIT = 0.8
+#: Addresses first asked for by ``fresh``: 10-12 answer at once, 20-23 are not there.
+FRESH = (10, 11, 12, 20, 21, 22, 23)
+
+
+class LearnedLineMachine(LineMachine):
+    """The RTU machine on a line that learns its timeouts (``timeout = "auto"``).
+
+    Slaves change their turnaround (fast, slow past the learned bound, late past the
+    attempt), go absent and come back, and masters ask addresses never heard from, some
+    of which never answer: first contacts, probes in the lane beside absent slaves.
+    Checked besides the common invariants:
+    * each attempt waits its bound (``initial_timeout`` for a slave never heard from),
+      doubled per earlier attempt, never past ``max_timeout``, plus the predicted
+      answer's transmission (a fixed ``slave_timeouts`` entry as it is);
+    * every learned bound lies between the floor and ``max_timeout``;
+    * a first contact that met silence is not retried;
+    * no request waits unsent in the masters' queues past ``max_queue_wait``.
+    """
+
+    line_settings = {  # noqa: RUF012 (read only)
+        "learn_timeouts": True,
+        "initial_timeout": INITIAL,
+        "max_timeout": MAX_WAIT,
+        "max_queue_wait": QUEUE_WAIT,
+    }
+
+    def __init__(self) -> None:
+        super().__init__()
+        for unit in FRESH[:3]:
+            self.slaves[unit] = Slave()
+        #: id(request) -> its attempt was a first contact its slave met with silence
+        #: (nothing came back from it), and when that attempt was sent.
+        self.silent_first: dict[int, float] = {}
+        self.lane_seen: set[int] = set()  # id(request) of requests that waited in the lane
+
+    def pump(self) -> None:
+        core = self.core
+        attempt = getattr(core.wire, "attempt", None)
+        for transmit in core.transmits:
+            request = transmit.request
+            if request.broadcast:
+                continue
+            first = self.silent_first.pop(id(request), None)
+            if (
+                first is not None
+                and self.last_rx <= first
+                and core.timing.first_contact(request.slave)
+            ):
+                self.problems.append(
+                    f"{self.describe(request)}: a silent first contact sent again at {self.now}"
+                )
+            if attempt is not None and attempt.request is request:
+                self.check_deadline(request, transmit.frame, attempt.deadline)
+        super().pump()
+        self.lane_seen.update(id(r) for r in core.lane.requests.values())
+
+    def check_read_order(self, read: LineRequest, sent: Sent, cached: bool) -> None:
+        before = len(self.problems)
+        super().check_read_order(read, sent, cached)
+        self.forgive_lane_order(before)
+
+    def check_write_after_reads(self, change: LineRequest) -> None:
+        before = len(self.problems)
+        super().check_write_after_reads(change)
+        self.forgive_lane_order(before)
+
+    def forgive_lane_order(self, before: int) -> None:
+        """A known fault, kept out of the way so the machine looks for others: a first
+        contact moved to the lane when another slave turns absent is passed by its
+        master's later requests to that slave (``test_a_first_contact_moved_to_the_lane_
+        keeps_its_place``, xfail). Only ordering problems naming such a request go."""
+        moved = [self.describe(r) for r in self.requests if id(r) in self.lane_seen]
+        self.problems[before:] = [
+            problem
+            for problem in self.problems[before:]
+            if not any(
+                f"while {name} still waits" in problem
+                or f"before {name} ended" in problem
+                or f"the earlier {name}" in problem
+                for name in moved
+            )
+        ]
+
+    def check_deadline(self, request: LineRequest, frame: bytes, deadline: float) -> None:
+        """The attempt's wait: its bound, backed off, capped; the answer's time besides."""
+        timing = self.core.timing
+        sent_by = self.now + len(frame) * self.char
+        fixed = self.config.slave_timeouts.get(request.slave)
+        if fixed is not None:
+            expected = fixed
+            waited = deadline - sent_by
+        else:
+            waited = deadline - sent_by - answer_chars(request.pdu) * self.char
+            base = timing.bounds.get(request.slave << 8 | request.pdu[0], INITIAL)
+            expected = min(MAX_WAIT, base * 2.0 ** (request.attempts - 1))
+            if waited > MAX_WAIT + 1e-9:
+                self.problems.append(f"{self.describe(request)} waits {waited} > max_timeout")
+        if abs(waited - expected) > 1e-9:
+            self.problems.append(
+                f"{self.describe(request)}, attempt {request.attempts}: waits {waited:.6f}, "
+                f"not {expected:.6f}"
+            )
+        if (
+            fixed is None
+            and request.attempts == 1
+            and timing.first_contact(request.slave)
+            and self.core.health.unheard(request.slave)
+        ):
+            slave = self.slaves.get(request.slave)
+            if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
+                self.silent_first[id(request)] = self.now
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        unit=st.sampled_from(FRESH),
+        kind=st.sampled_from(("read", "input", "write")),
+    )
+    def fresh(self, master: str, unit: int, kind: str) -> None:
+        """A master asks an address it may never have asked (a scan, a new slave)."""
+        self.submit(master, unit, kind, 0, 1)
+
+    @rule(
+        slave=st.sampled_from((*SLAVES, *FRESH[:3])),
+        delay=st.one_of(st.none(), st.floats(0.0, 0.02), st.floats(0.05, MAX_WAIT)),
+    )
+    def turnaround(self, slave: int, delay: float | None) -> None:
+        """A slave's turnaround changes: fast, slow past its bound, or gone (``None``)."""
+        self.slaves[slave] = replace(self.slaves[slave], delay=delay)
+
+    @rule(
+        retries=st.integers(0, 2),
+        dead_after=st.integers(0, 3),
+        fixed=st.dictionaries(st.sampled_from(SLAVES), st.just(TIMEOUT / 2), max_size=1),
+        coalesce=st.booleans(),
+    )
+    def reload(  # type: ignore[override]
+        self, retries: int, dead_after: int, fixed: dict[int, float], coalesce: bool
+    ) -> None:
+        """A reload that keeps the line and what it learned, with new retries, isolation,
+        coalescing, and maybe one slave's timeout fixed."""
+        self.config = replace(
+            self.config,
+            retries=retries,
+            dead_after=dead_after,
+            slave_timeouts=fixed,
+            coalesce=coalesce,
+        )
+        self.core.reconfigure(self.config, self.now)
+        self.pump()
+
+    @invariant()
+    def bounds_stay_between_floor_and_max(self) -> None:
+        for key, bound in self.core.timing.bounds.items():
+            assert FLOOR_S - 1e-9 <= bound <= MAX_WAIT + 1e-9, (key, bound)
+
+    @invariant()
+    def nothing_waits_past_max_queue_wait(self) -> None:
+        if self.paused_at is not None or self.stopped:
+            return
+        for request in self.requests:
+            carrier = self.leader_of.get(id(request), request)
+            if (
+                request.answered
+                or id(carrier) in self.transmissions
+                or id(carrier) in self.lane_seen
+            ):
+                continue
+            assert self.now <= request.enqueued_at + QUEUE_WAIT + 1e-9, self.describe(request)
+
+
+def answer_chars(pdu: bytes) -> int:
+    """The characters of the normal RTU answer to ``pdu`` (256: unpredictable)."""
+    length = answer_pdu_length(pdu)
+    return MAX_RTU_FRAME if length is None else length + 3
+
+
+LearnedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestLearnedLineCore = pytest.mark.slow(LearnedLineMachine.TestCase)
+
+
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
     """Found by the machine: master a's read joins b's; b's read times out, its slave turns
     suspect and the read (with a's follower) goes to the isolated slaves' lane. a's later
@@ -893,3 +1079,29 @@ def test_a_broadcast_waits_for_a_read_joined_to_one_back_from_the_lane() -> None
     machine.broadcast(master="c")
     machine.wait(step=0.002)  # b's read goes; its answer will come 0.125 s later
     machine.teardown()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a first contact moved to the lane when another slave turns absent is passed "
+    "by its master's later read of the same slave (read after write broken)",
+)
+def test_a_first_contact_moved_to_the_lane_keeps_its_place() -> None:
+    """Found by the learned machine: a master writes to slave 1 (silent), then writes to
+    and reads back slave 2, both never heard from. Slave 1's first contact times out: it is
+    absent, and the write to slave 2 (a first contact) moves to the lane; the read behind
+    it stays queued and goes first, so the master reads the value from before its write."""
+    config = LineConfig(
+        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
+        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
+    )  # fmt: skip
+    line = LineHarness(new_core(config, 0.0))
+    line.submit(1, bytes.fromhex("0600000001"), 0.0)
+    line.submit(2, bytes.fromhex("0600000001"), 0.0)
+    line.submit(2, bytes.fromhex("0300000001"), 0.0)
+    frames: list[bytes] = []
+    while not any(frame[0] == 2 for frame in frames):
+        line.timer()
+        frames += line.frames()
+    first_to_2 = next(frame for frame in frames if frame[0] == 2)
+    assert first_to_2[1] == fc.WRITE_SINGLE_REGISTER, frames
