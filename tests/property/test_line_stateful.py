@@ -43,7 +43,7 @@ from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.response_timing import FLOOR_S, answer_pdu_length
 from gateway.core.mbap import encode_mbap
-from gateway.core.outcome import Outcome
+from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
 from gateway.core.timing import character_time
 
@@ -886,17 +886,35 @@ class LearnedLineMachine(LineMachine):
 
     def __init__(self) -> None:
         super().__init__()
+        # Two retries: the third attempt of a request heard before backs off into the cap.
+        self.config = replace(self.config, retries=2)
+        self.core.reconfigure(self.config, 0.0)
         for unit in FRESH[:3]:
             self.slaves[unit] = Slave()
         #: id(request) -> its attempt was a first contact its slave met with silence
         #: (nothing came back from it), and when that attempt was sent.
         self.silent_first: dict[int, float] = {}
         self.lane_seen: set[int] = set()  # id(request) of requests that waited in the lane
+        #: The attempt on the wire when it is a first contact its slave will not answer.
+        self.pending_first: tuple[LineRequest, float] | None = None
+        #: slave -> (every, turnaround): 3 is slow on one request in 3 (past the cap once
+        #: learned); 4 answers past ``initial_timeout`` (its first answer comes late), 7 never.
+        self.slow: dict[int, tuple[int, float]] = {3: (3, 0.3)}
+        self.slaves[4].delay = 0.2
+        self.heard_count: dict[int, int] = {}  # slave -> requests it heard
 
     def pump(self) -> None:
         core = self.core
+        self.lane_seen.update(id(r) for r in core.lane.requests.values())
         attempt = getattr(core.wire, "attempt", None)
+        pending = self.pending_first
+        if pending is not None and any(
+            note.event is LineEvent.TIMEOUT and note.slave == pending[0].slave
+            for note in core.notes
+        ):  # the first contact timed out (not cut short by a lost port or a reopening)
+            self.silent_first[id(pending[0])] = pending[1]
         for transmit in core.transmits:
+            self.pending_first = None
             request = transmit.request
             if request.broadcast:
                 continue
@@ -968,7 +986,7 @@ class LearnedLineMachine(LineMachine):
         ):
             slave = self.slaves.get(request.slave)
             if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
-                self.silent_first[id(request)] = self.now
+                self.pending_first = (request, self.now)
 
     @rule(
         master=st.sampled_from(MASTERS),
@@ -981,14 +999,38 @@ class LearnedLineMachine(LineMachine):
 
     @rule(
         slave=st.sampled_from((*SLAVES, *FRESH[:3])),
-        delay=st.one_of(st.none(), st.floats(0.0, 0.02), st.floats(0.05, MAX_WAIT)),
+        delay=st.one_of(
+            st.none(), st.sampled_from((0.002, 0.2, 0.3, 0.38)), st.floats(0.0, MAX_WAIT)
+        ),
     )
     def turnaround(self, slave: int, delay: float | None) -> None:
         """A slave's turnaround changes: fast, slow past its bound, or gone (``None``)."""
         self.slaves[slave] = replace(self.slaves[slave], delay=delay)
 
     @rule(
-        retries=st.integers(0, 2),
+        slave=st.sampled_from((*SLAVES, *FRESH[:3])),
+        every=st.integers(2, 4),
+        delay=st.sampled_from((0.12, 0.25, 0.35)),
+    )
+    def slow_sometimes(self, slave: int, every: int, delay: float) -> None:
+        """A slave answers one request in ``every`` after ``delay`` (an EEPROM read)."""
+        self.slow[slave] = (every, delay)
+
+    def slave_hears(self, request: LineRequest, end: float) -> None:
+        slave = self.slaves.get(request.slave)
+        every, slow = self.slow.get(request.slave, (0, 0.0))
+        if slave is None or slave.delay is None or not every:
+            super().slave_hears(request, end)
+            return
+        self.heard_count[request.slave] = count = self.heard_count.get(request.slave, 0) + 1
+        usual = slave.delay
+        if count % every == 0:
+            slave.delay = max(usual, slow)
+        super().slave_hears(request, end)
+        slave.delay = usual
+
+    @rule(
+        retries=st.sampled_from((0, 1, 2, 2)),
         dead_after=st.integers(0, 3),
         fixed=st.dictionaries(st.sampled_from(SLAVES), st.just(TIMEOUT / 2), max_size=1),
         coalesce=st.booleans(),
@@ -1105,3 +1147,28 @@ def test_a_first_contact_moved_to_the_lane_keeps_its_place() -> None:
         frames += line.frames()
     first_to_2 = next(frame for frame in frames if frame[0] == 2)
     assert first_to_2[1] == fc.WRITE_SINGLE_REGISTER, frames
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a first contact moved to the lane when another slave turns absent is passed "
+    "by its master's later write to the same slave (write after read broken)",
+)
+def test_a_first_contact_read_moved_to_the_lane_is_not_passed_by_a_write() -> None:
+    """Found by the learned machine, the other way round: master a reads slave 7, b reads
+    slave 2 (both never heard from; b's goes first), then a writes slave 7. Slave 2 stays
+    silent and turns absent; a's read moves to the lane, and a's write goes before it."""
+    config = LineConfig(
+        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
+        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
+    )  # fmt: skip
+    line = LineHarness(new_core(config, 0.0))
+    line.submit(7, bytes.fromhex("0300000001"), 0.0, master="a")
+    line.submit(2, bytes.fromhex("0400000001"), 0.0, master="b")
+    line.submit(7, bytes.fromhex("0600000001"), 0.0, master="a")
+    frames: list[bytes] = []
+    while not any(frame[0] == 7 for frame in frames):
+        line.timer()
+        frames += line.frames()
+    first_to_7 = next(frame for frame in frames if frame[0] == 7)
+    assert first_to_7[1] == fc.READ_HOLDING_REGISTERS, frames
