@@ -918,6 +918,12 @@ class LearnedLineMachine(LineMachine):
             request = transmit.request
             if request.broadcast:
                 continue
+            if (
+                id(request) not in self.transmissions
+                and id(request) not in self.lane_seen
+                and self.now > request.enqueued_at + QUEUE_WAIT + 1e-9
+            ):
+                self.problems.append(f"{self.describe(request)} sent past max_queue_wait")
             first = self.silent_first.pop(id(request), None)
             if (
                 first is not None
@@ -1035,7 +1041,7 @@ class LearnedLineMachine(LineMachine):
         fixed=st.dictionaries(st.sampled_from(SLAVES), st.just(TIMEOUT / 2), max_size=1),
         coalesce=st.booleans(),
     )
-    def reload(  # type: ignore[override]
+    def reload(
         self, retries: int, dead_after: int, fixed: dict[int, float], coalesce: bool
     ) -> None:
         """A reload that keeps the line and what it learned, with new retries, isolation,
