@@ -41,7 +41,9 @@ from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
-from gateway.core.line.response_timing import FLOOR_S, answer_pdu_length
+from gateway.core.line.flights import FlightWire
+from gateway.core.line.records import Attempt
+from gateway.core.line.response_timing import FLOOR_S, NETWORK_FLOOR_S, answer_pdu_length
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
@@ -705,9 +707,7 @@ class PipelinedLineMachine(LineMachine):
         for transmit in self.core.transmits:
             self.check_order(transmit.request)
             if not transmit.request.broadcast:
-                timeout = self.config.timeout_for(transmit.request.slave)
-                deadline = self.now + len(transmit.frame) * self.char + timeout
-                self.live[id(transmit.request)] = deadline
+                self.live[id(transmit.request)] = self.deadline_of(transmit.request, transmit.frame)
             outstanding = [
                 key
                 for key, deadline in self.live.items()
@@ -719,6 +719,10 @@ class PipelinedLineMachine(LineMachine):
         if in_flight > self.limit:
             self.problems.append(f"the core has {in_flight} attempts outstanding")
         super().pump()
+
+    def deadline_of(self, request: LineRequest, frame: bytes) -> float:
+        """When the attempt sent now times out (the line's timeouts are fixed)."""
+        return self.now + len(frame) * self.char + self.config.timeout_for(request.slave)
 
     def check_order(self, sent: LineRequest) -> None:
         unanswered = [r for r in self.requests if id(r) not in self.delivered and r is not sent]
@@ -877,6 +881,7 @@ class LearnedLineMachine(LineMachine):
     * no request waits unsent in the masters' queues past ``max_queue_wait``.
     """
 
+    floor = FLOOR_S  # the least learned bound
     line_settings = {  # noqa: RUF012 (read only)
         "learn_timeouts": True,
         "initial_timeout": INITIAL,
@@ -892,11 +897,12 @@ class LearnedLineMachine(LineMachine):
         for unit in FRESH[:3]:
             self.slaves[unit] = Slave()
         #: id(request) -> its attempt was a first contact its slave met with silence
-        #: (nothing came back from it), and when that attempt was sent.
-        self.silent_first: dict[int, float] = {}
+        #: (nothing came back from it): when it was sent, and the core that sent it (a
+        #: reopened line's new core knows nothing of it: a handed-over request starts over).
+        self.silent_first: dict[int, tuple[float, LineCore]] = {}
         self.lane_seen: set[int] = set()  # id(request) of requests that waited in the lane
-        #: The attempt on the wire when it is a first contact its slave will not answer.
-        self.pending_first: tuple[LineRequest, float] | None = None
+        #: Attempts on the wire that are first contacts their slaves will not answer.
+        self.pending_first: dict[int, tuple[LineRequest, float]] = {}
         #: slave -> (every, turnaround): 3 is slow on one request in 3 (past the cap once
         #: learned); 4 answers past ``initial_timeout`` (its first answer comes late), 7 never.
         self.slow: dict[int, tuple[int, float]] = {3: (3, 0.3)}
@@ -906,16 +912,15 @@ class LearnedLineMachine(LineMachine):
     def pump(self) -> None:
         core = self.core
         self.lane_seen.update(id(r) for r in core.lane.requests.values())
-        attempt = getattr(core.wire, "attempt", None)
-        pending = self.pending_first
-        if pending is not None and any(
-            note.event is LineEvent.TIMEOUT and note.slave == pending[0].slave
-            for note in core.notes
-        ):  # the first contact timed out (not cut short by a lost port or a reopening)
-            self.silent_first[id(pending[0])] = pending[1]
+        timed_out = {note.slave for note in core.notes if note.event is LineEvent.TIMEOUT}
+        for key, (request, sent) in list(self.pending_first.items()):
+            if request.slave in timed_out:  # timed out (not cut short by a lost port)
+                self.silent_first[key] = (sent, self.core)
+                del self.pending_first[key]
+        attempts = {id(a.request): a for a in self.attempts()}
         for transmit in core.transmits:
-            self.pending_first = None
             request = transmit.request
+            self.pending_first.pop(id(request), None)
             if request.broadcast:
                 continue
             if (
@@ -927,16 +932,26 @@ class LearnedLineMachine(LineMachine):
             first = self.silent_first.pop(id(request), None)
             if (
                 first is not None
-                and self.last_rx <= first
+                and first[1] is core
+                and self.last_rx <= first[0]
                 and core.timing.first_contact(request.slave)
             ):
                 self.problems.append(
                     f"{self.describe(request)}: a silent first contact sent again at {self.now}"
                 )
-            if attempt is not None and attempt.request is request:
+            attempt = attempts.get(id(request))
+            if attempt is not None:
                 self.check_deadline(request, transmit.frame, attempt.deadline)
         super().pump()
         self.lane_seen.update(id(r) for r in core.lane.requests.values())
+
+    def attempts(self) -> list[Attempt]:
+        """The attempts on the wire: one on a serial line, several on a pipelined one."""
+        wire = self.core.wire
+        if isinstance(wire, FlightWire):
+            return list(wire.flights.values())
+        attempt = getattr(wire, "attempt", None)
+        return [] if attempt is None else [attempt]
 
     def check_read_order(self, read: LineRequest, sent: Sent, cached: bool) -> None:
         before = len(self.problems)
@@ -975,7 +990,7 @@ class LearnedLineMachine(LineMachine):
             waited = deadline - sent_by
         else:
             waited = deadline - sent_by - answer_chars(request.pdu) * self.char
-            base = timing.bounds.get(request.slave << 8 | request.pdu[0], INITIAL)
+            base = timing.bounds.get(timing.key(request.slave, request.pdu[0]), INITIAL)
             expected = min(MAX_WAIT, base * 2.0 ** (request.attempts - 1))
             if waited > MAX_WAIT + 1e-9:
                 self.problems.append(f"{self.describe(request)} waits {waited} > max_timeout")
@@ -992,7 +1007,7 @@ class LearnedLineMachine(LineMachine):
         ):
             slave = self.slaves.get(request.slave)
             if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
-                self.pending_first = (request, self.now)
+                self.pending_first[id(request)] = (request, self.now)
 
     @rule(
         master=st.sampled_from(MASTERS),
@@ -1059,7 +1074,7 @@ class LearnedLineMachine(LineMachine):
     @invariant()
     def bounds_stay_between_floor_and_max(self) -> None:
         for key, bound in self.core.timing.bounds.items():
-            assert FLOOR_S - 1e-9 <= bound <= MAX_WAIT + 1e-9, (key, bound)
+            assert self.floor - 1e-9 <= bound <= MAX_WAIT + 1e-9, (key, bound)
 
     @invariant()
     def nothing_waits_past_max_queue_wait(self) -> None:
@@ -1084,6 +1099,39 @@ def answer_chars(pdu: bytes) -> int:
 
 LearnedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestLearnedLineCore = pytest.mark.slow(LearnedLineMachine.TestCase)
+
+
+class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
+    """The learned machine on the pipelined Modbus TCP line: one bound per function for
+    the whole line, late answers named by their transaction ids, answers in any order."""
+
+    line_settings = {  # noqa: RUF012 (read only)
+        **PipelinedLineMachine.line_settings,
+        **LearnedLineMachine.line_settings,
+    }
+    floor = NETWORK_FLOOR_S
+
+    def check_order(self, sent: LineRequest) -> None:
+        """The pipelined order rules, but for the known fault ``forgive_lane_order`` names:
+        a request of the same master to the same slave that waited in the lane as a first
+        contact may be passed (the two xfail tests below)."""
+        before = len(self.problems)
+        super().check_order(sent)
+        if any(
+            id(other) in self.lane_seen and not other.answered
+            for other in self.requests
+            if other.master == sent.master and other.slave == sent.slave and other is not sent
+        ):
+            del self.problems[before:]
+
+    def deadline_of(self, request: LineRequest, frame: bytes) -> float:
+        """The core's own deadline: the learned one (checked by ``check_deadline``)."""
+        attempts = [a for a in self.attempts() if a.request is request]
+        return attempts[-1].deadline if attempts else super().deadline_of(request, frame)
+
+
+LearnedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestLearnedPipelinedLineCore = pytest.mark.slow(LearnedPipelinedLineMachine.TestCase)
 
 
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
