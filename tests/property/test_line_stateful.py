@@ -34,16 +34,19 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
-from line_harness import new_core
+from line_harness import LineHarness, new_core
 
 from gateway.config import CacheRule, LineConfig
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
+from gateway.core.line.flights import FlightWire
+from gateway.core.line.records import Attempt
+from gateway.core.line.response_timing import FLOOR_S, NETWORK_FLOOR_S, answer_pdu_length
 from gateway.core.mbap import encode_mbap
-from gateway.core.outcome import Outcome
-from gateway.core.rtu import encode_rtu
+from gateway.core.outcome import LineEvent, Outcome
+from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
 from gateway.core.timing import character_time
 
 BAUD = 19200
@@ -704,9 +707,7 @@ class PipelinedLineMachine(LineMachine):
         for transmit in self.core.transmits:
             self.check_order(transmit.request)
             if not transmit.request.broadcast:
-                timeout = self.config.timeout_for(transmit.request.slave)
-                deadline = self.now + len(transmit.frame) * self.char + timeout
-                self.live[id(transmit.request)] = deadline
+                self.live[id(transmit.request)] = self.deadline_of(transmit.request, transmit.frame)
             outstanding = [
                 key
                 for key, deadline in self.live.items()
@@ -718,6 +719,10 @@ class PipelinedLineMachine(LineMachine):
         if in_flight > self.limit:
             self.problems.append(f"the core has {in_flight} attempts outstanding")
         super().pump()
+
+    def deadline_of(self, request: LineRequest, frame: bytes) -> float:
+        """When the attempt sent now times out (the line's timeouts are fixed)."""
+        return self.now + len(frame) * self.char + self.config.timeout_for(request.slave)
 
     def check_order(self, sent: LineRequest) -> None:
         unanswered = [r for r in self.requests if id(r) not in self.delivered and r is not sent]
@@ -852,6 +857,243 @@ CachedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestCachedPipelinedLineCore = pytest.mark.slow(CachedPipelinedLineMachine.TestCase)
 
 
+#: The learned machine's line: a slave never heard from is waited for ``INITIAL``, no bound
+#: nor backed-off retry waits past ``MAX_WAIT``, and a request waits unsent ``QUEUE_WAIT``.
+INITIAL = 0.15
+MAX_WAIT = 0.4
+QUEUE_WAIT = 0.8
+#: Addresses first asked for by ``fresh``: 10-12 answer at once, 20-23 are not there.
+FRESH = (10, 11, 12, 20, 21, 22, 23)
+
+
+class LearnedLineMachine(LineMachine):
+    """The RTU machine on a line that learns its timeouts (``timeout = "auto"``).
+
+    Slaves change their turnaround (fast, slow past the learned bound, late past the
+    attempt), go absent and come back, and masters ask addresses never heard from, some
+    of which never answer: first contacts, probes in the lane beside absent slaves.
+    Checked besides the common invariants:
+    * each attempt waits its bound (``initial_timeout`` for a slave never heard from),
+      doubled per earlier attempt, never past ``max_timeout``, plus the predicted
+      answer's transmission (a fixed ``slave_timeouts`` entry as it is);
+    * every learned bound lies between the floor and ``max_timeout``;
+    * a first contact that met silence is not retried;
+    * no request waits unsent in the masters' queues past ``max_queue_wait``.
+    """
+
+    floor = FLOOR_S  # the least learned bound
+    line_settings = {  # noqa: RUF012 (read only)
+        "learn_timeouts": True,
+        "initial_timeout": INITIAL,
+        "max_timeout": MAX_WAIT,
+        "max_queue_wait": QUEUE_WAIT,
+    }
+
+    def __init__(self) -> None:
+        super().__init__()
+        # Two retries: the third attempt of a request heard before backs off into the cap.
+        self.config = replace(self.config, retries=2)
+        self.core.reconfigure(self.config, 0.0)
+        for unit in FRESH[:3]:
+            self.slaves[unit] = Slave()
+        #: id(request) -> its attempt was a first contact its slave met with silence
+        #: (nothing came back from it): when it was sent, and the core that sent it (a
+        #: reopened line's new core knows nothing of it: a handed-over request starts over).
+        self.silent_first: dict[int, tuple[float, LineCore]] = {}
+        self.lane_seen: set[int] = set()  # id(request) of requests that waited in the lane
+        #: Attempts on the wire that are first contacts their slaves will not answer.
+        self.pending_first: dict[int, tuple[LineRequest, float]] = {}
+        #: slave -> (every, turnaround): 3 is slow on one request in 3 (past the cap once
+        #: learned); 4 answers past ``initial_timeout`` (its first answer comes late), 7 never.
+        self.slow: dict[int, tuple[int, float]] = {3: (3, 0.3)}
+        self.slaves[4].delay = 0.2
+        self.heard_count: dict[int, int] = {}  # slave -> requests it heard
+
+    def pump(self) -> None:
+        core = self.core
+        self.lane_seen.update(id(r) for r in core.lane.requests.values())
+        timed_out = {note.slave for note in core.notes if note.event is LineEvent.TIMEOUT}
+        for key, (request, sent) in list(self.pending_first.items()):
+            if request.slave in timed_out:  # timed out (not cut short by a lost port)
+                self.silent_first[key] = (sent, self.core)
+                del self.pending_first[key]
+        attempts = {id(a.request): a for a in self.attempts()}
+        for transmit in core.transmits:
+            request = transmit.request
+            self.pending_first.pop(id(request), None)
+            if request.broadcast:
+                continue
+            if (
+                id(request) not in self.transmissions
+                and id(request) not in self.lane_seen
+                and self.now > request.enqueued_at + QUEUE_WAIT + 1e-9
+            ):
+                self.problems.append(f"{self.describe(request)} sent past max_queue_wait")
+            first = self.silent_first.pop(id(request), None)
+            if (
+                first is not None
+                and first[1] is core
+                and self.last_rx <= first[0]
+                and core.timing.first_contact(request.slave)
+            ):
+                self.problems.append(
+                    f"{self.describe(request)}: a silent first contact sent again at {self.now}"
+                )
+            attempt = attempts.get(id(request))
+            if attempt is not None:
+                self.check_deadline(request, transmit.frame, attempt.deadline)
+        super().pump()
+        self.lane_seen.update(id(r) for r in core.lane.requests.values())
+
+    def attempts(self) -> list[Attempt]:
+        """The attempts on the wire: one on a serial line, several on a pipelined one."""
+        wire = self.core.wire
+        if isinstance(wire, FlightWire):
+            return list(wire.flights.values())
+        attempt = getattr(wire, "attempt", None)
+        return [] if attempt is None else [attempt]
+
+    def check_deadline(self, request: LineRequest, frame: bytes, deadline: float) -> None:
+        """The attempt's wait: its bound, backed off, capped; the answer's time besides."""
+        timing = self.core.timing
+        sent_by = self.now + len(frame) * self.char
+        fixed = self.config.slave_timeouts.get(request.slave)
+        if fixed is not None:
+            expected = fixed
+            waited = deadline - sent_by
+        else:
+            waited = deadline - sent_by - answer_chars(request.pdu) * self.char
+            base = timing.bounds.get(timing.key(request.slave, request.pdu[0]), INITIAL)
+            expected = min(MAX_WAIT, base * 2.0 ** (request.attempts - 1))
+            if waited > MAX_WAIT + 1e-9:
+                self.problems.append(f"{self.describe(request)} waits {waited} > max_timeout")
+        if abs(waited - expected) > 1e-9:
+            self.problems.append(
+                f"{self.describe(request)}, attempt {request.attempts}: waits {waited:.6f}, "
+                f"not {expected:.6f}"
+            )
+        if (
+            fixed is None
+            and request.attempts == 1
+            and timing.first_contact(request.slave)
+            and self.core.health.unheard(request.slave)
+        ):
+            slave = self.slaves.get(request.slave)
+            if slave is None or slave.delay is None or request.pdu[0] in slave.ignores:
+                self.pending_first[id(request)] = (request, self.now)
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        unit=st.sampled_from(FRESH),
+        kind=st.sampled_from(("read", "input", "write")),
+    )
+    def fresh(self, master: str, unit: int, kind: str) -> None:
+        """A master asks an address it may never have asked (a scan, a new slave)."""
+        self.submit(master, unit, kind, 0, 1)
+
+    @rule(
+        slave=st.sampled_from((*SLAVES, *FRESH[:3])),
+        delay=st.one_of(
+            st.none(), st.sampled_from((0.002, 0.2, 0.3, 0.38)), st.floats(0.0, MAX_WAIT)
+        ),
+    )
+    def turnaround(self, slave: int, delay: float | None) -> None:
+        """A slave's turnaround changes: fast, slow past its bound, or gone (``None``)."""
+        self.slaves[slave] = replace(self.slaves[slave], delay=delay)
+
+    @rule(
+        slave=st.sampled_from((*SLAVES, *FRESH[:3])),
+        every=st.integers(2, 4),
+        delay=st.sampled_from((0.12, 0.25, 0.35)),
+    )
+    def slow_sometimes(self, slave: int, every: int, delay: float) -> None:
+        """A slave answers one request in ``every`` after ``delay`` (an EEPROM read)."""
+        self.slow[slave] = (every, delay)
+
+    def slave_hears(self, request: LineRequest, end: float) -> None:
+        slave = self.slaves.get(request.slave)
+        every, slow = self.slow.get(request.slave, (0, 0.0))
+        if slave is None or slave.delay is None or not every:
+            super().slave_hears(request, end)
+            return
+        self.heard_count[request.slave] = count = self.heard_count.get(request.slave, 0) + 1
+        usual = slave.delay
+        if count % every == 0:
+            slave.delay = max(usual, slow)
+        super().slave_hears(request, end)
+        slave.delay = usual
+
+    @rule(
+        retries=st.sampled_from((0, 1, 2, 2)),
+        dead_after=st.integers(0, 3),
+        fixed=st.dictionaries(st.sampled_from(SLAVES), st.just(TIMEOUT / 2), max_size=1),
+        coalesce=st.booleans(),
+    )
+    def reload(
+        self, retries: int, dead_after: int, fixed: dict[int, float], coalesce: bool
+    ) -> None:
+        """A reload that keeps the line and what it learned, with new retries, isolation,
+        coalescing, and maybe one slave's timeout fixed."""
+        self.config = replace(
+            self.config,
+            retries=retries,
+            dead_after=dead_after,
+            slave_timeouts=fixed,
+            coalesce=coalesce,
+        )
+        self.core.reconfigure(self.config, self.now)
+        self.pump()
+
+    @invariant()
+    def bounds_stay_between_floor_and_max(self) -> None:
+        for key, bound in self.core.timing.bounds.items():
+            assert self.floor - 1e-9 <= bound <= MAX_WAIT + 1e-9, (key, bound)
+
+    @invariant()
+    def nothing_waits_past_max_queue_wait(self) -> None:
+        if self.paused_at is not None or self.stopped:
+            return
+        for request in self.requests:
+            carrier = self.leader_of.get(id(request), request)
+            if (
+                request.answered
+                or id(carrier) in self.transmissions
+                or id(carrier) in self.lane_seen
+            ):
+                continue
+            assert self.now <= request.enqueued_at + QUEUE_WAIT + 1e-9, self.describe(request)
+
+
+def answer_chars(pdu: bytes) -> int:
+    """The characters of the normal RTU answer to ``pdu`` (256: unpredictable)."""
+    length = answer_pdu_length(pdu)
+    return MAX_RTU_FRAME if length is None else length + 3
+
+
+LearnedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestLearnedLineCore = pytest.mark.slow(LearnedLineMachine.TestCase)
+
+
+class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
+    """The learned machine on the pipelined Modbus TCP line: one bound per function for
+    the whole line, late answers named by their transaction ids, answers in any order."""
+
+    line_settings = {  # noqa: RUF012 (read only)
+        **PipelinedLineMachine.line_settings,
+        **LearnedLineMachine.line_settings,
+    }
+    floor = NETWORK_FLOOR_S
+
+    def deadline_of(self, request: LineRequest, frame: bytes) -> float:
+        """The core's own deadline: the learned one (checked by ``check_deadline``)."""
+        attempts = [a for a in self.attempts() if a.request is request]
+        return attempts[-1].deadline if attempts else super().deadline_of(request, frame)
+
+
+LearnedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
+TestLearnedPipelinedLineCore = pytest.mark.slow(LearnedPipelinedLineMachine.TestCase)
+
+
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
     """Found by the machine: master a's read joins b's; b's read times out, its slave turns
     suspect and the read (with a's follower) goes to the isolated slaves' lane. a's later
@@ -893,3 +1135,46 @@ def test_a_broadcast_waits_for_a_read_joined_to_one_back_from_the_lane() -> None
     machine.broadcast(master="c")
     machine.wait(step=0.002)  # b's read goes; its answer will come 0.125 s later
     machine.teardown()
+
+
+def test_a_first_contact_moved_to_the_lane_keeps_its_place() -> None:
+    """Found by the learned machine: a master writes to slave 1 (silent), then writes to
+    and reads back slave 2, both never heard from. Slave 1's first contact times out: it is
+    absent, and the write to slave 2 (a first contact) moved to the lane while the read
+    behind it stayed queued and went first: the master read the value from before its
+    write. The write now stays in its place, ahead of the read."""
+    config = LineConfig(
+        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
+        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
+    )  # fmt: skip
+    line = LineHarness(new_core(config, 0.0))
+    line.submit(1, bytes.fromhex("0600000001"), 0.0)
+    line.submit(2, bytes.fromhex("0600000001"), 0.0)
+    line.submit(2, bytes.fromhex("0300000001"), 0.0)
+    frames: list[bytes] = []
+    while not any(frame[0] == 2 for frame in frames):
+        line.timer()
+        frames += line.frames()
+    first_to_2 = next(frame for frame in frames if frame[0] == 2)
+    assert first_to_2[1] == fc.WRITE_SINGLE_REGISTER, frames
+
+
+def test_a_first_contact_read_moved_to_the_lane_is_not_passed_by_a_write() -> None:
+    """Found by the learned machine, the other way round: master a reads slave 7, b reads
+    slave 2 (both never heard from; b's goes first), then a writes slave 7. Slave 2 stays
+    silent and turns absent; a's read moved to the lane, and a's write went before it.
+    The read now stays in its place, ahead of the write."""
+    config = LineConfig(
+        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
+        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
+    )  # fmt: skip
+    line = LineHarness(new_core(config, 0.0))
+    line.submit(7, bytes.fromhex("0300000001"), 0.0, master="a")
+    line.submit(2, bytes.fromhex("0400000001"), 0.0, master="b")
+    line.submit(7, bytes.fromhex("0600000001"), 0.0, master="a")
+    frames: list[bytes] = []
+    while not any(frame[0] == 7 for frame in frames):
+        line.timer()
+        frames += line.frames()
+    first_to_7 = next(frame for frame in frames if frame[0] == 7)
+    assert first_to_7[1] == fc.READ_HOLDING_REGISTERS, frames
