@@ -82,7 +82,7 @@ Reply = Callable[[bytes, Outcome], None]
 
 @dataclass(slots=True)
 class ForwardStats:
-    """Counts the lead publishes as metrics; plain integers the hot path only adds to."""
+    """What forwarding did, counted: plain integers the hot path only adds to."""
 
     forwarded: int = 0  #: requests sent to the peer (a broadcast once)
     answered: int = 0  #: the peer's answers delivered to their requests
