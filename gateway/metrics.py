@@ -149,6 +149,30 @@ class _UartErrorsCollector(Collector):
         yield family
 
 
+#: What a standby's forwarding did, by outcome, read at scrape time (``io.pair``).
+ForwardCounts = Callable[[], Mapping[str, int]]
+
+
+class _ForwardedCollector(Collector):
+    """Exports the standby's forwarded requests by outcome (nothing without a pair)."""
+
+    def __init__(self, sources: list[ForwardCounts]) -> None:
+        self._sources = sources
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "modbus_gateway_redundancy_forwarded",
+            "Requests this gateway forwarded to its active peer while standing by, by what "
+            "became of them (answered by the peer, or answered here 0x0A, 0x0B or 0x06), "
+            "and the peer's frames it discarded or dropped as late.",
+            labels=["outcome"],
+        )
+        for read in self._sources[-1:]:  # the pair's forwarder; none without a pair
+            for outcome, count in sorted(read().items()):
+                family.add_metric([outcome], count)
+        yield family
+
+
 #: A line's learned response timeouts by slave, read at scrape time (``Bus``).
 ResponseTimeouts = Callable[[], Mapping[int, float]]
 
@@ -559,6 +583,12 @@ class GatewayMetrics:
         r.register(_UartErrorsCollector(self._uart_readers))
         self._response_timeouts: dict[str, ResponseTimeouts] = {}
         r.register(_ResponseTimeoutCollector(self._response_timeouts))
+        self._forward_counts: list[ForwardCounts] = []
+        r.register(_ForwardedCollector(self._forward_counts))
+
+    def watch_forwarding(self, read: ForwardCounts) -> None:
+        """Export ``redundancy_forwarded_total`` from ``read`` (a paired gateway's)."""
+        self._forward_counts.append(read)
 
     def watch_uart(self, line: str, read: UartReader) -> None:
         """Export ``uart_errors_total`` of ``line`` from ``read`` (the line's latest port)."""

@@ -86,6 +86,7 @@ class Pair:
         self.buses = buses
         self.forwarder = forwarder
         self._metrics = metrics
+        metrics.watch_forwarding(forwarder.stats.by_outcome)
         self._keepalive_master = KeepAliveMaster()
         self._peer_hosts = {config.peer[0]} | (
             {config.peer_modbus[0]} if config.peer_modbus else set()

@@ -94,6 +94,14 @@ class ForwardStats:
     latency_sum: float = 0.0  #: seconds from submit to answer, summed over ``answered``
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=RECENT_LATENCIES))
 
+    def by_outcome(self) -> dict[str, int]:
+        """The counts as ``modbus_gateway_redundancy_forwarded_total`` labels them."""
+        return {
+            "forwarded": self.forwarded, "answered": self.answered,
+            "path_unavailable": self.unavailable, "target_failed": self.failed,
+            "busy": self.busy, "discarded": self.discarded, "late": self.late,
+        }  # fmt: skip
+
     def observe(self, latency: float) -> None:
         """One answer delivered after ``latency`` seconds."""
         self.answered += 1

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -57,6 +58,19 @@ def active_and_standby(
         time.sleep(0.05)  # polling HTTP endpoints: there is no event to wait on
 
 
+def forwarded_counts(gateway: GatewayProc) -> dict[str, float]:
+    """``modbus_gateway_redundancy_forwarded_total`` by outcome, from its /metrics."""
+    connection = http.client.HTTPConnection(gateway.host, gateway.http_port, timeout=5.0)
+    try:
+        connection.request("GET", "/metrics")
+        text = connection.getresponse().read().decode()
+    finally:
+        connection.close()
+    found = re.findall(r'^modbus_gateway_redundancy_forwarded_total\{outcome="(\w+)"\} (\S+)$',
+                       text, re.MULTILINE)  # fmt: skip
+    return {outcome: float(value) for outcome, value in found}
+
+
 def writers(lab: PairLab, since: float) -> set[str]:
     """The gateway nodes that put a frame on the bus since ``since``."""
     return {f.node for f in lab.bus.stats().frames if f.start >= since and f.node != "slaves"}
@@ -75,6 +89,10 @@ def test_both_running_one_writer(lab: PairLab) -> None:
     for tally in tallies:
         assert tally.good > 5 and not tally.wrong, tally
     assert active.role() == "active" and standby.role() == "standby"
+    # What the standby forwarded is counted: every good answer its master got.
+    forwarded = forwarded_counts(standby)
+    assert forwarded["answered"] >= tallies[1].good and forwarded["forwarded"] >= tallies[1].good
+    assert forwarded_counts(active)["forwarded"] == 0  # active from the start of the polls
 
 
 def status(gateway: GatewayProc) -> dict[str, Any]:
