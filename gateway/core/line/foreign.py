@@ -46,14 +46,14 @@ This part keeps its state and answers questions; the machine notes and learns.
 
 from __future__ import annotations
 
-import binascii
 from dataclasses import dataclass
 from enum import Enum
 from typing import Final
 
 from .. import pdu as fc
-from ..ascii import MAX_ASCII_FRAME, lrc
+from ..ascii import MAX_ASCII_FRAME, decode_ascii
 from ..crc import crc16
+from ..errors import ResponseError
 from ..rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, request_length, response_length
 from .records import INFINITY, HeardBus, answer_signature
 from .response_timing import answer_pdu_length
@@ -221,14 +221,13 @@ class ForeignMasters:
             if end < 0:
                 del buffer[: max(0, len(buffer) - MAX_ASCII_FRAME)]
                 return None
-            text = bytes(buffer[1 : end - 1]) if buffer[end - 1 : end] == b"\r" else b""
+            frame = bytes(buffer[: end + 1])
             del buffer[: end + 1]
             try:
-                raw = binascii.unhexlify(text)
-            except (binascii.Error, ValueError):
-                continue
-            if len(raw) >= 3 and lrc(raw[:-1]) == raw[-1]:
-                return raw[:-1]
+                unit, pdu = decode_ascii(frame)
+            except ResponseError:
+                continue  # damaged: not a frame anybody can act on
+            return bytes((unit,)) + pdu
 
     # -- what a frame is ------------------------------------------------------------------
 
