@@ -554,7 +554,7 @@ def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:
         notes.append("noisy line(s), requests answered 0x0B: " + ", ".join(noisy))
     if shared:
         notes.append("shared line(s), another master heard: " + ", ".join(shared))
-    if pair is not None and pair.role.value == "standby":
+    if pair is not None and pair.standing_by:
         notes.append("standby: requests are forwarded to the active peer")
     return True, "; ".join(["ok", *notes])
 

@@ -135,8 +135,9 @@ class Pair:
     # -- what the rest of the gateway asks ------------------------------------------------
 
     @property
-    def role(self) -> Role:
-        return self.machine.role
+    def standing_by(self) -> bool:
+        """This gateway listens and forwards (``/readyz`` says so)."""
+        return self.machine.role is Role.STANDBY
 
     def may_transmit(self) -> bool:
         """The lease check before every frame (``Bus``)."""
