@@ -28,16 +28,15 @@ from typing import TYPE_CHECKING
 
 from ..config import PAIR_HEARING_DELAY_S, MetricsConfig, RedundancyConfig
 from ..core import pdu as fc
-from ..core.errors import ExceptionCode
-from ..core.line import LineRequest, no_reply
+from ..core.line import LineRequest
 from ..core.outcome import Outcome
 from ..core.redundancy import ChangeReason, Role, RoleMachine
 from ..status import PairStatus
+from .bus import Bus
 from .peer_role import PeerPoller, PeerRole, peer_tls, role_body
 
 if TYPE_CHECKING:
     from ..metrics import GatewayMetrics
-    from .bus import Bus
     from .peer_forward import PeerForwarder
 
 log = logging.getLogger("gateway.pair")
@@ -251,7 +250,7 @@ class Pair:
         def forward(request: LineRequest) -> bool:
             source = getattr(request.master, "source", None)
             if source in peer_hosts:  # the peer forwarding to us while we stand by: no loop
-                answer_unavailable(request)
+                Bus.answer_unavailable([request])
                 return True
             return forwarder.submit(line, request)
 
@@ -284,13 +283,6 @@ _REASONS = {
 
 def _ignore(_pdu: bytes, _outcome: Outcome) -> None:
     """A keep-alive's answer matters only as traffic on the bus."""
-
-
-def answer_unavailable(request: LineRequest) -> None:
-    request.answered = True
-    reply, request.reply = request.reply, no_reply
-    reply(fc.exception_pdu(request.pdu[0], ExceptionCode.GATEWAY_PATH_UNAVAILABLE),
-          Outcome.NO_ROUTE)  # fmt: skip
 
 
 def reverse_routes(routes: Mapping[int, tuple[str, int]]) -> dict[tuple[str, int], int]:
