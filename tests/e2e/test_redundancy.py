@@ -13,6 +13,8 @@ import http.client
 import json
 import re
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import time
@@ -24,7 +26,8 @@ import pytest
 from cdp import Browser
 from conftest import require_tool
 
-from bench.pair_lab import GatewayProc, PairLab, Poller
+from bench.hostile import read_exactly
+from bench.pair_lab import PLC_10, READ_10, GatewayProc, PairLab, Poller
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys and signals")
 
@@ -271,3 +274,23 @@ def test_equal_priorities_are_warned_about_and_still_end_with_one_active(lab: Pa
     lab.bus.wait_for(lambda s: len(s.frames_of(active.name)) >= 8, timeout=15.0)
     assert writers(lab, since) == {active.name}
     assert standby.role() == "standby"
+
+
+def test_a_standby_never_forwards_what_comes_from_its_peer(lab: PairLab) -> None:
+    """No loop: a request reaching the standby from the peer's own address is answered
+    0x0A, while the same request from elsewhere is forwarded and answered."""
+    a, b = lab.pair()
+    active, standby = active_and_standby(lab, a, b)
+    deadline = time.monotonic() + 10.0
+    while status(standby)["pair"]["peer_role"] != "active":  # it has heard the takeover
+        assert time.monotonic() < deadline
+        time.sleep(0.05)  # polling an HTTP endpoint
+    request = struct.pack(">HHHB", 7, 0, len(READ_10) + 1, 1) + READ_10
+    answers = {}
+    for label, source in (("peer", active.host), ("other", "127.0.0.1")):
+        with socket.create_connection(standby.modbus, timeout=10.0,
+                                      source_address=(source, 0)) as master:  # fmt: skip
+            master.sendall(request)
+            head = read_exactly(master, 7)
+            answers[label] = read_exactly(master, struct.unpack(">H", head[4:6])[0] - 1)
+    assert answers == {"peer": bytes([0x83, 0x0A]), "other": PLC_10}
