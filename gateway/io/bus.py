@@ -237,7 +237,7 @@ class Bus(LineRole):
         if handover is not None:
             self._core.take_over(handover, now)
         for request in requests:
-            self._core.submit(request, now)
+            self._core.submit(request, now, handed_over=True)
         self._pump()
 
     @staticmethod

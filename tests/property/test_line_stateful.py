@@ -400,9 +400,9 @@ class LineMachine(RuleBasedStateMachine):
             self.problems.append(f"{self.describe(request)} queued by a stopping line")
         self.pump()
 
-    def submit_to_core(self, request: LineRequest) -> None:
+    def submit_to_core(self, request: LineRequest, handed_over: bool = False) -> None:
         """Submit ``request`` now, noting the queued read it joined if it joined one."""
-        self.core.submit(request, self.now)
+        self.core.submit(request, self.now, handed_over=handed_over)
         if request.pdu[0] in (3, 4) and not request.answered:
             for leader in self.requests:
                 if request in leader.followers:
@@ -575,7 +575,7 @@ class LineMachine(RuleBasedStateMachine):
         for request in taken:  # handed over on its own: it may join another read again
             self.leader_of.pop(id(request), None)
         for request in taken:
-            self.submit_to_core(request)
+            self.submit_to_core(request, handed_over=True)
         self.pump()
 
     def new_core(self) -> LineCore:
@@ -1178,3 +1178,22 @@ def test_a_first_contact_read_moved_to_the_lane_is_not_passed_by_a_write() -> No
         frames += line.frames()
     first_to_7 = next(frame for frame in frames if frame[0] == 7)
     assert first_to_7[1] == fc.READ_HOLDING_REGISTERS, frames
+
+
+def test_a_read_handed_to_a_reopened_line_keeps_the_time_it_was_sent() -> None:
+    """Found by the machine: master a's read goes on the wire, a reload begins (the line
+    pauses) and a sends the same read again; noise spoils the first attempt, and both reads
+    are handed to the reopened line, where the second joins the first. The first attempt's
+    answer then comes: read after the second read was sent, it serves both. The handed
+    reads keep the time their master sent them (the line took them at 0.012 s): an answer
+    read before that time would still be refused."""
+    machine = LineMachine()
+    machine.wait(step=0.002)
+    machine.submit(address=0, kind="read", master="a", quantity=3, slave=1)
+    machine.begin_reopen()
+    machine.again(index=0, master="a")
+    machine.babble(length=2, seed=1)
+    machine.finish_reopen()
+    assert [request.enqueued_at for request in machine.requests] == [0.002, 0.002]
+    machine.wait(step=0.002)
+    machine.teardown()

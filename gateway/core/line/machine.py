@@ -203,9 +203,14 @@ class LineCore(Sending):
 
     # -- the masters' side ---------------------------------------------------------------
 
-    def submit(self, request: LineRequest, now: float) -> None:
-        """Queue ``request``, or answer it at once (line down, full, isolated, cached...)."""
-        request.enqueued_at = now
+    def submit(self, request: LineRequest, now: float, *, handed_over: bool = False) -> None:
+        """Queue ``request``, or answer it at once (line down, full, isolated, cached...).
+
+        ``handed_over``: taken from the line this core replaces (``take_queued``); it keeps
+        the time its master sent it, so its wait counts from then (``max_queue_wait``) and
+        an answer read since then may still serve it, but none read before."""
+        if not handed_over:
+            request.enqueued_at = now
         self._submitted += 1
         request.order = self._submitted
         if self._stopping or not self._up:
