@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
+from hypothesis import settings as hypothesis_settings
 
 from gateway.app import Gateway
 from gateway.config import build_config
@@ -47,6 +48,17 @@ T = TypeVar("T")
 DEADLINE_S = 10.0
 #: Gateway baud rate used for an unpaced simulator: t3.5 is then the fixed 1.75 ms.
 UNPACED_BAUDRATE = 115200
+
+
+# --------------------------------------------------------------------------- hypothesis
+
+# Under CI (``CI`` set) the property tests draw the same examples on every run: a run that
+# gates a change answers for that change, not for whatever a random draw finds that day.
+# Elsewhere each run draws anew (and keeps what failed in .hypothesis/): that is where new
+# sequences are looked for.
+hypothesis_settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI", "").lower() not in ("", "0", "false", "no"):
+    hypothesis_settings.load_profile("ci")
 
 
 # --------------------------------------------------------------------------- test tiers

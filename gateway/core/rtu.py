@@ -58,8 +58,8 @@ _FIXED_RESPONSE_LENGTH: Final = {
     fc.MASK_WRITE_REGISTER: 10,
 }
 
-# Responses that carry a one-byte byte count at offset 2: total = 3 + count + 2.
-_BYTE_COUNT_RESPONSES: Final = frozenset(
+#: Functions whose answer carries a one-byte byte count at offset 2: total = 3 + count + 2.
+BYTE_COUNT_RESPONSES: Final = frozenset(
     {
         fc.READ_COILS,
         fc.READ_DISCRETE_INPUTS,
@@ -87,7 +87,7 @@ def response_length(request_pdu: bytes, prefix: bytes | bytearray) -> int | None
     function = prefix[1]
     if function & fc.EXCEPTION_FLAG:
         return 5
-    if function in _BYTE_COUNT_RESPONSES:
+    if function in BYTE_COUNT_RESPONSES:
         return 5 + prefix[2] if len(prefix) >= 3 else NEED_MORE
     fixed = _FIXED_RESPONSE_LENGTH.get(function)
     if fixed is not None:

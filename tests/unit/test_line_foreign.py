@@ -10,7 +10,7 @@ import struct
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from line_harness import LineHarness
 
@@ -18,8 +18,8 @@ from gateway.config import LineConfig
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
-from gateway.core.line.foreign import SHARED_FOR_S
-from gateway.core.line.response_timing import MARGIN
+from gateway.core.line.foreign import OWN_ECHO_FOR_S, SHARED_FOR_S
+from gateway.core.line.response_timing import MARGIN, answer_pdu_length
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
@@ -133,6 +133,25 @@ def test_a_late_fc6_answer_of_our_lost_attempt_is_not_a_foreign_master() -> None
     assert line.core.late.windows
     line.receive(frame, failed_at + 0.1)
     assert line.foreign_notes() == 0
+
+
+@pytest.mark.parametrize("pdu", [bytes.fromhex("0600070002"), bytes.fromhex("050010FF00")])
+def test_a_very_late_echo_of_our_write_is_not_a_foreign_master(pdu: bytes) -> None:
+    """A slave that answers a write after its late-answer window closed: the copy of our
+    frame is its answer (a redundancy pair would otherwise step down for it), for
+    ``OWN_ECHO_FOR_S``; after that the same frame is another master's."""
+    line = Line(retries=0, late_answer_window=0.5)
+    request = line.submit(1, pdu, 0.0)
+    frame = line.frames()[0]
+    line.timer()
+    assert line.answer_of(request)[1] == Outcome.TARGET_FAILED
+    line.submit(2, read(0), 1.5)  # traffic: the late-answer window is closed on the way
+    line.advance(3.0)
+    assert 1 not in line.core.late.windows  # the late-answer guard knows the write no more
+    line.receive(frame, OWN_ECHO_FOR_S - 0.1)
+    assert line.foreign_notes() == 0 and not line.core.shared
+    line.receive(frame, OWN_ECHO_FOR_S + 1.0)
+    assert line.foreign_notes() == 1 and line.core.shared
 
 
 def test_a_foreign_request_heard_while_our_attempt_waits_is_counted() -> None:
@@ -426,6 +445,16 @@ def test_an_expired_foreign_request_never_puts_the_timer_in_the_past() -> None:
     assert deadline is not None and deadline > 2.0
 
 
+def answers(request: bytes, frame: bytes) -> bool:
+    """True when RTU ``frame`` has the shape of the answer to RTU ``request``."""
+    return (
+        frame[0] == request[0]
+        and frame[1] == request[1]
+        and answer_pdu_length(request[1:-2]) == len(frame) - 3
+        and frame[2] == len(frame) - 5
+    )
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     requests=st.lists(
@@ -443,12 +472,18 @@ def test_an_expired_foreign_request_never_puts_the_timer_in_the_past() -> None:
 def test_back_to_back_foreign_requests_split_anyhow_are_each_heard_once(
     requests: list[tuple[int, int, int, int]], cuts: list[int]
 ) -> None:
-    """Requests of other masters read in pieces cut anywhere: each one heard, once."""
-    line = Line()
-    stream = b"".join(
+    """Requests of other masters read in pieces cut anywhere: each one heard, once. A
+    request that is also, byte for byte, the answer to an earlier one to its slave (read
+    17 coils of slave 1, then ``01 01 03 00 00 01``: 3 bytes of coils, or a read at
+    0x0300) is taken for the answer, as the bus's turn says: left out here."""
+    frames = [
         encode_rtu(slave, read(address, quantity, function))
         for slave, function, address, quantity in requests
-    )
+    ]
+    for index, frame in enumerate(frames):
+        assume(not any(answers(earlier, frame) for earlier in frames[:index]))
+    line = Line()
+    stream = b"".join(frames)
     now = 1.0
     start = 0
     for cut in sorted({min(cut, len(stream)) for cut in cuts} | {len(stream)}):
@@ -465,3 +500,13 @@ def test_a_tcp_line_has_no_foreign_masters() -> None:
     line = LineHarness(LineCore(config, -1.0, framing=mbap_framing()))
     line.receive(encode_rtu(7, read(0)), 1.0)
     assert line.notes(LineEvent.FOREIGN_MASTER) == [] and not line.core.shared
+
+
+def test_a_request_whose_first_bytes_check_as_an_empty_answer_is_heard() -> None:
+    """Found by the test above: ``03 04 00 83 00`` checks as an FC 4 answer with a byte
+    count of 0 (its CRC matches by chance), which would hide the request to slave 3 that
+    those bytes begin. No function answers with a byte count of 0."""
+    line = Line()
+    stream = encode_rtu(3, read(0, 1, 1)) + encode_rtu(3, read(131, 1, 4))
+    line.receive(stream, 1.0 + len(stream) * CHAR)
+    assert line.foreign_notes() == 2

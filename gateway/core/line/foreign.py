@@ -15,7 +15,11 @@ An intact frame (valid CRC or LRC) is classified, first match wins:
 
 1. the answer to one of *our* requests (the attempt on the wire, or a lost attempt
    whose late-answer window is open): ours. An exact echo of our own outstanding
-   FC 5 or 6 request is our answer, not a foreign master;
+   FC 5 or 6 request is our answer, not a foreign master; so is an exact copy of a
+   write of ours whose answer is the request itself (FC 5, 6, 21, 22) sent within
+   ``OWN_ECHO_FOR_S``, after its late-answer window closed: a very slow slave's
+   answer, not another master (one that sends the very same write is heard at its
+   next other frame);
 2. the answer to a *pending* foreign request of that slave (its length): that
    request is answered; its turnaround (answer start minus request end, as the line
    measures its own) is learned;
@@ -54,7 +58,14 @@ from .. import pdu as fc
 from ..ascii import MAX_ASCII_FRAME, decode_ascii
 from ..crc import crc16
 from ..errors import ResponseError
-from ..rtu import MAX_RTU_FRAME, MIN_RTU_FRAME, NEED_MORE, request_length, response_length
+from ..rtu import (
+    BYTE_COUNT_RESPONSES,
+    MAX_RTU_FRAME,
+    MIN_RTU_FRAME,
+    NEED_MORE,
+    request_length,
+    response_length,
+)
 from .records import INFINITY, HeardBus, answer_signature
 from .response_timing import answer_pdu_length
 
@@ -65,6 +76,12 @@ SHARED_FOR_S: Final = 10.0
 SPLIT_AFTER_S: Final = 0.02
 #: Requests kept awaiting their answers per slave (a bound: a master polls one at a time).
 PENDING_PER_SLAVE: Final = 8
+#: Writes whose normal answer is the request itself, byte for byte.
+ANSWERED_BY_ECHO: Final = fc.ECHOED_WRITES - {fc.WRITE_MULTIPLE_COILS, fc.WRITE_MULTIPLE_REGISTERS}
+#: How long a copy of one of those writes of ours is taken for its slave's answer.
+OWN_ECHO_FOR_S: Final = SHARED_FOR_S
+#: Those writes remembered (a bound: the oldest is forgotten first).
+OWN_ECHOES_KEPT: Final = 32
 
 
 class HeardKind(Enum):
@@ -122,11 +139,23 @@ class ForeignMasters:
         self.last_frame_at: float | None = None
         self.foreign_frames = 0  # foreign master frames heard while not listening
         self.heard_master_frames = 0  # master frames heard while listening (the peer's)
+        #: Our writes answered by their echo (``ANSWERED_BY_ECHO``): frame -> until when a
+        #: copy heard is taken for their answer.
+        self.own_echoes: dict[bytes, float] = {}
 
     def configure(self, silence: float, keep_for: float) -> None:
         """The line's silence, and how long a foreign request awaits its answer."""
         self.split_after = max(SPLIT_AFTER_S, silence)
         self.keep_for = keep_for
+
+    def sent_echoed(self, slave: int, pdu: bytes, now: float) -> None:
+        """We sent ``pdu`` (in ``ANSWERED_BY_ECHO``) to ``slave``: a copy heard within
+        ``OWN_ECHO_FOR_S`` is its answer, however late."""
+        frame = bytes((slave,)) + pdu
+        echoes = self.own_echoes
+        if echoes.pop(frame, None) is None and len(echoes) >= OWN_ECHOES_KEPT:
+            del echoes[next(iter(echoes))]
+        echoes[frame] = now + OWN_ECHO_FOR_S
 
     # -- framing ---------------------------------------------------------------------------
 
@@ -200,7 +229,11 @@ class ForeignMasters:
                 continue
             if length == NEED_MORE or length > len(buffer):
                 waiting = waiting or length <= MAX_RTU_FRAME
-            elif length >= MIN_RTU_FRAME and not crc16(bytes(buffer[:length])):
+            elif (
+                length >= MIN_RTU_FRAME
+                and not crc16(bytes(buffer[:length]))
+                and not _empty_count(buffer, length)
+            ):
                 return length
         return NEED_MORE if waiting and not final and len(buffer) < MAX_RTU_FRAME else 0
 
@@ -254,6 +287,9 @@ class ForeignMasters:
                     self._answered(foreign)
                     return Heard(HeardKind.ANSWER, slave, pdu, at, foreign)
         if pdu and request_length(frame) == length:
+            until = self.own_echoes.get(frame)
+            if until is not None and at < until:
+                return Heard(HeardKind.OURS, slave, pdu, at)  # a very late answer of ours
             return self._master_frame(slave, pdu, at)
         return Heard(HeardKind.FRAME, slave, pdu, at)
 
@@ -375,6 +411,13 @@ class ForeignMasters:
             self.shared = False
             return True
         return False
+
+
+def _empty_count(buffer: bytearray, length: int) -> bool:
+    """True when the ``length`` bytes at the front would be an answer whose byte count is
+    0: no function answers so (a read asks for 1 item at least), and a CRC that checks
+    there by chance (1 in 65,536) would hide the request those bytes begin."""
+    return length == 5 and buffer[1] in BYTE_COUNT_RESPONSES and buffer[2] == 0
 
 
 def _may_answer(request: bytes, answer: bytes) -> bool:

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from ..errors import ExceptionCode
 from ..outcome import LineEvent, Outcome
 from .fair_queue import Master
+from .foreign import ANSWERED_BY_ECHO
 from .listening import Listening
 from .records import FRAME_CACHE_SIZE, INFINITY, LineRequest, Note, Transmit, tuple_new
 
@@ -133,6 +134,8 @@ class Sending(Listening):
             request.sent = True
             self.sharing.close(request)
         frame = self.wire.start(request, master, now, credit)
+        if request.pdu[0] in ANSWERED_BY_ECHO and self.framing.transaction_ids is None:
+            self.foreign.sent_echoed(request.slave, request.pdu, now)
         stats = self.stats
         stats.frames_sent += 1
         stats.bytes_written += len(frame)
