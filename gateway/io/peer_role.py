@@ -174,12 +174,13 @@ class PeerPoller:
 def peer_tls(cert: str | None, key: str | None, ca: str | None) -> ssl.SSLContext | None:
     """The client context for an HTTPS peer (``None`` when the endpoint serves plain HTTP):
     the peer's certificate is checked against ``ca`` (the endpoint's ``tls_ca``, else the
-    system's), and this gateway's own endpoint certificate is offered for a peer that asks."""
+    system's) and must name the address ``peer`` gives (an IP address entry for an IP), as
+    a TLS slave's must: any other certificate of the plant's CA is not the peer. This
+    gateway's own endpoint certificate is offered for a peer that asks."""
     if cert is None:
         return None
     context = ssl.create_default_context(cafile=ca)
     context.minimum_version = ssl.TLSVersion.TLSv1_2
-    context.check_hostname = False  # pairs are addressed by IP; the CA is the plant's own
     if key is not None:
         context.load_cert_chain(cert, key)
     return context

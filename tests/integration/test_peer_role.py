@@ -80,6 +80,27 @@ def test_the_role_comes_over_https_with_the_token(tmp_path: Path) -> None:
     asyncio.run(scenario())
 
 
+def test_a_peer_whose_certificate_does_not_name_its_address_is_not_believed(
+    tmp_path: Path,
+) -> None:
+    """The same CA's certificate, for 127.0.0.1 and localhost, served at 127.0.0.2: not the
+    peer (any other device of the plant's CA could otherwise claim to be active)."""
+    pki = make_pki(tmp_path)
+    config = MetricsConfig(True, "127.0.0.2", 0, status_token=TOKEN,
+                           tls_cert=str(pki.server_chain), tls_key=str(pki.server_key))  # fmt: skip
+
+    async def scenario() -> None:
+        served = await endpoint(config)
+        try:
+            tls = peer_tls(str(pki.server_chain), str(pki.server_key), str(pki.ca))
+            why = str(await poll_once(served.address, tls=tls))
+            assert "SSLCertVerificationError" in why and "127.0.0.2" in why, why
+        finally:
+            await served.close()
+
+    asyncio.run(scenario())
+
+
 def test_no_listener_and_a_stranger_are_unreachable() -> None:
     async def scenario() -> None:
         with socket.socket() as hole:  # a port nobody listens on
