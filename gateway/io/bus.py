@@ -350,7 +350,8 @@ class Bus(LineRole):
             if link is None or link.closed:
                 return  # the core has been told (port_lost) and answered 0x0A
             if pair is not None and not pair.may_transmit():
-                continue  # no lease, no frame: the attempt times out into 0x0B
+                self.lease_refused()  # no lease, no frame: nothing more goes out
+                return
             if not retry:
                 self._m_queue_wait.observe(queue_wait)
             try:

@@ -39,6 +39,8 @@ class LineRole:
         #: The redundancy pair this gateway belongs to, ``None`` for a gateway alone.
         self.pair: Pair | None = None
         self.quiet_open = False  #: open the port driving nothing (RTS, DTR, RS485 receive)
+        #: Paused because the lease check refused a frame (``lease_refused``).
+        self.refused_by_lease = False
 
     @property
     def successor(self) -> Bus | None:
@@ -66,10 +68,23 @@ class LineRole:
         """This gateway is active: the line takes its masters' requests and transmits."""
         if self._successor is None:
             self._redirect = None
+        self.refused_by_lease = False
         core = self._core
         core.set_listening(False)
         core.resume(time.monotonic())
         self._pump()
+
+    def lease_refused(self) -> None:
+        """The lease lapsed between the core's choice of a frame and its write (the frame
+        is not written): the line sends nothing more, and what the core holds on the wire,
+        never written, is answered 0x0A now, not 0x0B after its timeout, and not charged
+        to its slave's health. The pair stands the line by next (``Pair.may_transmit``),
+        where what waits goes to the peer; ``activate`` resumes it."""
+        self.refused_by_lease = True
+        now = time.monotonic()
+        core = self._core
+        core.pause(now)
+        core.abandon(now)
 
     @property
     def idle(self) -> bool:

@@ -7,8 +7,9 @@ outlives one), the peer's ``/role`` (``peer_role.PeerPoller``) and the bus's evi
 and carries out what the machine decides:
 
 * The lines transmit only while the machine says so: each line asks ``may_transmit``
-  right before every frame it writes, and a frame refused is not written (its request
-  times out into 0x0B: never a frame on someone else's lease).
+  right before every frame it writes. A frame refused is not written (never a frame on
+  someone else's lease): the line pauses and answers what it held on the wire 0x0A at
+  once (``LineRole.lease_refused``), and the machine, told the time, steps down.
 * Active: every line takes its masters' requests; a line that sent nothing for half a
   lease reads one holding register (``keepalive``) so that the standby hears the bus alive.
 * Standby: the lines only listen (their learning goes on from what they hear) and every
@@ -145,7 +146,8 @@ class Pair:
             self.machine.transmitted(now)
             return True
         self._metrics.redundancy_refused_frames.inc()
-        self._loop_soon()  # the machine may have a change to act on
+        if self._loop is not None:
+            self._loop.call_soon(self._after_refusal)
         return False
 
     def role_body(self) -> tuple[int, bytes]:
@@ -203,9 +205,17 @@ class Pair:
 
     # -- carrying out ---------------------------------------------------------------------
 
-    def _loop_soon(self) -> None:
-        if self._loop is not None:
-            self._loop.call_soon(self._apply)
+    def _after_refusal(self) -> None:
+        """A line's frame was refused (``may_transmit``): the machine, told the time, steps
+        down (the lease lapsed, or the clock jumped) and the lines stand by. Should it still
+        hold a lease by then, the lines the refusal paused resume."""
+        now = self._clock()
+        self.machine.tick(now)
+        self._apply()
+        if self.machine.may_transmit(now):
+            for bus in self.buses.values():
+                if bus.refused_by_lease:
+                    bus.activate()
 
     def _tick(self) -> None:
         self._timer = None

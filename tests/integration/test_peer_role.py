@@ -11,16 +11,21 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
-from conftest import GatewayFactory, SimFactory
+from conftest import GatewayFactory, SimFactory, wait_until
 from prometheus_client import CollectorRegistry
 
 from gateway.config import MetricsConfig, build_config
+from gateway.core.line import LineRequest
+from gateway.core.outcome import Outcome
 from gateway.core.redundancy import Role
 from gateway.io.http import HttpEndpoint, respond, start_http
 from gateway.io.http_guard import Access
+from gateway.io.pair import boot_time
 from gateway.io.peer_role import PeerPoller, PeerRole, parse_role, peer_tls, role_body, split_answer
 from gateway.sim import plc
 from gateway.sim.pki import make_pki
+
+READ_1 = bytes.fromhex("0300000001")
 
 TOKEN = "a-long-random-pair-token"
 DEADLINE_S = 5.0
@@ -170,3 +175,42 @@ def test_a_reload_keeps_the_pair_settings_it_started_with(
     assert "[redundancy] changes need a restart" in caplog.text
     assert not gateway.call(lambda: gateway.gateway.config.redundancy.paired)
     assert gateway.call(lambda: gateway.gateway.pair) is None
+
+
+def test_a_frame_the_lease_check_refuses_is_answered_0x0a_at_once(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    """The lease lapses between the line's choice of a frame and its write (the loop was
+    held past the lease, as by a VM pause): the frame is not written; its request is
+    answered 0x0A at once, not 0x0B after its timeout, without a miss counted against its
+    slave; the gateway steps down."""
+    sim = make_sim({1: plc(1)})
+    with socket.socket() as hole:  # a peer nobody answers for: this gateway takes over
+        hole.bind(("127.0.0.1", 0))
+        nobody = f"127.0.0.1:{hole.getsockname()[1]}"
+    lease = 0.2
+    gateway = make_gateway({
+        "lines": {"a": {**sim.line_table([1]), "timeout": 1.0}},
+        "redundancy": {"peer": nobody, "peer_modbus": nobody, "lease": lease,
+                       "takeover_after": 0.6, "keepalive": "off"},
+    })  # fmt: skip
+    running = gateway.gateway
+    pair = running.pair
+    assert pair is not None
+    wait_until(lambda: gateway.call(lambda: not pair.standing_by), "the gateway active")
+    answers: list[tuple[bytes, Outcome]] = []
+
+    def held_past_the_lease_then_asked() -> tuple[bool, int]:
+        bus = running.buses["a"]
+        held_until = boot_time() + 1.5 * lease
+        while boot_time() < held_until:  # the loop held: no tick renews the lease
+            pass
+        bus.submit(LineRequest(1, READ_1, "m", lambda pdu, outcome: answers.append((pdu, outcome))))
+        record = bus._core.health.slaves.get(1)
+        return bus.refused_by_lease, 0 if record is None else record.misses
+
+    refused, misses = gateway.call(held_past_the_lease_then_asked)
+    assert refused
+    assert answers == [(bytes((0x83, 0x0A)), Outcome.NO_ROUTE)]  # within the same call
+    assert misses == 0
+    wait_until(lambda: gateway.call(lambda: pair.standing_by), "the gateway standing by")
