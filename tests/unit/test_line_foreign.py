@@ -389,6 +389,19 @@ def test_a_reload_keeps_what_the_line_heard() -> None:
     assert fresh.core.get_timer() is not None
 
 
+def test_a_reload_keeps_the_writes_whose_very_late_echo_is_ours() -> None:
+    line = Line(retries=0)
+    pdu = bytes.fromhex("0600070002")
+    line.submit(1, pdu, 0.0)
+    frame = line.frames()[0]
+    line.timer()  # no answer in time: 0x0B
+    fresh = Line()
+    fresh.core.take_over(line.core.handover(), 2.0)
+    assert not fresh.core.late.windows  # closed before the reload: not handed on
+    fresh.receive(frame, 5.0)  # the slave's answer to the old line's write, 5 s late
+    assert fresh.foreign_notes() == 0 and not fresh.core.shared
+
+
 def test_last_frame_at_counts_the_answers_to_our_own_requests_too() -> None:
     line = Line()
     line.submit(1, read(100), 0.0)

@@ -389,6 +389,7 @@ class ForeignMasters:
             self.last_master_frame_at, self.last_frame_at,
             self.shared_until if self.shared else -INFINITY,
             self.foreign_frames, self.heard_master_frames, self.listening, pending,
+            tuple(self.own_echoes.items()),
         )  # fmt: skip
 
     def take_over(self, heard: HeardBus, now: float) -> None:
@@ -404,6 +405,9 @@ class ForeignMasters:
             if now < until:
                 request = ForeignRequest(slave, pdu, heard_at, until)
                 self.pending.setdefault(slave, []).append(request)
+        for frame, until in heard.own_echoes:
+            if now < until:
+                self.own_echoes[frame] = until
 
     def decays(self, now: float) -> bool:
         """True when the line stops being shared now (no foreign master frame for a while)."""

@@ -237,6 +237,7 @@ class HeardBus(NamedTuple):
     heard_master_frames: int
     listening: bool
     pending: tuple[tuple[int, bytes, float, float], ...]  # slave, PDU, heard at, until
+    own_echoes: tuple[tuple[bytes, float], ...] = ()  # our echoed writes: frame, until
 
 
 class Handover(NamedTuple):
