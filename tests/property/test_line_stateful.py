@@ -1197,3 +1197,24 @@ def test_a_read_handed_to_a_reopened_line_keeps_the_time_it_was_sent() -> None:
     assert [request.enqueued_at for request in machine.requests] == [0.002, 0.002]
     machine.wait(step=0.002)
     machine.teardown()
+
+
+def test_a_first_contact_left_in_the_lane_is_not_passed_once_no_slave_is_absent() -> None:
+    """Found by the learned machine: slave 4 misses its first contact (absent); master a
+    writes to slave 1, never heard from: a first contact, in the lane. Slave 4's late
+    answer shows it alive, so no slave is absent; a's next write and reads to slave 1 were
+    queued as usual and went before the first write, still in the lane: a read saw the
+    slave before that write, and the writes ran out of order. Once no slave is absent,
+    the lane's first contacts go back to the queue, ahead of what follows them."""
+    machine = LearnedLineMachine()
+    machine.wait(step=0.0005)
+    machine.write_then_read_back(address=0, master="a", other="a", slave=4)
+    machine.broadcast(master="a")
+    machine.wait(step=0.01)
+    machine.wait(step=0.15)
+    machine.write_then_read_back(address=0, master="a", other="a", slave=1)
+    assert machine.core.lane.requests  # the write to slave 1 waits there
+    machine.wait(step=0.05)  # slave 4's late answer
+    assert not machine.core.health.absent and not machine.core.lane.requests
+    machine.write_then_read_back(address=0, master="a", other="a", slave=1)
+    machine.teardown()

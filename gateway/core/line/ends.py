@@ -208,14 +208,17 @@ class AttemptEnds:
         the lane, or 0x0B at once when the slave's first contact already waits there;
         ``False`` (queue it as usual) while its first contact is on the wire."""
         slave = request.slave
-        if self.wire.on_wire_to(slave) or not self.timing.first_contact(slave):
+        if self.wire.on_wire_to(slave):
             return False
         master = self.queue.masters.get(request.master)
         if master is not None and any(other.slave == slave for other in master.queue):
             return False  # behind its master's earlier requests to that slave, in order
-        if slave in self.lane.requests:
+        if slave in self.lane.requests:  # even if its timing was learned meanwhile (heard
+            # answering another master): queued, this request would pass the one waiting
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return True
+        if not self.timing.first_contact(slave):
+            return False
         if request.pdu[0] not in fc.READ_FUNCTIONS:
             self.sharing.change(slave)
         self._lane_put(request, now, first_contact=True)
@@ -277,12 +280,26 @@ class AttemptEnds:
         record = self.health.record(slave)
         record.misses = 0
         if record.state is not SlaveState.UP:
-            self.health.absent.discard(slave)
+            absent = self.health.absent
+            was_absent = slave in absent
+            absent.discard(slave)
             self._set_state(slave, record, SlaveState.UP)
             waiting = self.lane.requests.get(slave)
             if waiting is not None:
                 self._lane_remove(waiting)
                 self._queue_at_front(waiting)
+            if was_absent and not absent:
+                self._release_first_contacts()
+
+    def _release_first_contacts(self) -> None:
+        """No slave is absent any more: the first contacts that waited in the lane because
+        one was go back to the queue, so that their masters' later requests to those
+        slaves, queued as usual from now on, go after them, not before."""
+        lane = self.lane
+        waiting = [lane.requests[slave] for slave in lane.first_contacts if slave in lane.requests]
+        for request in sorted(waiting, key=lambda request: request.order, reverse=True):
+            self._lane_remove(request)
+            self._queue_at_front(request)
 
     def late_bytes(self, data: bytes, now: float) -> None:
         """Bytes while nothing is on the wire: a lost answer shows its slave alive, slow."""
