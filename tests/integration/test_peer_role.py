@@ -23,7 +23,7 @@ from gateway.io.http_guard import Access
 from gateway.io.pair import boot_time
 from gateway.io.peer_role import PeerPoller, PeerRole, parse_role, peer_tls, role_body, split_answer
 from gateway.sim import plc
-from gateway.sim.pki import make_pki
+from gateway.sim.pki import Pki, make_pki
 
 READ_1 = bytes.fromhex("0300000001")
 
@@ -62,10 +62,16 @@ async def poll_once(
         await poller.stop()
 
 
+def https_endpoint(pki: Pki, host: str) -> MetricsConfig:
+    """An HTTPS endpoint on ``host`` with the test PKI's server certificate (it names
+    127.0.0.1 and localhost) and the pair's token."""
+    return MetricsConfig(True, host, 0, status_token=TOKEN,
+                         tls_cert=str(pki.server_chain), tls_key=str(pki.server_key))  # fmt: skip
+
+
 def test_the_role_comes_over_https_with_the_token(tmp_path: Path) -> None:
     pki = make_pki(tmp_path)
-    config = MetricsConfig(True, "127.0.0.1", 0, status_token=TOKEN,
-                           tls_cert=str(pki.server_chain), tls_key=str(pki.server_key))  # fmt: skip
+    config = https_endpoint(pki, "127.0.0.1")
 
     async def scenario() -> None:
         served = await endpoint(config)
@@ -91,19 +97,17 @@ def test_a_peer_whose_certificate_does_not_name_its_address_is_not_believed(
     """The same CA's certificate, for 127.0.0.1 and localhost, served at 127.0.0.2: not the
     peer (any other device of the plant's CA could otherwise claim to be active)."""
     pki = make_pki(tmp_path)
-    config = MetricsConfig(True, "127.0.0.2", 0, status_token=TOKEN,
-                           tls_cert=str(pki.server_chain), tls_key=str(pki.server_key))  # fmt: skip
 
-    async def scenario() -> None:
-        served = await endpoint(config)
+    async def poll_elsewhere() -> str:
+        served = await endpoint(https_endpoint(pki, "127.0.0.2"))
+        tls = peer_tls(str(pki.server_chain), str(pki.server_key), str(pki.ca))
         try:
-            tls = peer_tls(str(pki.server_chain), str(pki.server_key), str(pki.ca))
-            why = str(await poll_once(served.address, tls=tls))
-            assert "SSLCertVerificationError" in why and "127.0.0.2" in why, why
+            return str(await poll_once(served.address, tls=tls))
         finally:
             await served.close()
 
-    asyncio.run(scenario())
+    why = asyncio.run(poll_elsewhere())
+    assert "SSLCertVerificationError" in why and "127.0.0.2" in why, why
 
 
 def test_no_listener_and_a_stranger_are_unreachable() -> None:
