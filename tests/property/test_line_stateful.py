@@ -1218,3 +1218,20 @@ def test_a_first_contact_left_in_the_lane_is_not_passed_once_no_slave_is_absent(
     assert not machine.core.health.absent and not machine.core.lane.requests
     machine.write_then_read_back(address=0, master="a", other="a", slave=1)
     machine.teardown()
+
+
+def test_a_read_sent_before_the_cache_was_turned_on_is_not_cached_past_a_write() -> None:
+    """Found by the cached pipelined machine: on a Modbus TCP line, master a's write and
+    b's read of the same register go out together while the cache is off (b's read may
+    run before a's write). A reload turns the cache on; b's answer came after it, was
+    kept, and answered a's read-back with the value from before a's write. Reads sent
+    while the cache was off are not kept now."""
+    machine = CachedPipelinedLineMachine()
+    machine.reload(cache=False, coalesce=False, dead_after=0, retries=0, slave_timeouts={},
+                   timeout=0.05)  # fmt: skip
+    machine.write_then_read_back(address=0, master="a", other="b", slave=1)
+    machine.reload(cache=True, coalesce=False, dead_after=0, retries=0, slave_timeouts={},
+                   timeout=0.05)  # fmt: skip
+    machine.wait(step=0.002)
+    machine.again(index=0, master="a")
+    machine.teardown()

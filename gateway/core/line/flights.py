@@ -249,6 +249,12 @@ class FlightWire(Wire):
         """Not when a write was submitted after this read went: its answer may be older."""
         return attempt.epoch == self.line.sharing.epoch(attempt.request.slave)
 
+    def uncacheable(self) -> None:
+        """Reads sent while the cache was off were not checked for a change outstanding
+        beside them (``start``): their answers may predate it, so none is kept."""
+        for attempt in self.flights.values():
+            attempt.epoch = -1
+
     # -- the ordering rule's accounts ----------------------------------------------------
 
     def joined(self, request: LineRequest) -> None:

@@ -115,7 +115,10 @@ class LineCore(Sending):
 
     def reconfigure(self, policy: LinePolicy, now: float) -> None:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
+        caching = bool(self.policy.cache)
         self._apply_policy(policy)
+        if policy.cache and not caching:
+            self.wire.uncacheable()
         if policy.dead_after <= 0:  # isolation off: every slave is served again
             self.health.absent.clear()
             for slave, record in self.health.not_up():

@@ -120,6 +120,10 @@ class Wire:
         """True when the answer to ``attempt`` is no older than any change submitted."""
         return True
 
+    def uncacheable(self) -> None:
+        """The cache was just turned on: the answers of the attempts outstanding, sent
+        without the cache's checks, are not kept."""
+
 
 class SerialWire(Wire):
     """One attempt at a time on a shared medium (see the module doc)."""
