@@ -25,6 +25,7 @@ from enum import StrEnum
 from typing import Final
 
 from .ascii import MAX_ASCII_FRAME, decode_ascii
+from .echo import strip_echo
 from .errors import ResponseError
 from .rtu import NEED_MORE
 from .rtu_stream import stream_request_length
@@ -160,10 +161,11 @@ def request_or_none(unit: int, pdu: bytes) -> tuple[int, bytes] | None:
 class OwnEcho:
     """The answer just written, expected back from an adapter that echoes; dropped exactly."""
 
-    __slots__ = ("_left",)
+    __slots__ = ("_frame", "_left")
 
     def __init__(self) -> None:
         self._left = b""
+        self._frame = b""
 
     @property
     def expected(self) -> int:
@@ -172,16 +174,11 @@ class OwnEcho:
 
     def sent(self, frame: bytes) -> None:
         """``frame`` went on the wire: its echo replaces any echo still expected."""
-        self._left = frame
+        self._left = self._frame = frame
 
     def strip(self, data: bytes) -> bytes:
-        """``data`` without the echo at its front; the rest is the line's."""
-        left = self._left
-        if not left:
+        """``data`` without the echo (``echo.strip_echo``); the rest is the line's."""
+        if not self._left:
             return data
-        count = min(len(left), len(data))
-        if data[:count] == left[:count]:
-            self._left = left[count:]
-            return data[count:]
-        # Not our echo: a master or another slave talking; the echo may still follow.
+        data, self._left = strip_echo(data, self._left, self._frame)
         return data

@@ -110,3 +110,30 @@ def test_a_slave_talking_over_our_frame_does_not_make_the_echo_an_answer() -> No
     assert line.answers == []
     line.receive(frame, 0.01)  # the slave's answer
     assert line.answers == [(WRITE, Outcome.OK)]
+
+
+@pytest.mark.parametrize("noise", [b"\x01", b"\x01\x06"])
+def test_noise_that_looks_like_the_echos_start_does_not_make_the_echo_an_answer(
+    noise: bytes,
+) -> None:
+    """Found by the line core's stateful test: noise that happens to be our frame's first
+    bytes was taken for the start of the echo; the echo itself, then not recognised, was
+    taken for the write's answer, before the slave had answered (or when it never did)."""
+    line = Line()
+    frame = line.submit(WRITE, 0.0)
+    line.receive(noise, 0.0)  # on the line as our frame goes out
+    line.receive(frame, 0.001)  # then our echo, whole
+    assert line.answers == []
+    line.receive(frame, 0.01)  # the slave's answer
+    assert line.answers == [(WRITE, Outcome.OK)]
+
+
+def test_noise_like_the_echos_start_then_the_echo_in_pieces() -> None:
+    line = Line()
+    frame = line.submit(WRITE, 0.0)
+    line.receive(frame[:1], 0.0)  # noise
+    line.receive(frame[:3], 0.0005)  # the echo, in two pieces
+    line.receive(frame[3:], 0.001)
+    assert line.answers == []
+    line.receive(frame, 0.01)
+    assert line.answers == [(WRITE, Outcome.OK)]

@@ -98,6 +98,23 @@ def test_own_echo_is_dropped_exactly_whatever_the_split() -> None:
     assert echo.strip(answer) == answer  # a newer answer replaces the echo expected
 
 
+def test_noise_like_the_echos_start_does_not_let_the_echo_through_as_a_request() -> None:
+    """A noise byte equal to our answer's first byte was taken for the echo's start; the
+    echo, then not recognised, went to the request reader: the echo of an FC 6 answer is
+    that write's request, executed a second time."""
+    echo = OwnEcho()
+    answer = h("01 06 0064 0007 C9D7")
+    echo.sent(answer)
+    assert echo.strip(answer[:1]) == b""  # noise, taken for the echo's first byte
+    assert echo.strip(answer) == answer[:1]  # the echo: dropped; the noise is the line's
+    assert echo.expected == 0
+    echo.sent(answer)
+    assert echo.strip(answer[:2]) == b""
+    assert echo.strip(answer[:4]) == answer[:2]  # the echo again, in pieces
+    assert echo.strip(answer[4:]) == b""
+    assert echo.expected == 0
+
+
 REQUESTS = [
     (1, h("03 0000 000A")), (0x11, h("01 0013 0013")), (1, h("10 0001 0002 04 000A 0102")),
     (1, h("0F 0013 000A 02 CD01")), (1, h("2B 0E 01 00")), (1, h("08 0000 A537")), (1, h("07")),

@@ -16,6 +16,7 @@ from collections.abc import Hashable
 from typing import TYPE_CHECKING
 
 from .. import pdu as fc
+from ..echo import strip_echo
 from ..errors import ResponseError
 from ..outcome import DiscardReason
 from .fair_queue import Master
@@ -132,6 +133,7 @@ class SerialWire(Wire):
         super().__init__()
         self.attempt: Attempt | None = None
         self.echo_left = b""  # the part of our own frame still to come back (``echo``)
+        self.echo_frame = b""  # that frame, whole
 
     def timer(self) -> float:
         attempt = self.attempt
@@ -232,7 +234,7 @@ class SerialWire(Wire):
         self.outstanding = 1
         line.quiet_since = sent_by
         if line.echo:
-            self.echo_left = frame
+            self.echo_left = self.echo_frame = frame
         return frame
 
     def end(self, attempt: Attempt) -> None:
@@ -247,11 +249,11 @@ class SerialWire(Wire):
         return [attempt]
 
     def lost(self) -> None:
-        self.echo_left = b""
+        self.echo_left = self.echo_frame = b""
 
     def expect_echo(self, frame: bytes) -> None:
         if self.line.echo:
-            self.echo_left = frame
+            self.echo_left = self.echo_frame = frame
 
     def receive(self, data: bytes, now: float) -> None:
         line = self.line
@@ -367,12 +369,6 @@ class SerialWire(Wire):
             attempt.heard = b""
 
     def _strip_echo(self, data: bytes) -> bytes:
-        """Drop the echo of our own frame from the front of ``data``; the rest is the line's."""
-        echo = self.echo_left
-        count = min(len(echo), len(data))
-        if data[:count] == echo[:count]:
-            self.echo_left = echo[count:]
-            return data[count:]
-        # Not our echo: a slave talking over our frame (its answer to an earlier request),
-        # or noise. Those bytes are the line's; the echo may still follow them.
+        """Drop the echo of our own frame from ``data``; the rest is the line's."""
+        data, self.echo_left = strip_echo(data, self.echo_left, self.echo_frame)
         return data
