@@ -1094,14 +1094,14 @@ def _pair_warnings(config: GatewayConfig) -> list[str]:
     if pair.peer is None:
         return []
     warnings: list[str] = []
-    remote = not _loopback(pair.peer[0])
-    if remote and _loopback(config.metrics.host):
+    remote = not is_loopback(pair.peer[0])
+    if remote and is_loopback(config.metrics.host):
         warnings.append(
             f"metrics.listen: {config.metrics.host} is a loopback address: the peer at "
             f"{pair.peer[0]} cannot poll this gateway's /role; listen on an address it "
             "reaches"
         )
-    if remote and _loopback(config.server.host):
+    if remote and is_loopback(config.server.host):
         warnings.append(
             f"server.listen: {config.server.host} is a loopback address: the peer cannot "
             "forward its masters' requests here while it stands by; listen on an address it "
@@ -1119,12 +1119,16 @@ def _pair_warnings(config: GatewayConfig) -> list[str]:
     return warnings
 
 
-def _loopback(host: str) -> bool:
-    """``host`` is a loopback address or name (``localhost``)."""
-    if host == "localhost":
+#: Names that always mean this machine (a rebinding page cannot send them as its Host).
+LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
+
+
+def is_loopback(name: str) -> bool:
+    """True for a loopback name or address (``127.0.0.0/8``, ``::1``, ``*.localhost``)."""
+    if name in LOOPBACK_NAMES or name.endswith(".localhost"):
         return True
     try:
-        return ipaddress.ip_address(host).is_loopback
+        return ipaddress.ip_address(name).is_loopback
     except ValueError:
         return False
 

@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import enum
 import hmac
-import ipaddress
 from collections.abc import Mapping
 from dataclasses import dataclass
 from urllib.parse import parse_qs
 
-from ..config import MetricsConfig
+from ..config import MetricsConfig, is_loopback
 
 
 class Access(enum.Enum):
@@ -46,8 +45,6 @@ class HttpRefusal(enum.StrEnum):
     MAX_CONNECTIONS = "max_connections"  #: closed at accept: every connection is busy
 
 
-#: Names that always mean this machine (a rebinding page cannot send them as its Host).
-LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
 _COOKIE = {Access.STATUS: "mbgw_status", Access.TRACE: "mbgw_trace"}
 _STATUS: dict[HttpRefusal | None, int] = {HttpRefusal.HOST: 421, HttpRefusal.NO_TOKEN: 401}
 
@@ -92,16 +89,6 @@ def host_name(header: str) -> str:
     if host.count(":") == 1:
         host = host.partition(":")[0]
     return host.rstrip(".")
-
-
-def is_loopback(name: str) -> bool:
-    """True for a loopback name or address (``127.0.0.0/8``, ``::1``, ``*.localhost``)."""
-    if name in LOOPBACK_NAMES or name.endswith(".localhost"):
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False
 
 
 def _cookies(header: str) -> dict[str, str]:

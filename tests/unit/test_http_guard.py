@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.config import MetricsConfig
-from gateway.io.http_guard import Access, Guard, HttpRefusal, host_name, is_loopback
+from gateway.config import MetricsConfig, is_loopback
+from gateway.io.http_guard import Access, Guard, HttpRefusal, host_name
 
 STATUS = "s" * 20
 TRACE = "t" * 20
