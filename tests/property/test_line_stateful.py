@@ -1137,26 +1137,36 @@ def test_a_broadcast_waits_for_a_read_joined_to_one_back_from_the_lane() -> None
     machine.teardown()
 
 
+def learned_line() -> LineHarness:
+    """A line core that learns its timeouts, as the learned machine's, at literal times."""
+    config = LineConfig(
+        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
+        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
+    )  # fmt: skip
+    return LineHarness(new_core(config, 0.0))
+
+
+def first_frame_to(line: LineHarness, slave: int) -> bytes:
+    """Fire the line's timers until a frame goes to ``slave``; that frame."""
+    frames: list[bytes] = []
+    while not any(frame[0] == slave for frame in frames):
+        line.timer()
+        frames += line.frames()
+    return next(frame for frame in frames if frame[0] == slave)
+
+
 def test_a_first_contact_moved_to_the_lane_keeps_its_place() -> None:
     """Found by the learned machine: a master writes to slave 1 (silent), then writes to
     and reads back slave 2, both never heard from. Slave 1's first contact times out: it is
     absent, and the write to slave 2 (a first contact) moved to the lane while the read
     behind it stayed queued and went first: the master read the value from before its
     write. The write now stays in its place, ahead of the read."""
-    config = LineConfig(
-        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
-        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
-    )  # fmt: skip
-    line = LineHarness(new_core(config, 0.0))
+    line = learned_line()
     line.submit(1, bytes.fromhex("0600000001"), 0.0)
     line.submit(2, bytes.fromhex("0600000001"), 0.0)
     line.submit(2, bytes.fromhex("0300000001"), 0.0)
-    frames: list[bytes] = []
-    while not any(frame[0] == 2 for frame in frames):
-        line.timer()
-        frames += line.frames()
-    first_to_2 = next(frame for frame in frames if frame[0] == 2)
-    assert first_to_2[1] == fc.WRITE_SINGLE_REGISTER, frames
+    first_to_2 = first_frame_to(line, 2)
+    assert first_to_2[1] == fc.WRITE_SINGLE_REGISTER, first_to_2
 
 
 def test_a_first_contact_read_moved_to_the_lane_is_not_passed_by_a_write() -> None:
@@ -1164,20 +1174,12 @@ def test_a_first_contact_read_moved_to_the_lane_is_not_passed_by_a_write() -> No
     slave 2 (both never heard from; b's goes first), then a writes slave 7. Slave 2 stays
     silent and turns absent; a's read moved to the lane, and a's write went before it.
     The read now stays in its place, ahead of the write."""
-    config = LineConfig(
-        name="p", device="/dev/null", baudrate=BAUD, learn_timeouts=True,
-        initial_timeout=INITIAL, max_timeout=MAX_WAIT,
-    )  # fmt: skip
-    line = LineHarness(new_core(config, 0.0))
+    line = learned_line()
     line.submit(7, bytes.fromhex("0300000001"), 0.0, master="a")
     line.submit(2, bytes.fromhex("0400000001"), 0.0, master="b")
     line.submit(7, bytes.fromhex("0600000001"), 0.0, master="a")
-    frames: list[bytes] = []
-    while not any(frame[0] == 7 for frame in frames):
-        line.timer()
-        frames += line.frames()
-    first_to_7 = next(frame for frame in frames if frame[0] == 7)
-    assert first_to_7[1] == fc.READ_HOLDING_REGISTERS, frames
+    first_to_7 = first_frame_to(line, 7)
+    assert first_to_7[1] == fc.READ_HOLDING_REGISTERS, first_to_7
 
 
 def test_a_read_handed_to_a_reopened_line_keeps_the_time_it_was_sent() -> None:
