@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -348,9 +349,14 @@ class PairLab:
         return gateway
 
     def configure(self, gateway: GatewayProc, peer: GatewayProc | None = None,
-                  priority: int = 100, proxy: bool = False, extra: str = "") -> None:  # fmt: skip
-        """Write ``gateway``'s file: its node on the bus, its addresses, and its peer."""
-        node = self.bus.node(gateway.name)
+                  priority: int = 100, proxy: bool = False, extra: str = "",
+                  routes: Mapping[int, int] | None = None) -> None:  # fmt: skip
+        """Write ``gateway``'s file: its node on the bus, its addresses, and its peer.
+
+        ``routes`` (unit id -> slave address) replaces the line's own units (each unit to
+        the slave of its number). Written again, the file keeps the gateway's node.
+        """
+        node = self.bus.nodes.get(gateway.name) or self.bus.node(gateway.name)
         text = [
             f'[server]\nlisten = "{gateway.host}:{gateway.modbus_port}"\n'
             "max_connections_per_source = 0\n",
@@ -369,8 +375,11 @@ class PairLab:
                 f'peer_modbus = "{modbus_address[0]}:{modbus_address[1]}"\n'
                 f"priority = {priority}\n"
             )
+        units = list(UNITS) if routes is None else []
         text.append(f'[lines.a]\ndevice = "{node.path}"\nbaudrate = {self.bus.baudrate}\n'
-                    f"units = {list(UNITS)}\n{extra}")  # fmt: skip
+                    f"units = {units}\n{extra}")  # fmt: skip
+        text += [f'[[routes]]\nunit = {unit}\nline = "a"\nslave = {slave}\n'
+                 for unit, slave in (routes or {}).items()]  # fmt: skip
         gateway.config.write_text("\n".join(text))
 
     def pair(self, proxy: bool = False) -> tuple[GatewayProc, GatewayProc]:

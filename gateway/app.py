@@ -504,13 +504,18 @@ class Gateway:
         return {name: tls.context for name, tls in built.items()}
 
     def _build_router(self) -> Router:
+        """The routing table every listener's admission runs, and a standby's forwarding
+        too: built at start and again by each reload."""
         routes = {
             unit: Target(self.buses[route.line], route.slave)
             for unit, route in self.config.routes.items()
         }
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
         self.metrics.prepare_units((r.line, r.slave) for r in self.config.routes.values())
-        return Router(routes, broadcast)
+        router = Router(routes, broadcast)
+        if self.pair is not None:  # a standby forwards by the table the active admits by
+            self.pair.reroute(router.admitter.table)
+        return router
 
 
 def listener_policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
@@ -562,18 +567,17 @@ def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:
 def build_pair(config: GatewayConfig, buses: dict[str, Bus], metrics: GatewayMetrics) -> Pair:
     """One gateway of a pair: its role machine, its peer poller and its forwarder (imported
     only by a paired gateway)."""
-    from .io.pair import Pair, reverse_routes
+    from .io.pair import Pair
     from .io.peer_forward import PeerForwarder
 
     redundancy = config.redundancy
     assert redundancy.peer_modbus is not None
-    routes = {unit: (route.line, route.slave) for unit, route in config.routes.items()}
     # Longer than the active can take: its queue's longest wait, then two attempts at most.
     waits = [line.max_queue_wait or 5.0 for line in config.lines]
     timeout = max(waits) + 2 * max(line.max_timeout for line in config.lines)
     listen = config.server.host
     local_host = None if listen in ("0.0.0.0", "::", "") else listen
-    forwarder = PeerForwarder(*redundancy.peer_modbus, reverse_routes(routes),
+    forwarder = PeerForwarder(*redundancy.peer_modbus, {},  # the router's units (reroute)
                               asyncio.get_running_loop(), timeout=timeout,
                               local_host=local_host)  # fmt: skip
     return Pair(redundancy, config.metrics, buses, forwarder, metrics)

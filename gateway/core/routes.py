@@ -43,14 +43,25 @@ def targets_of(routes: Mapping[int, RouteLike]) -> dict[int, Target]:
 class RouteTable:
     """Unit id → ``Target``, and the lines a broadcast goes to; immutable once built."""
 
-    __slots__ = ("broadcast_lines", "routes")
+    __slots__ = ("broadcast_lines", "routes", "units")
 
     def __init__(
         self, routes: Mapping[int, RouteLike], broadcast_lines: Iterable[str] = ()
     ) -> None:
         self.routes: Mapping[int, Target] = targets_of(routes)
         self.broadcast_lines: tuple[str, ...] = tuple(broadcast_lines)
+        #: Each target's unit id (the lowest of its aliases): what a standby of a pair
+        #: sends the active for a request this table routed there (both run one table).
+        self.units: Mapping[tuple[str, int], int] = _units_of(self.routes)
 
     def lookup(self, unit: int) -> Target | None:
         """The target of ``unit``, ``None`` when no route serves it."""
         return self.routes.get(unit)
+
+
+def _units_of(routes: Mapping[int, Target]) -> dict[tuple[str, int], int]:
+    """(line, slave) → the lowest unit id routed to it."""
+    units: dict[tuple[str, int], int] = {}
+    for unit in sorted(routes):
+        units.setdefault(routes[unit], unit)
+    return units

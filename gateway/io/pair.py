@@ -32,6 +32,7 @@ from ..core import pdu as fc
 from ..core.line import LineRequest
 from ..core.outcome import Outcome
 from ..core.redundancy import ChangeReason, Role, RoleMachine
+from ..core.routes import RouteTable
 from ..status import PairStatus
 from .bus import Bus
 from .peer_role import PeerPoller, PeerRole, peer_tls, role_body
@@ -131,6 +132,11 @@ class Pair:
             self._timer = None
         await self.poller.stop()
         self.forwarder.close()
+
+    def reroute(self, table: RouteTable) -> None:
+        """The routing table the active's admission runs (at start, and each reload's new
+        one): forwarding sends each request under the unit id this table gives its slave."""
+        self.forwarder.reroute(table.units)
 
     # -- what the rest of the gateway asks ------------------------------------------------
 
@@ -295,12 +301,4 @@ def _ignore(_pdu: bytes, _outcome: Outcome) -> None:
     """A keep-alive's answer matters only as traffic on the bus."""
 
 
-def reverse_routes(routes: Mapping[int, tuple[str, int]]) -> dict[tuple[str, int], int]:
-    """(line, slave) -> a unit id that reaches it (the lowest; both gateways share routes)."""
-    units: dict[tuple[str, int], int] = {}
-    for unit in sorted(routes):
-        units.setdefault(routes[unit], unit)
-    return units
-
-
-__all__: Sequence[str] = ("Pair", "boot_time", "reverse_routes")
+__all__: Sequence[str] = ("Pair", "boot_time")

@@ -5,8 +5,9 @@ Theory of operation. The standby of a redundant pair never transmits on the bus,
 its masters stay served: each request the master side would hand a line (the
 ``Bus.submit`` seam: a ``LineRequest`` and its line name) is sent to the peer under the
 unit id the peer routes to that same line and slave (``units``: both gateways of a pair
-run the same routes). Each master's rules and its audit record are applied here, where
-the master is connected, before the request reaches ``submit``.
+run the same routes; the map is the routing table's own, ``RouteTable.units``, replaced
+with the table at every reload). Each master's rules and its audit record are applied
+here, where the master is connected, before the request reaches ``submit``.
 
 One TCP connection to the peer per master (keyed by ``request.master``, opened on first
 need without blocking the loop, ``TCP_NODELAY``). The active's fair queue shares a line
@@ -157,7 +158,8 @@ class PeerForwarder:
         #: itself, never forwards them back.
         self.local_addr = None if local_host is None else (local_host, 0)
         self.port = port
-        self.units = dict(units)
+        #: (line, slave) -> the unit id sent for it: the routing table's (``reroute``).
+        self.units: Mapping[tuple[str, int], int] = units
         self.timeout = timeout
         self.max_pending = max_pending
         #: Set by the role logic: whether the peer answers as active. False: 0x0A at once.
@@ -200,6 +202,10 @@ class PeerForwarder:
         self.stats.forwarded += 1
         link.send(request, unit)
         return True
+
+    def reroute(self, units: Mapping[tuple[str, int], int]) -> None:
+        """The routing table changed (start, reload): send each request under its new unit."""
+        self.units = units
 
     def cancel(self, master: Hashable) -> None:
         """``master`` left: its pending requests are dropped and its connection closed."""

@@ -294,3 +294,45 @@ def test_a_standby_never_forwards_what_comes_from_its_peer(lab: PairLab) -> None
             head = read_exactly(master, 7)
             answers[label] = read_exactly(master, struct.unpack(">H", head[4:6])[0] - 1)
     assert answers == {"peer": bytes([0x83, 0x0A]), "other": PLC_10}
+
+
+def transact(address: tuple[str, int], unit: int, pdu: bytes) -> bytes:
+    """One Modbus TCP request on a connection of its own; the answer's PDU."""
+    with socket.create_connection(address, timeout=10.0) as master:
+        master.sendall(struct.pack(">HHHB", 9, 0, len(pdu) + 1, unit) + pdu)
+        head = read_exactly(master, 7)
+        return read_exactly(master, struct.unpack(">H", head[4:6])[0] - 1)
+
+
+def test_after_a_reload_that_swaps_two_units_both_gateways_reach_the_configured_slave(
+    lab: PairLab,
+) -> None:
+    """Both gateways reload routes that send unit 1 to slave 2 and unit 2 to slave 1: a
+    read and a write through either gateway, the standby's forwarded to the active, reach
+    the slave the routes name now."""
+    a, b = lab.gateway("a"), lab.gateway("b")
+    straight, swapped = {1: 1, 2: 2}, {1: 2, 2: 1}
+    lab.configure(a, b, priority=200, routes=straight)
+    lab.configure(b, a, priority=100, routes=straight)
+    a.start()
+    b.start()
+    active, standby = active_and_standby(lab, a, b)
+    for gateway, peer, priority in ((a, b, 200), (b, a, 100)):
+        mark = len(gateway.lines)
+        lab.configure(gateway, peer, priority=priority, routes=swapped)
+        gateway.signal(signal.SIGHUP)
+        gateway.wait_for(r"reload: configuration from .* applied", start=mark)
+    deadline = time.monotonic() + 10.0
+    while status(standby)["pair"]["peer_role"] != "active":  # it forwards from now on
+        assert time.monotonic() < deadline
+        time.sleep(0.05)  # polling an HTTP endpoint
+    holding = {slave: lab.slaves.devices[slave].holding for slave in (1, 2)}
+    holding[1][600], holding[2][600] = 0x1111, 0x2222
+    read_600 = struct.pack(">BHH", 3, 600, 1)
+    for gateway, register, value in ((active, 601, 0xA001), (standby, 602, 0xB002)):
+        for unit, slave in swapped.items():
+            read = transact(gateway.modbus, unit, read_600)
+            assert read == bytes((3, 2)) + struct.pack(">H", 0x1111 * slave), (gateway.name, unit)
+        write = struct.pack(">BHH", 6, register, value)
+        assert transact(gateway.modbus, 2, write) == write, gateway.name
+        assert (holding[1][register], holding[2][register]) == (value, 0), gateway.name

@@ -201,3 +201,11 @@ def test_an_alias_gets_what_its_slave_gets(
     """Units 2 and 12 reach one slave: every policy treats them alike."""
     first = summary(ADMITTER.admit(principal, 2, pdu, policy))
     assert summary(ADMITTER.admit(principal, 12, pdu, policy)) == first
+
+
+def test_the_table_gives_each_slave_the_lowest_unit_that_reaches_it() -> None:
+    """What a standby of a pair sends the active: the table's unit for the routed slave,
+    the same whichever alias the master used."""
+    table = Admitter.of({12: Target("a", 2), 2: Target("a", 2), 1: Target("a", 1)}).table
+    assert table.units == {Target("a", 1): 1, Target("a", 2): 2}
+    assert table.units.get(("a", 2)) == 2 and table.units.get(("b", 2)) is None
