@@ -31,14 +31,15 @@ itself, before a byte is read (so before a TLS handshake): the allow lists
 (``ModbusTcpServer._admit``) fair share, decided by core's
 ``connection_share``: while a slot is free every master is admitted (unless an
 explicit ``max_connections_per_source`` cap, off by default, is reached); at
-``max_connections`` the address holding the most connections yields its
-longest-idle one with nothing in flight: one idle for ``evict_min_idle`` to a
-newcomer of its own address or of one a connection lighter, any to a newcomer
-whose address holds at least two fewer; else the next heaviest address is
-tried, down to the newcomer's own; none: refused. So a newcomer from the
-heaviest address whose connections are all busy or recent is refused, and one
-from a lighter address still gets in. Only a complete request makes a master
-active again.
+``max_connections``, under both ``when_full`` policies, a newcomer whose address
+holds less than its fair share takes the place of the heaviest address's
+longest-open connection that never sent a request. Otherwise, under
+``close_oldest_idle`` only, the address holding the most connections yields its
+longest-idle one with nothing in flight (a never-used one while any is open):
+one idle for ``evict_min_idle`` to a newcomer of its own address or of one a
+connection lighter, any to a newcomer whose address holds at least two fewer;
+else the next heaviest address is tried, down to the newcomer's own; none:
+refused. Only a complete request makes a master active (and used).
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
 
@@ -188,6 +189,28 @@ def _peer_text(address: object) -> tuple[str, str]:
         shown = f"[{host}]" if ":" in host else host
         return f"{shown}:{address[1]}", host
     return str(address), str(address)
+
+
+def _eviction_why(verdict: Evict) -> str:
+    """Why a connection was closed to make room, as the log says it."""
+    if verdict.never_used:
+        return "never sent a request, and its address holds the most"
+    return "its address holds more than the newcomer's" if verdict.over_share else "idle longest"
+
+
+def _refusal_why(config: ServerConfig, source: str) -> str:
+    """Why a newcomer from ``source`` found no room, naming the settings."""
+    if config.when_full != "close_oldest_idle":
+        return (
+            f'server.when_full = "refuse", and {source} holds its share or no heavier '
+            "address holds a connection that never sent a request"
+        )
+    return (
+        f"none that a master from {source} may displace is idle for "
+        f"{config.evict_min_idle:g} s (server.evict_min_idle) or held by an address "
+        "with two more connections than its own (while connections that never sent "
+        "a request are open, only those may go)"
+    )
 
 
 class RequestSplitter(Protocol):
@@ -859,19 +882,22 @@ class ModbusTcpServer:
             return None
         connections = list(self._connections)
         now = time.monotonic()
-        snapshot = [OpenConnection(c.source, c.idle_for(now), c.in_flight) for c in connections]
+        snapshot = [
+            OpenConnection(c.source, c.idle_for(now), c.in_flight, c.requests > 0)
+            for c in connections
+        ]
         verdict = admit_connection(source, limits, snapshot)
         if isinstance(verdict, Evict):
-            self._evict(connections[verdict.index], verdict.over_share, peer)
+            self._evict(connections[verdict.index], verdict, peer)
             return None
         if isinstance(verdict, Refuse):
             self._note_refusal(source, verdict.reason)
             return RejectReason(verdict.reason.value)
         return None
 
-    def _evict(self, victim: MasterConnection, over_share: bool, peer: str) -> None:
+    def _evict(self, victim: MasterConnection, verdict: Evict, peer: str) -> None:
         """Close ``victim`` to make room for ``peer``."""
-        why = "its address holds more than the newcomer's" if over_share else "idle longest"
+        why = _eviction_why(verdict)
         log.debug("master %s: closed to make room for %s (%s)", victim.peer, peer, why)
         self.events.note("evicted", victim.source)
         victim.close(CloseReason.EVICTED)
@@ -887,14 +913,7 @@ class ModbusTcpServer:
                 plural="connections refused, limit of its address",
             )  # fmt: skip
             return
-        if config.when_full != "close_oldest_idle":
-            why = 'server.when_full = "refuse"'
-        else:
-            why = (
-                f"none that a master from {source} may displace is idle for "
-                f"{config.evict_min_idle:g} s (server.evict_min_idle) or held by an address "
-                "with two more connections than its own"
-            )
+        why = _refusal_why(config, source)
         self.faults.note(
             "server", "connection limit",
             f"{len(self._connections)} masters connected (server.max_connections); {why}; "

@@ -29,13 +29,19 @@ SERVER = (
         "says what happens."),
     Key(table=_S, name="when_full", type=Type.CHOICE, default="close_oldest_idle",
         choices=("close_oldest_idle", "refuse"),
-        help='At max_connections: "close_oldest_idle" closes the master that has been idle '
-        "longest (the TCP implementation guide's advice), \"refuse\" turns the new one away."),
+        help="At max_connections, under either choice, a newcomer from an address holding "
+        "less than its fair share (max_connections / addresses) takes the place of the "
+        "longest-open connection that never sent a request of the address holding the most; "
+        "no connection that has sent a request is closed while one that never did is open. "
+        'Otherwise "close_oldest_idle" closes the master that has been idle longest (the TCP '
+        'implementation guide\'s advice, shared out by address), "refuse" turns the new one '
+        "away."),
     Key(table=_S, name="evict_min_idle", type=Type.SECONDS, default=10.0, low=0.0,
         high=86_400.0,
         help="Only a master idle (no request in flight, none received) for at least this "
-        "many seconds may be closed to make room; when there is none, the new connection is "
-        "refused."),
+        "many seconds may be closed to make room for a newcomer of its own address (or one a "
+        "connection lighter); when there is none, the new connection is refused. A "
+        "connection that never sent a request, taken for a lighter address, need not wait."),
     Key(table=_S, name="max_connections_per_source", type=Type.INTEGER, default=0, low=0,
         high=100_000,
         help="Connections from one source address at once (0 = no cap); more are refused "

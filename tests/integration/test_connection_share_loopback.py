@@ -3,16 +3,19 @@
 A SCADA server that opens one connection per device is admitted whole while slots
 are free; at the limit the address holding the most connections yields, so a
 burst from one host never keeps another host's master out, and a newcomer from
-the heaviest host is refused when none of its own connections may go.
+the heaviest host is refused when none of its own connections may go. Connections
+that never send a request go before any master at work, under either ``when_full``.
 """
 
 from __future__ import annotations
 
+import select
 import socket
 import threading
 import time
 from contextlib import ExitStack, suppress
 
+import pytest
 from conftest import DEADLINE_S, GatewayOnSim, RawClient, RunningGateway, wait_until
 from metrics_harness import series, value
 from test_hostile import HONEST_LINE, HonestMaster, closed_within, connect_from
@@ -154,3 +157,130 @@ def test_bursts_from_one_host_do_not_starve_another_hosts_masters_at_defaults(
     assert per_poll_ok and sum(per_poll_ok) / len(per_poll_ok) >= 0.9, per_poll_ok.count(False)
     assert rejected(gw, "max_connections") >= 20
     assert rejected(gw, "max_per_source") == 0
+
+
+# --------------------------------------------------------------------------- never-used connections
+
+
+def _closed_by_peer(sock: socket.socket) -> bool:
+    """True when the gateway has closed ``sock`` (EOF or reset); does not wait."""
+    if not select.select([sock], [], [], 0.0)[0]:
+        return False
+    try:
+        return sock.recv(1, socket.MSG_DONTWAIT) == b""
+    except ConnectionResetError:
+        return True
+
+
+def _silent_bursts(gw: RunningGateway, size: int, bursts: int) -> int:
+    """Bursts of ``size`` connections from ``BURSTY`` that never send a byte, each held
+    0.5 s; returns how many the gateway closed (refused or evicted)."""
+    closed = 0
+    for _ in range(bursts):
+        burst = []
+        for _ in range(size):
+            with suppress(OSError):
+                burst.append(connect_from(BURSTY, gw.address))
+        closed += closed_within(burst, size - 100, 0.5)
+        for sock in burst:
+            sock.close()
+    return closed
+
+
+@pytest.mark.parametrize(
+    "when_full", [pytest.param("close_oldest_idle", marks=pytest.mark.slow), "refuse"]
+)
+def test_bursts_of_silent_connections_do_not_starve_a_master_connecting_per_poll(
+    gateway_with: GatewayOnSim, when_full: str
+) -> None:
+    # [server] at its defaults (100 connections) but for the policy under test.
+    _sim, gw = gateway_with({1: plc(1)}, line=HONEST_LINE, server={"when_full": when_full})
+    stop = threading.Event()
+    per_poll_ok: list[bool] = []
+
+    def per_poll_master() -> None:  # connects, polls once, disconnects, like some SCADA drivers
+        while not stop.is_set() and len(per_poll_ok) < 2000:
+            try:
+                with ClientFrom(OTHER, gw.address) as client:
+                    per_poll_ok.append(client.request(1, READ_1)[0] == 0x03)
+            except (OSError, AssertionError):
+                per_poll_ok.append(False)
+
+    other = threading.Thread(target=per_poll_master, daemon=True)
+    try:
+        with HonestMaster(gw) as honest:
+            other.start()
+            # Four bursts of 110 connections that never send a request, every 0.5 s.
+            assert _silent_bursts(gw, 110, 4) >= 40  # past the limit, the burst's own go
+        honest.check()
+    finally:
+        stop.set()
+        other.join(DEADLINE_S)
+    served = sum(per_poll_ok) / len(per_poll_ok) if per_poll_ok else 0.0
+    assert len(per_poll_ok) >= 10 and served >= 0.9, (len(per_poll_ok), per_poll_ok.count(False))
+    assert rejected(gw, "max_per_source") == 0
+
+
+@pytest.mark.parametrize(
+    "when_full", ["close_oldest_idle", pytest.param("refuse", marks=pytest.mark.slow)]
+)
+def test_silent_connections_from_many_addresses_close_none_of_a_busy_hosts_masters(
+    gateway_with: GatewayOnSim, when_full: str
+) -> None:
+    _sim, gw = gateway_with(
+        {1: plc(1)}, line=HONEST_LINE, server={"max_connections": 20, "when_full": when_full}
+    )
+    scada_host = OTHER
+    silent_hosts = [f"127.0.0.{10 + n}" for n in range(22)]
+    stop = threading.Event()
+    polls: list[bool] = []
+    lost: list[int] = []  # SCADA connections the gateway closed, by index
+
+    def scada_master(index: int) -> None:
+        """Polls every 0.3 s on one kept connection; reconnects when it is closed."""
+        client: ClientFrom | None = None
+        while not stop.is_set():
+            try:
+                if client is None:
+                    client = ClientFrom(scada_host, gw.address)
+                polls.append(client.request(1, READ_1)[0] == 0x03)
+            except (OSError, AssertionError):
+                polls.append(False)
+                lost.append(index)
+                if client is not None:
+                    client.close()
+                client = None
+            stop.wait(0.3)  # the SCADA's poll period, not a synchronisation
+        if client is not None:
+            client.close()
+
+    masters = [threading.Thread(target=scada_master, args=(n,), daemon=True) for n in range(3)]
+    held: dict[str, socket.socket] = {}
+    try:
+        for master in masters:
+            master.start()
+        wait_until(lambda: len(polls) >= 3, "the SCADA host's first polls")
+        # Each silent host keeps one connection open, and opens it again whenever the
+        # gateway closes it, for 2.5 s (bounded: at most 30 rounds of 22 connections).
+        deadline = time.monotonic() + 2.5
+        for _ in range(30):
+            if time.monotonic() >= deadline:
+                break
+            for host in silent_hosts:
+                sock = held.get(host)
+                if sock is None or _closed_by_peer(sock):
+                    if sock is not None:
+                        sock.close()
+                    with suppress(OSError):
+                        held[host] = connect_from(host, gw.address)
+            stop.wait(0.1)  # the attacker's round, not a synchronisation
+    finally:
+        stop.set()
+        for master in masters:
+            master.join(DEADLINE_S)
+        for sock in held.values():
+            sock.close()
+    assert len(polls) >= 20
+    assert lost == [], f"SCADA connections closed: {len(lost)} of {len(polls)} polls failed"
+    assert sum(polls) / len(polls) >= 0.95, polls.count(False)
+    assert rejected(gw, "max_connections") + evicted(gw) >= 2  # the silent hosts were turned away

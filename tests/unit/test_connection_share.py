@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -28,6 +30,11 @@ def idle(source: str, seconds: float) -> OpenConnection:
 
 def busy(source: str) -> OpenConnection:
     return OpenConnection(source, 0.0, 1)
+
+
+def silent(source: str, opened: float) -> OpenConnection:
+    """A connection open ``opened`` seconds that has never sent a request."""
+    return OpenConnection(source, opened, 0, used=False)
 
 
 # --------------------------------------------------------------------------- free slots
@@ -126,6 +133,61 @@ def test_the_explicit_cap_is_checked_before_the_share() -> None:
     assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_PER_SOURCE)
 
 
+# --------------------------------------------------------------------------- never used
+
+
+def test_silent_connections_from_many_sources_never_displace_a_busy_host() -> None:
+    # A SCADA host's three masters poll (idle a moment between polls); 17 sources hold
+    # one silent connection each. The share rule alone would take the SCADA host's.
+    limits = ShareLimits(max_connections=20, evict_min_idle=10.0)
+    scada = [idle("10.0.0.1", 0.2)] * 3
+    snapshot = scada + [silent(f"10.0.1.{n}", 5.0 + n) for n in range(17)]
+    for policy in (True, False):
+        verdict = admit_connection("10.0.2.1", replace(limits, evict=policy), snapshot)
+        # The newcomer holds none, under 20 / 19: the oldest silent one of a heavier source.
+        assert verdict == Evict(19, never_used=True)
+    # The SCADA host reconnecting is over its share (3 of 20 / 18): refused, no one closed.
+    assert admit_connection("10.0.0.1", limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_under_refuse_a_lighter_newcomer_takes_the_heaviest_sources_oldest_silent_one() -> None:
+    limits = ShareLimits(max_connections=6, evict=False)
+    snapshot = [silent(A, 1.0), silent(A, 3.0), silent(A, 2.0), idle(A, 60.0), idle(B, 9.0),
+                silent(B, 50.0)]  # fmt: skip
+    assert admit_connection(C, limits, snapshot) == Evict(1, never_used=True)
+    # B holds two: under 6 / 2, and A holds more: A's oldest silent one, not B's own.
+    assert admit_connection(B, limits, snapshot) == Evict(1, never_used=True)
+    # A is the heaviest (4 of 6 / 2): refused, as "refuse" says.
+    assert admit_connection(A, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_the_heaviest_source_with_a_silent_connection_yields_it_before_anyone_else() -> None:
+    limits = ShareLimits(max_connections=6)
+    snapshot = [busy(A), idle(A, 60.0), idle(A, 60.0), silent(B, 1.0), silent(B, 0.5),
+                silent(C, 30.0)]  # fmt: skip
+    # A is heaviest but has no silent connection; B holds two: its oldest silent one.
+    assert admit_connection("10.0.0.4", limits, snapshot) == Evict(3, never_used=True)
+
+
+def test_while_a_silent_connection_is_open_no_used_one_is_closed_for_the_share() -> None:
+    # A newcomer at its share: the share rule runs, over the silent connections only.
+    limits = ShareLimits(max_connections=4, evict_min_idle=10.0)
+    snapshot = [idle(A, 3600.0), idle(A, 3600.0), silent(B, 1.0), idle(B, 3600.0)]
+    assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+    old = [idle(A, 3600.0), idle(A, 3600.0), silent(B, 11.0), idle(B, 3600.0)]
+    assert admit_connection(B, limits, old) == Evict(2)
+    # Once no silent connection is open, the share rule applies to used ones as before.
+    used = [idle(A, 3600.0), idle(A, 3600.0), idle(B, 1.0), idle(B, 3600.0)]
+    assert admit_connection(B, limits, used) == Evict(3)
+
+
+def test_a_source_no_heavier_than_the_newcomers_keeps_its_silent_connections() -> None:
+    limits = ShareLimits(max_connections=4, evict=False)
+    snapshot = [silent(A, 9.0), idle(B, 1.0), idle(C, 1.0), idle("10.0.0.4", 1.0)]
+    assert admit_connection(B, limits, snapshot) == Refuse(Refusal.MAX_CONNECTIONS)
+    assert admit_connection("10.0.0.5", limits, snapshot) == Evict(0, never_used=True)
+
+
 def test_refusal_reasons_are_the_metric_labels() -> None:
     assert {reason.value for reason in Refusal} == {"max_connections", "max_per_source"}
 
@@ -138,6 +200,12 @@ CONNECTION = st.builds(
     SOURCES,
     st.sampled_from([0.0, 0.5, 5.0, 9.99, 10.0, 60.0]),
     st.sampled_from([0, 0, 1, 3]),
+    st.just(True),
+)
+#: Connections of any kind: a never-used one has nothing in flight.
+ANY_CONNECTION = st.one_of(
+    CONNECTION,
+    st.builds(silent, SOURCES, st.sampled_from([0.0, 0.5, 5.0, 9.99, 10.0, 60.0])),
 )
 LIMITS = st.builds(
     ShareLimits,
@@ -224,6 +292,58 @@ def test_a_source_within_its_fair_share_gets_in_when_the_others_are_idle(
         counts = [sum(s == other for s in sources[:max_connections]) for other in sources]
         if max(counts) < held + 2:
             assert verdict == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def _counts(snapshot: list[OpenConnection]) -> dict[str, int]:
+    return {s: sum(c.source == s for c in snapshot) for s in {c.source for c in snapshot}}
+
+
+def _under_share(source: str, limits: ShareLimits, snapshot: list[OpenConnection]) -> bool:
+    counts = _counts(snapshot)
+    sources = len(counts.keys() | {source})
+    return counts.get(source, 0) * sources < limits.max_connections
+
+
+@given(SOURCES, LIMITS, st.lists(ANY_CONNECTION, max_size=14))
+def test_no_used_connection_is_closed_while_a_never_used_one_is_open(
+    source: str, limits: ShareLimits, connections: list[OpenConnection]
+) -> None:
+    snapshot = _full(limits, connections)
+    verdict = admit_connection(source, limits, snapshot)
+    assert _after(verdict, snapshot) <= limits.max_connections
+    if not isinstance(verdict, Evict):
+        return
+    victim = snapshot[verdict.index]
+    assert victim.in_flight == 0
+    if any(not c.used for c in snapshot):
+        assert not victim.used
+    if not limits.evict:  # "refuse": only a silent one, only for a newcomer under its share
+        assert verdict.never_used and _under_share(source, limits, snapshot)
+    if verdict.never_used:
+        counts = _counts(snapshot)
+        assert victim.source != source and counts[victim.source] > counts.get(source, 0)
+        # The heaviest source holding a silent one, and that source's oldest silent one.
+        silent_sources = {c.source for c in snapshot if not c.used and c.source != source}
+        assert counts[victim.source] == max(counts[s] for s in silent_sources)
+        assert all(
+            c.idle <= victim.idle for c in snapshot if c.source == victim.source and not c.used
+        )
+
+
+@given(SOURCES, LIMITS, st.lists(ANY_CONNECTION, max_size=14))
+def test_a_newcomer_under_its_share_is_never_refused_while_a_heavier_source_is_silent(
+    source: str, limits: ShareLimits, connections: list[OpenConnection]
+) -> None:
+    snapshot = _full(limits, connections)
+    counts = _counts(snapshot)
+    held = counts.get(source, 0)
+    if limits.max_per_source and held >= limits.max_per_source:
+        return
+    heavier_silent = any(
+        not c.used and c.source != source and counts[c.source] > held for c in snapshot
+    )
+    if heavier_silent and _under_share(source, limits, snapshot):
+        assert not isinstance(admit_connection(source, limits, snapshot), Refuse)
 
 
 # --------------------------------------------------------------------------- configuration
