@@ -27,11 +27,13 @@ from types import FrameType
 from typing import Any
 
 from . import (
+    closed_loop,
     fairness,
     hostile,
     inflight_scenarios,
     instruction_scenarios,
     kind_scenarios,
+    learning,
     line_scenarios,
     redundancy,
     reverse_scenarios,
@@ -63,6 +65,8 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **timing_scenarios.SCENARIOS,
     **fairness.SCENARIOS,
     **redundancy.SCENARIOS,
+    **closed_loop.SCENARIOS,
+    **learning.SCENARIOS,
 }
 
 

@@ -26,6 +26,15 @@ Modes:
               last write acknowledged before the read was sent (read-after-write),
               and nothing newer than the last write sent before the answer came.
 ``slow``      each master sends one request every ``period`` seconds (random phase).
+``cycle``     each master polls every ``period`` seconds with one request outstanding:
+              the next goes at the later of its tick and the previous answer (a SCADA
+              poll cycle; a slow answer lowers its poll rate).
+
+``random_units`` picks each poll's unit at random from ``units`` instead of in
+turn; ``max_requests`` stops each master of a group after that many requests, and
+the window ends once every such master has had its answers; ``record`` keeps, per
+group, every request's send and answer time (``time.perf_counter``, the system's
+monotonic clock, which the simulator's stamps share), unit and outcome.
 
 ``groups`` adds masters that behave differently beside the main ones (a polite
 master among greedy ones, a live one among masters polling absent units); each
@@ -73,6 +82,7 @@ _HEADER_SIZE = 7
 _MAX_EXAMPLES = 8
 _MAX_SEARCHED_UNITS = 16  # whose data a wrong answer carried: search this many units at most
 _REAPER_PERIOD = 0.25
+_DONE_POLL_S = 0.05  #: how often the window checks whether every limited master is done
 _WRITE_REGISTER_OFFSET = 5
 _FIRST_WRITTEN_VALUE = 20000
 
@@ -99,6 +109,9 @@ class LoadSpec:
     kill_after: float | None = None  #: SIGUSR1 to the simulator this far into the window
     timeline: bool = False  #: keep per-unit correct answers in 0.1 s buckets
     exception_pause: float = 0.0  #: poll mode: wait this long after an exception to resend
+    random_units: bool = False  #: the main group picks each poll's unit at random
+    max_requests: int = 0  #: the main group: each master stops after this many (0: no limit)
+    record: bool = False  #: the main group keeps every request's times and outcome
     watch_pids: dict[str, int] = field(default_factory=dict)
     request_timeout: float = 10.0  #: an answer later than this counts as lost
     connect_timeout: float = 10.0
@@ -201,11 +214,14 @@ class GroupSpec:
     name: str
     masters: int
     units: list[int]
-    mode: str = "poll"  #: ``poll`` or ``slow``
+    mode: str = "poll"  #: ``poll``, ``slow`` or ``cycle``
     pipeline: int = 1
-    period: float = 1.0  #: slow mode: seconds between one master's requests
+    period: float = 1.0  #: slow and cycle modes: seconds between one master's requests
     tolerate: list[int] = field(default_factory=list)
     quantity: int | None = None  #: registers per read (None: ``LoadSpec.quantity``)
+    random_units: bool = False  #: each poll's unit at random from ``units``, not in turn
+    max_requests: int = 0  #: each master stops after this many requests (0: no limit)
+    record: bool = False  #: keep every request's (sent, answered, unit, outcome)
 
 
 class Group:
@@ -226,11 +242,16 @@ class Group:
         self.lost = 0  #: whole run
         self.latencies: list[float] = []
         self.ok_by_master: Counter[int] = Counter()  #: inside the window
+        #: With ``record``: [sent, answered or None, unit, outcome] per request, whole run;
+        #: outcome "ok", "wrong", "lost" or an exception's key (``0x83/0x0b``).
+        self.records: list[list[Any]] = []
 
     def summary(self, window: float) -> dict[str, Any]:
         """The group's figures for the result."""
         latencies = sorted(self.latencies)
+        extra = {"records": self.records} if self.spec.record else {}
         return {
+            **extra,
             "masters": self.spec.masters,
             "sent": self.sent,
             "sent_total": self.sent_total,
@@ -372,6 +393,9 @@ class Master(asyncio.Protocol):
         self.closed = asyncio.get_running_loop().create_future()
         self.on_write_ack: asyncio.Future[None] | None = None
         self.writer_read: asyncio.Future[None] | None = None
+        self.answer_waiter: asyncio.Future[None] | None = None  #: cycle mode: the next answer
+        self.rng = random.Random(spec.seed * 1_000_003 + index)  #: ``random_units``
+        self.polls = 0  #: polls sent (``max_requests``)
 
     # -- asyncio.Protocol
 
@@ -383,9 +407,12 @@ class Master(asyncio.Protocol):
             self.recorder.disconnects += 1
             self.recorder.lost += len(self.outstanding)
             self.group.lost += len(self.outstanding)
+            self._record_lost(list(self.outstanding.values()))
             self.outstanding.clear()
         if not self.closed.done():
             self.closed.set_result(None)
+        if self.answer_waiter is not None and not self.answer_waiter.done():
+            self.answer_waiter.set_result(None)
         for waiter in (self.on_write_ack, self.writer_read):
             if waiter is not None and not waiter.done():
                 waiter.set_exception(ConnectionError("connection lost"))
@@ -453,16 +480,34 @@ class Master(asyncio.Protocol):
         if self.recorder.measuring:
             self.group.sent += 1
 
+    @property
+    def done(self) -> bool:
+        """Whether this master has sent its ``max_requests`` and had every answer."""
+        limit = self.group.spec.max_requests
+        return bool(limit) and self.polls >= limit and not self.outstanding
+
     def send_next_poll(self) -> None:
-        """The next request of a polling master: rotate units; the unit's next address.
+        """The next request of a polling master: the next unit (in turn, or at random with
+        ``random_units``); the unit's next address. Nothing once ``max_requests`` are sent.
 
         The address comes from one counter per unit shared by every master, so no two
         recent requests to a unit are the same (see the module docstring).
         """
-        sequence = self.sequence
-        self.sequence = sequence + 1
-        unit = self.units[sequence % len(self.units)]
+        limit = self.group.spec.max_requests
+        if limit and self.polls >= limit:
+            return
+        self.polls += 1
+        if self.group.spec.random_units:
+            unit = self.rng.choice(self.units)
+        else:
+            sequence = self.sequence
+            self.sequence = sequence + 1
+            unit = self.units[sequence % len(self.units)]
         self.send_read(unit, self.shared.next_address(unit))
+
+    def _record_lost(self, entries: list[tuple[float, int, bytes | None, int]]) -> None:
+        if self.group.spec.record:
+            self.group.records += [[sent_at, None, unit, "lost"] for sent_at, unit, *_ in entries]
 
     # -- answers
 
@@ -478,19 +523,21 @@ class Master(asyncio.Protocol):
         pdu = frame[_HEADER_SIZE:]
         ok = False
         read = pdu[:1] == b"\x03"
+        outcome = "wrong"
         if protocol != 0:
             recorder.wrong("protocol_id", f"{protocol} in {frame.hex()}", group)
         elif unit != sent_unit:
             recorder.wrong("unit", f"sent unit {sent_unit}, answer {frame.hex()}", group)
         elif expected is not None and pdu == expected:
             ok = expected[0] < 0x80
+            outcome = "ok" if ok else exception_key(pdu[0], pdu[1])
             if not ok and recorder.measuring:
                 recorder.expected_exceptions += 1
         elif pdu and pdu[0] & 0x80:
             if len(pdu) != 2:
                 recorder.wrong("exception_length", frame.hex(), group)
             else:
-                key = exception_key(pdu[0], pdu[1])
+                key = outcome = exception_key(pdu[0], pdu[1])
                 if pdu[1] in group.tolerate or (
                     pdu[1] == TARGET_FAILED and sent_unit in recorder.flaky_units
                 ):
@@ -503,8 +550,11 @@ class Master(asyncio.Protocol):
                         group.exceptions[key] += 1
         elif expected is None:
             ok = self.shared.check_coalesced(pdu, lower, recorder)
+            outcome = "ok" if ok else "wrong"
         else:
             recorder.wrong("payload", _payload_detail(unit, expected, pdu, recorder), group)
+        if group.spec.record:
+            group.records.append([sent_at, now, sent_unit, outcome])
         recorder.answered(now, sent_at, unit, ok, read, group)
         if ok and recorder.measuring:
             group.ok_by_master[self.index] += 1
@@ -516,6 +566,10 @@ class Master(asyncio.Protocol):
             waiter = self.on_write_ack if lower == -1 else self.writer_read
             if waiter is not None and not waiter.done():
                 waiter.set_result(None)
+            return
+        if self.group.spec.mode == "cycle":
+            if self.answer_waiter is not None and not self.answer_waiter.done():
+                self.answer_waiter.set_result(None)
             return
         if self.group.spec.mode == "slow" or self.recorder.stopping:
             return
@@ -536,9 +590,11 @@ class Master(asyncio.Protocol):
         """Count requests outstanding for longer than ``timeout`` as lost."""
         expired = [tid for tid, entry in self.outstanding.items() if now - entry[0] > timeout]
         for tid in expired:
-            del self.outstanding[tid]
+            self._record_lost([self.outstanding.pop(tid)])
             self.recorder.lost += 1
             self.group.lost += 1
+        if expired and self.answer_waiter is not None and not self.answer_waiter.done():
+            self.answer_waiter.set_result(None)
 
 
 def _payload_detail(unit: int, expected: bytes, pdu: bytes, recorder: Recorder) -> str:
@@ -643,12 +699,20 @@ async def _writer_loop(master: Master, shared: SharedState, recorder: Recorder) 
 
 
 async def _slow_loop(master: Master, recorder: Recorder, rng: random.Random) -> None:
+    """One request every ``period``; in cycle mode, also never before the last one's answer."""
     period = master.group.spec.period
+    cycle = master.group.spec.mode == "cycle"
+    loop = asyncio.get_running_loop()
     await asyncio.sleep(rng.uniform(0, period))
     next_at = time.perf_counter()
     while not recorder.stopping:
+        waiter: asyncio.Future[None] = loop.create_future()
+        if cycle:
+            master.answer_waiter = waiter
         master.send_next_poll()
-        next_at += period
+        if cycle and master.outstanding:
+            await waiter  # set by the answer, the reaper or the disconnection
+        next_at = max(next_at + period, time.perf_counter()) if cycle else next_at + period
         await asyncio.sleep(max(0.0, next_at - time.perf_counter()))
 
 
@@ -658,10 +722,13 @@ def _groups(spec: LoadSpec) -> list[Group]:
         name="main",
         masters=spec.masters,
         units=list(spec.units),
-        mode="slow" if spec.mode == "slow" else "poll",
+        mode=spec.mode if spec.mode in ("slow", "cycle") else "poll",
         pipeline=spec.pipeline,
         period=spec.period,
         tolerate=list(spec.tolerate),
+        random_units=spec.random_units,
+        max_requests=spec.max_requests,
+        record=spec.record,
     )
     return [Group(main)] + [Group(GroupSpec(**extra)) for extra in spec.groups]
 
@@ -726,7 +793,7 @@ async def run(spec: LoadSpec) -> LoadResult:
         tasks.append(loop.create_task(_writer_loop(writer, shared, recorder)))
         readers = [master for master in masters if master is not writer]
     for master in readers:
-        if master.group.spec.mode == "slow":
+        if master.group.spec.mode in ("slow", "cycle"):
             tasks.append(loop.create_task(_slow_loop(master, recorder, rng)))
         elif spec.mode == "coalesce":
             for _ in range(spec.pipeline):
@@ -751,7 +818,13 @@ async def run(spec: LoadSpec) -> LoadResult:
     recorder.measuring = True
     if spec.kill_after is not None:
         tasks.append(loop.create_task(_kill_later(spec, recorder)))
-    await asyncio.sleep(spec.duration)
+    limited = [master for master in masters if master.group.spec.max_requests]
+    if limited:  # the window ends when every limited master is done (``duration`` at most)
+        end = recorder.window_start + spec.duration
+        while not all(master.done for master in limited) and time.perf_counter() < end:
+            await asyncio.sleep(_DONE_POLL_S)
+    else:
+        await asyncio.sleep(spec.duration)
     recorder.measuring = False
     recorder.window_end = time.perf_counter()
     cpu_after = _cpu_snapshot(spec.watch_pids)

@@ -91,6 +91,9 @@ class SimOptions:
     late: Sequence[tuple[int, float, float, float]] = ()  #: (unit, share, min s, max s)
     late_first: Sequence[int] = ()  #: units of ``late`` whose first read is late too
     die_on_signal: Sequence[int] = ()  #: units that fall silent when the simulator gets SIGUSR1
+    #: ``--response-time`` arguments: devices answering after a response time by phase
+    #: (``bench.slaves.response_profile_argument``).
+    response_time: Sequence[str] = ()
     framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
     modbus_tcp_listen: str | None = None  #: HOST:PORT: a Modbus TCP slave instead of a pty
     #: With ``modbus_tcp_listen``: (certificate chain, key, CA) files: a Modbus/TCP Security
@@ -153,6 +156,8 @@ class Simulator:
             command += ["--late", f"{unit}:{share}:{low}:{high}{first}"]
         for unit in options.die_on_signal:
             command += ["--die-on-signal", str(unit)]
+        for profile in options.response_time:
+            command += ["--response-time", profile]
         if options.framing != "rtu":
             command += ["--framing", options.framing]
         return command

@@ -16,6 +16,15 @@ what the benchmark needs and a demo does not:
   ``UNIT:SHARE:MIN:MAX:first``: the unit's first read is one of them too.
 - ``--die-on-signal UNIT``: on SIGUSR1 the unit falls silent for good (a slave that
   dies in the middle of a run; the load generator sends the signal and notes when).
+- ``--response-time UNITS:PHASES``: one device answering the unit ids ``UNITS``
+  (``1,2,3,4``) with a response time drawn per answer, by phase: ``5@0.005-0.038``
+  draws the device's first 5 answers (over all its unit ids) uniformly from 5-38 ms,
+  then the next phase; the last phase has no count and lasts (``1:30@0.01:0.4``: 30
+  answers after 10 ms, then every one after 400 ms). The response time runs from
+  the request's arrival to the first byte of the answer; the device is deaf on every
+  one of its unit ids until its answer has gone, as a single-threaded device that
+  scans its port once per cycle is, and the answer is written by the late-answer
+  thread. The time each phase began (``time.perf_counter``) is reported.
 
 Prints ``READY <path>`` once served, serves until SIGTERM or SIGINT, then prints the
 line's counters and the late answers' as one JSON line.
@@ -39,7 +48,7 @@ import ssl
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,10 +96,10 @@ class LateAnswers:
         self._fd = fd
         self._character_time = character_time
         self._turnaround = turnaround
-        self._rng = random.Random(seed ^ 0x5EED)
-        self._heap: list[tuple[float, int, int, bytes]] = []
+        self.rng = random.Random(seed ^ 0x5EED)
+        self._heap: list[tuple[float, int, Hashable, int, bytes]] = []
         self._sequence = 0
-        self._busy: set[int] = set()
+        self._busy: set[Hashable] = set()
         self._wake = threading.Condition()
         self._stopping = False
         self.stats = LateStats()
@@ -107,27 +116,44 @@ class LateAnswers:
             self._wake.notify()
         self._thread.join(5.0)
 
-    def busy(self, unit: int) -> bool:
-        """Whether ``unit`` is still preparing a late answer (and so deaf)."""
-        if unit in self._busy:
-            self.stats.ignored_busy += 1
+    def busy(self, key: Hashable, *, count: bool = True) -> bool:
+        """Whether ``key`` (a unit, or a device's ``busy_key``) is still preparing a late answer
+        (and so deaf); ``count``: count the request it ignores in ``ignored_busy``."""
+        if key in self._busy:
+            if count:
+                self.stats.ignored_busy += 1
             return True
         return False
 
     def decide(self, rule: LateRule, first: bool = False) -> float | None:
         """The delay for this read (``first``: the unit's first), or None to answer it on time."""
-        if self._rng.random() >= rule.share and not (first and rule.first):
+        if self.rng.random() >= rule.share and not (first and rule.first):
             return None
-        return self._rng.uniform(rule.min_s, rule.max_s)
+        return self.rng.uniform(rule.min_s, rule.max_s)
 
-    def schedule(self, unit: int, response: bytes, delay: float) -> None:
-        """Send ``response`` (a PDU) from ``unit`` ``delay`` seconds after now, paced."""
+    def schedule(
+        self,
+        unit: int,
+        response: bytes,
+        delay: float,
+        *,
+        busy_key: Hashable = None,
+        at: float | None = None,
+        after_turnaround: bool = True,
+    ) -> None:
+        """Send ``response`` (a PDU) from ``unit`` ``delay`` seconds after ``at`` (now), plus
+        the line's turnaround unless ``after_turnaround`` is False, paced; ``busy_key`` (the
+        unit by default) is deaf until it has gone."""
         frame = encode_rtu(unit, response)
-        due = time.perf_counter() + self._turnaround + delay + len(frame) * self._character_time
+        start = (time.perf_counter() if at is None else at) + delay
+        if after_turnaround:
+            start += self._turnaround
+        due = start + len(frame) * self._character_time
+        key = unit if busy_key is None else busy_key
         with self._wake:
-            self._busy.add(unit)
+            self._busy.add(key)
             self._sequence += 1
-            heapq.heappush(self._heap, (due, self._sequence, unit, frame))
+            heapq.heappush(self._heap, (due, self._sequence, key, unit, frame))
             self.stats.scheduled += 1
             self._wake.notify()
 
@@ -139,7 +165,7 @@ class LateAnswers:
                 if not self._heap:
                     self._wake.wait(_WAIT_CAP_S)
                     continue
-                due, _, unit, frame = self._heap[0]
+                due, _, key, unit, frame = self._heap[0]
                 remaining = due - time.perf_counter()
                 if remaining > 0:
                     self._wake.wait(min(remaining, _WAIT_CAP_S))
@@ -149,10 +175,103 @@ class LateAnswers:
             with contextlib.suppress(OSError):
                 os.write(self._fd, frame)
             with self._wake:
-                self._busy.discard(unit)
+                self._busy.discard(key)
                 self.stats.sent += 1
                 key = str(unit)
                 self.stats.by_unit[key] = self.stats.by_unit.get(key, 0) + 1
+
+
+@dataclass(frozen=True)
+class ResponsePhase:
+    """``answers`` answers (None: every later one) after ``min_s``..``max_s`` (uniform)."""
+
+    answers: int | None
+    min_s: float
+    max_s: float
+
+
+class ResponseProfile:
+    """One device's response time by phase, shared by the unit ids it answers.
+
+    Used by the line thread only (``next_delay``); the answers it times are written by
+    ``LateAnswers``, which keeps the device deaf (``busy_key``) until each has gone.
+    """
+
+    def __init__(self, units: tuple[int, ...], phases: tuple[ResponsePhase, ...]) -> None:
+        if not phases or phases[-1].answers is not None:
+            raise ValueError("the last phase of a response-time profile has no count")
+        if any(phase.answers is None or phase.answers < 1 for phase in phases[:-1]):
+            raise ValueError("every phase but the last needs a count of at least 1")
+        self.units = units
+        self.phases = phases
+        self.busy_key = ("device", units)
+        self.answers = 0  #: answers timed so far, over every unit id
+        self.ignored_busy = 0  #: requests that arrived while the device prepared an answer
+        self.phase_started_at: list[float] = []  #: perf_counter of each phase's first answer
+
+    def phase_index(self, answer: int) -> int:
+        """The phase the ``answer``-th answer (0-based) falls in."""
+        start = 0
+        for index, phase in enumerate(self.phases):
+            if phase.answers is None or answer < start + phase.answers:
+                return index
+            start += phase.answers
+        raise AssertionError("the last phase has no count")
+
+    def next_delay(self, rng: random.Random, now: float) -> float:
+        """The response time of the next answer; counts it and stamps a phase's start."""
+        index = self.phase_index(self.answers)
+        self.answers += 1
+        if index == len(self.phase_started_at):
+            self.phase_started_at.append(now)
+        phase = self.phases[index]
+        return rng.uniform(phase.min_s, phase.max_s)
+
+    def stats(self) -> dict[str, Any]:
+        """What the profile did, for the simulator's JSON line."""
+        return {
+            "units": list(self.units),
+            "answers": self.answers,
+            "ignored_busy": self.ignored_busy,
+            "phase_started_at": self.phase_started_at,
+        }
+
+
+def parse_response_profile(text: str) -> ResponseProfile:
+    """``UNITS:PHASES`` (see the module docstring) as a profile; ValueError names the fault."""
+    units_text, _, phases_text = text.partition(":")
+    if not phases_text:
+        raise ValueError(f"{text!r} is not UNITS:PHASES")
+    try:
+        units = tuple(int(unit) for unit in units_text.split(","))
+    except ValueError:
+        raise ValueError(f"{text!r}: the units are not numbers") from None
+    if not all(1 <= unit <= 247 for unit in units) or len(set(units)) != len(units):
+        raise ValueError(f"{text!r}: units must be distinct, 1..247")
+    phases: list[ResponsePhase] = []
+    for part in phases_text.split(":"):
+        count_text, _, range_text = part.rpartition("@")
+        low_text, _, high_text = range_text.partition("-")
+        try:
+            count = int(count_text) if count_text else None
+            low = float(low_text)
+            high = float(high_text) if high_text else low
+        except ValueError:
+            raise ValueError(f"{text!r}: phase {part!r} is not [COUNT@]MIN[-MAX]") from None
+        if not 0.0 <= low <= high:
+            raise ValueError(f"{text!r}: phase {part!r} needs 0 <= MIN <= MAX")
+        phases.append(ResponsePhase(count, low, high))
+    return ResponseProfile(units, tuple(phases))
+
+
+def response_profile_argument(
+    units: Sequence[int], phases: Sequence[tuple[int | None, float, float]]
+) -> str:
+    """The ``--response-time`` argument for ``units`` and (count or None, min s, max s) phases."""
+    parts = [
+        f"{'' if count is None else f'{count}@'}{low:g}-{high:g}" for count, low, high in phases
+    ]
+    return ",".join(str(unit) for unit in units) + ":" + ":".join(parts)
 
 
 class BenchSlave(SimulatedDevice):
@@ -165,11 +284,15 @@ class BenchSlave(SimulatedDevice):
         self.unit = unit
         self.late_rule: LateRule | None = None
         self.late: LateAnswers | None = None
+        self.profile: ResponseProfile | None = None
         self.reads = 0  #: reads answered so far
 
     def handle(self, pdu: bytes, *, broadcast: bool = False) -> bytes | None:
         """Answer now, or hand the answer to the late-answer thread (the line sends nothing)."""
-        late, rule = self.late, self.late_rule
+        late, rule, profile = self.late, self.late_rule, self.profile
+        if profile is not None and late is not None and not broadcast:
+            self._answer_in_time(pdu, profile, late)
+            return None  # the late-answer thread sends it
         if broadcast or late is None or rule is None:
             return super().handle(pdu, broadcast=broadcast)
         if late.busy(self.unit):
@@ -183,6 +306,18 @@ class BenchSlave(SimulatedDevice):
             return response
         late.schedule(self.unit, response, delay)
         return None
+
+    def _answer_in_time(self, pdu: bytes, profile: ResponseProfile, late: LateAnswers) -> None:
+        """Answer after the profile's next response time; deaf while the device is busy."""
+        if late.busy(profile.busy_key, count=False):
+            profile.ignored_busy += 1
+            return
+        response = super().handle(pdu)
+        if response is not None:
+            now = time.perf_counter()
+            delay = profile.next_delay(late.rng, now)
+            late.schedule(self.unit, response, delay, busy_key=profile.busy_key, at=now,
+                          after_turnaround=False)  # fmt: skip
 
 
 def _unit(text: str) -> int:
@@ -220,6 +355,13 @@ def _late_rule(text: str) -> LateRule:
     return LateRule(unit, share, low, high, first)
 
 
+def _response_profile(text: str) -> ResponseProfile:
+    try:
+        return parse_response_profile(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m bench.slaves", description=__doc__.splitlines()[0] if __doc__ else None
@@ -241,6 +383,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--die-on-signal", action="append", type=_unit, default=[], metavar="UNIT",
         help="this unit falls silent on SIGUSR1",
+    )  # fmt: skip
+    parser.add_argument(
+        "--response-time", action="append", type=_response_profile, default=[],
+        metavar="UNITS:PHASES",
+        help="one device answering UNITS (1,2,3,4) after a response time drawn by phase: "
+        "COUNT@MIN-MAX for its next COUNT answers, the last phase MIN-MAX for good",
     )  # fmt: skip
     parser.add_argument(
         "--modbus-tcp-listen", metavar="HOST:PORT", help="serve as a Modbus TCP slave, no pty"
@@ -270,7 +418,8 @@ def _serve_tcp(
     parser: argparse.ArgumentParser, args: argparse.Namespace, slaves: dict[int, BenchSlave]
 ) -> int:
     """The slaves as one Modbus TCP slave until SIGTERM/SIGINT (SIGUSR1: ``--die-on-signal``)."""
-    if args.baudrate or args.link or args.late or args.crc_error_rate or args.framing != "rtu":
+    serial_only = args.late or args.crc_error_rate or args.response_time
+    if args.baudrate or args.link or serial_only or args.framing != "rtu":
         parser.error("--modbus-tcp-listen takes only --unit, --silent and --die-on-signal")
     try:
         host, port = parse_host_port(args.modbus_tcp_listen)
@@ -309,10 +458,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if len(set(args.unit)) != len(args.unit):
         parser.error("a unit is given twice")
     slaves = {unit: BenchSlave(unit) for unit in args.unit}
+    profiled = [unit for profile in args.response_time for unit in profile.units]
     for unit in [*args.silent, *(u for u, _ in args.crc_error_rate), *args.die_on_signal,
-                 *(rule.unit for rule in args.late)]:  # fmt: skip
+                 *(rule.unit for rule in args.late), *profiled]:  # fmt: skip
         if unit not in slaves:
             parser.error(f"unit {unit} is not served (add --unit {unit})")
+    if len(set(profiled)) != len(profiled):
+        parser.error("a unit is in two --response-time devices")
+    if set(profiled) & {rule.unit for rule in args.late}:
+        parser.error("a unit takes --late or --response-time, not both")
     tls = (args.tls_cert, args.tls_key, args.tls_ca)
     if any(tls) and (not all(tls) or args.modbus_tcp_listen is None):
         parser.error("--tls-cert, --tls-key and --tls-ca go together, with --modbus-tcp-listen")
@@ -344,6 +498,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         for rule in args.late:
             slaves[rule.unit].late_rule = rule
             slaves[rule.unit].late = late
+        for profile in args.response_time:
+            for unit in profile.units:
+                slaves[unit].profile = profile
+                slaves[unit].late = late
         path = pair.path
         if args.link:
             _replace_symlink(pair.path, args.link)
@@ -363,6 +521,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 os.unlink(args.link)
         stats: dict[str, Any] = dataclasses.asdict(line.stats())
         stats["late"] = dataclasses.asdict(late.stats)
+        stats["response_time"] = [profile.stats() for profile in args.response_time]
         stats["died_at_monotonic"] = died_at
         print(json.dumps(stats), flush=True)
     return 0
