@@ -88,7 +88,8 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
         prog="modbus-gateway",
         description="Modbus TCP to Modbus RTU gateway. Subcommands: 'check-config FILE', "
         "'example-config', 'trace [OPTIONS]' (the same as --trace), 'trace --url "
-        "http://HOST:PORT' (attach to a running gateway), 'scan' (find the slaves on a line).",
+        "http://HOST:PORT' (attach to a running gateway), 'scan' (find the slaves on a line), "
+        "'audit verify FILE...' (check an audit log's hash chain).",
     )
     parser.add_argument(
         "--version", action="version", version=f"modbus-gateway {__version__} ({build()})"
