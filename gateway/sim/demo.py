@@ -54,9 +54,11 @@ class DemoLine:
         self.tcp_slave.start()
 
     def configure(self, raw: dict[str, Any], listen: str) -> dict[str, Any]:
-        """The configuration tables with the demo line (and the demo listen address) added."""
+        """The configuration tables with the demo lines added, and the demo's listen address
+        and a free port for the HTTP endpoint (``auto``) unless the file or a flag says."""
         raw = copy.deepcopy(raw)
         raw.setdefault("server", {}).setdefault("listen", listen)
+        raw.setdefault("metrics", {}).setdefault("listen", "auto")  # starts beside anything
         raw["lines"] = {
             "demo": {
                 "device": self.pty.path,

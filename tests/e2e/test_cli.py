@@ -356,3 +356,23 @@ def test_demo_has_a_modbus_tcp_slave_the_r6_controller(run_gateway: RunGateway) 
     assert lines["demo-tcp"]["kind"] == "tcp"
     assert [(s["unit"], s["state"]) for s in lines["demo-tcp"]["slaves"]] == [(1, "up")]
     assert gateway.terminate() == 0
+
+
+def test_the_demo_starts_beside_whatever_holds_port_9502(run_gateway: RunGateway) -> None:
+    """Without ``--metrics`` the demo's endpoint takes a free port and logs its URL."""
+    import contextlib
+    import socket
+    import urllib.request
+
+    with contextlib.ExitStack() as stack:
+        holder = stack.enter_context(socket.socket())
+        with contextlib.suppress(OSError):  # already held by something else: as good
+            holder.bind(("127.0.0.1", 9502))
+            holder.listen()
+        gateway = run_gateway("--demo", "--listen", "127.0.0.1:0")
+        gateway.address()
+        host, port = gateway.wait_for(METRICS_AT).groups()
+        assert (host, port) != ("127.0.0.1", "9502")
+        with urllib.request.urlopen(f"http://{host}:{port}/healthz", timeout=DEADLINE_S) as reply:
+            assert reply.status == 200
+        assert gateway.terminate() == 0
