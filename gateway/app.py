@@ -48,6 +48,7 @@ from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
 from .metrics import GatewayMetrics
+from .reload_summary import summarize
 from .status import LineStatus, MasterStatus, PairStatus
 from .trace import FrameTrace, Tracer
 
@@ -358,6 +359,7 @@ class Gateway:
             log.error("reload rejected, the running configuration stays: %s", error)
             return
         self._line_tls = line_tls  # a line's next handshake uses its renewed files
+        running, wanted = self.config, config
         if not await self._apply_lines(config, line_tls):
             return  # a stop came while a line was handed over
         config = self._keep_restart_settings(config)
@@ -365,7 +367,8 @@ class Gateway:
         router = self._build_router()
         self._apply_listeners(config, router, tls)
         self.metrics.describe_lines([line.name for line in config.lines])
-        log.info("reload: configuration from %s applied", config.source)
+        log.info("reload: configuration from %s applied: %s", config.source,
+                 summarize(running, wanted, config, LINE_PORT_SETTINGS))  # fmt: skip
 
     async def _apply_lines(
         self, config: GatewayConfig, line_tls: dict[str, ssl.SSLContext]

@@ -631,6 +631,37 @@ def test_reload_of_a_baud_rate_reopens_only_that_line(lab: Lab) -> None:
     assert gateway.count(r"line b port settings") == 0
 
 
+def test_a_reload_says_in_one_line_what_changed_and_what_that_did(lab: Lab) -> None:
+    """Each key by its full name with its old and new value, then what it did: a line
+    reopened, a line retuned in place, a restart-only key kept at its running value."""
+    pair_a, _ = lab.sim([1])
+    pair_b, _ = lab.sim([2])
+    lines = {"a": line_table(pair_a.path, [1], timeout=0.5), "b": line_table(pair_b.path, [2])}
+    write_config(lab.config, lines)
+    gateway = lab.gateway()
+    lines["a"]["timeout"] = 0.7
+    lines["b"]["baudrate"] = 57600
+    write_config(lab.config, lines, [{"unit": 5, "line": "a", "slave": 1}], level="error")
+    mark = gateway.mark()
+    gateway.signal(signal.SIGHUP)
+    summary = gateway.wait_for(r"reload: configuration from \S+ applied: (.*)", start=mark)[1]
+    changes = summary.split("; ")
+    assert "lines.a.timeout 0.5 → 0.7" in changes
+    assert "lines.b.baudrate 115200 → 57600" in changes
+    assert "routes.5 added" in changes
+    assert "line b reopened" in changes and "line a retuned in place" in changes
+    assert "needs a restart, kept at its running value: logging.level 'info' → 'error'" in (
+        changes
+    ), summary
+    assert request(gateway.address, 5, 1)[0] == PLC_10  # the new route serves
+
+    write_config(lab.config, lines, [{"unit": 5, "line": "a", "slave": 1}])  # what runs
+    mark = gateway.mark()
+    gateway.signal(signal.SIGHUP)
+    again = gateway.wait_for(r"reload: configuration from \S+ applied: (.*)", start=mark)[1]
+    assert again.startswith("no key changed")
+
+
 def test_a_sighup_during_a_reload_waits_for_it(lab: Lab) -> None:
     """Reloads never overlap: a line reopened by one is not opened a second time by the next."""
     pair, sim = lab.sim([1, 2])
