@@ -695,7 +695,7 @@ async def _pump(stream: TraceStream, writer: asyncio.StreamWriter, sse: bool) ->
         if stream.events and len(stream.events) < QUEUE_LIMIT // 4 and not stream.closed:
             await asyncio.sleep(BATCH_S)  # gather what comes next: one write for many
         stream.ready.clear()
-        if stream.closed:
+        if stream.closed or writer.transport.is_closing():  # uvloop raises on a closed one
             return
         chunks: list[bytes] = []
         if stream.dropped:

@@ -46,11 +46,11 @@ import logging
 import socket
 import ssl
 import time
-from collections.abc import Awaitable, Callable, Iterator, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from http import HTTPStatus
-from typing import Protocol
+from typing import Any, Protocol
 
 from prometheus_client import Counter
 from prometheus_client.exposition import choose_encoder
@@ -65,6 +65,8 @@ from .tls import check_chain, cipher_string, load_authorities, load_key_pair
 log = logging.getLogger("gateway.http")
 
 _MAX_REQUEST_HEAD = 8192
+#: Seconds a stop waits for the connections' exchanges to end, then for the cancelled rest.
+_CLOSE_WAIT_S = 1.0
 #: Headers every answer of the current request carries (cookies a ``?token=`` set, ...);
 #: each connection is served in a task of its own, so this is per request.
 _EXTRA_HEADERS: contextvars.ContextVar[str] = contextvars.ContextVar("extra", default="")
@@ -111,6 +113,8 @@ async def respond(
         f"{extra_headers()}{headers}\r\n"
     ).encode()
     try:
+        if writer.transport.is_closing():  # closed meanwhile (a stop): uvloop raises on write
+            return
         writer.write(head if method == "HEAD" else head + body)
         await writer.drain()
     except ConnectionError:
@@ -380,6 +384,9 @@ class HttpEndpoint:
         self._tls: ssl.SSLContext | None = None
         self._tls_listener: _TlsListener | None = None
         self._open: dict[_Connection, None] = {}  # in opening order
+        #: Every connection's task: ``close`` ends them, so none is left for the loop's
+        #: shutdown to cancel (asyncio logs a cancelled stream handler as an ERROR).
+        self._tasks: set[asyncio.Task[None]] = set()
         self._per_source: dict[str, int] = {}
         self.refused = 0  #: connections closed at once at the cap
         self._faults: RateLimitedLogger | None = None  # bound to the loop in start()
@@ -435,6 +442,20 @@ class HttpEndpoint:
                 connection.transport.abort()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
+        await self._end_tasks()
+
+    async def _end_tasks(self) -> None:
+        """Let each connection's task see its aborted transport (or its trace stream ended)
+        and return; cancel what is still running after ``_CLOSE_WAIT_S`` and wait for it."""
+        current = asyncio.current_task()
+        tasks = {task for task in self._tasks if task is not current}
+        if not tasks:
+            return
+        _done, pending = await asyncio.wait(tasks, timeout=_CLOSE_WAIT_S)
+        for task in pending:
+            task.cancel()
+        if pending:
+            await asyncio.wait(pending, timeout=_CLOSE_WAIT_S)
 
     # -- admission ---------------------------------------------------------------------
 
@@ -487,7 +508,20 @@ class HttpEndpoint:
         peer = writer.get_extra_info("peername")
         connection = self._admit(writer.transport, str(peer[0]) if peer else "")
         if connection is not None:
-            await self._serve_connection(connection, reader, writer)
+            await self._tracked(self._serve_connection(connection, reader, writer))
+
+    async def _tracked(self, serving: Coroutine[Any, Any, None]) -> None:
+        """Run one connection's exchange as a task ``close`` can end. A cancellation (by
+        ``close`` after its wait, by the cap making room, or by the loop's shutdown) ends the
+        exchange quietly: the task returns, and its transport is closed by its own finally."""
+        task = asyncio.current_task()
+        assert task is not None
+        self._tasks.add(task)
+        try:
+            with contextlib.suppress(asyncio.CancelledError):
+                await serving
+        finally:
+            self._tasks.discard(task)
 
     async def _serve_connection(
         self, connection: _Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
@@ -504,8 +538,8 @@ class HttpEndpoint:
         pending = _Handshake(sock)
         connection = self._admit(pending, source)
         if connection is not None:
-            task = asyncio.get_running_loop().create_task(self._serve_tls(connection, sock))
-            pending.task = task
+            serving = self._tracked(self._serve_tls(connection, sock))
+            pending.task = asyncio.get_running_loop().create_task(serving)
 
     async def _serve_tls(self, connection: _Connection, sock: socket.socket) -> None:
         """The handshake within the header timeout, then the request as over HTTP."""
