@@ -53,7 +53,7 @@ from .status import LineStatus, MasterStatus, PairStatus
 from .trace import FrameTrace, Tracer
 
 if TYPE_CHECKING:
-    from .io.pair import Pair
+    from .io.pair.role import Pair
 
 log = logging.getLogger("gateway")
 
@@ -297,7 +297,7 @@ class Gateway:
         if self.pair is not None:
             return self.pair.role_body()
         from .core.redundancy import Role
-        from .io.peer_role import role_body
+        from .io.pair.channel import role_body
 
         return 200, role_body(Role.ACTIVE, 0.0, self.config.redundancy.priority, False)
 
@@ -570,8 +570,8 @@ def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:
 def build_pair(config: GatewayConfig, buses: dict[str, Bus], metrics: GatewayMetrics) -> Pair:
     """One gateway of a pair: its role machine, its peer poller and its forwarder (imported
     only by a paired gateway)."""
-    from .io.pair import Pair
-    from .io.peer_forward import PeerForwarder
+    from .io.pair.forward import PeerForwarder
+    from .io.pair.role import Pair
 
     redundancy = config.redundancy
     assert redundancy.peer_modbus is not None

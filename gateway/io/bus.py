@@ -39,8 +39,8 @@ from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock, wait_until
 from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
-from .line_role import LineRole
 from .link import Link, LinkError, TlsLink
+from .pair.line import LineRole
 from .serial_port import SerialLink
 from .tally import LineTally, wall_clock
 from .tls import LineTlsFailure

@@ -632,7 +632,7 @@ class HttpEndpoint:
 
 
 def role_route(answer: Callable[[], tuple[int, bytes]]) -> Route:
-    """``GET /role`` (``io.peer_role``): ``answer()`` gives its status and JSON body."""
+    """``GET /role`` (``io.pair.channel``): ``answer()`` gives its status and JSON body."""
 
     async def role(
         method: str, _target: str, _headers: Mapping[str, str],

@@ -20,7 +20,7 @@ from conftest import DEADLINE_S, GatewayOnSim, RunningGateway
 
 from gateway.core.line import LineRequest
 from gateway.core.outcome import Outcome
-from gateway.io.peer_forward import PeerForwarder
+from gateway.io.pair.forward import PeerForwarder
 from gateway.sim import plc
 from gateway.sim.device import pack_registers
 

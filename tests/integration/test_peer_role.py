@@ -20,8 +20,15 @@ from gateway.core.outcome import Outcome
 from gateway.core.redundancy import Role
 from gateway.io.http import HttpEndpoint, respond, start_http
 from gateway.io.http_guard import Access
-from gateway.io.pair import boot_time
-from gateway.io.peer_role import PeerPoller, PeerRole, parse_role, peer_tls, role_body, split_answer
+from gateway.io.pair.channel import (
+    PeerPoller,
+    PeerRole,
+    parse_role,
+    peer_tls,
+    role_body,
+    split_answer,
+)
+from gateway.io.pair.role import boot_time
 from gateway.sim import plc
 from gateway.sim.pki import Pki, make_pki
 

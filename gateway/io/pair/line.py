@@ -12,13 +12,13 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ..config import LineConfig
-from ..core.line import LineCore, LineRequest
-from .tally import LineTally
+from ...config import LineConfig
+from ...core.line import LineCore, LineRequest
+from ..tally import LineTally
 
 if TYPE_CHECKING:
-    from .bus import Bus
-    from .pair import Pair
+    from ..bus import Bus
+    from .role import Pair
 
 
 class LineRole:

@@ -19,7 +19,7 @@ import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
-from ..core.redundancy import Role
+from ...core.redundancy import Role
 
 log = logging.getLogger("gateway.pair")
 

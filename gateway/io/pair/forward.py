@@ -50,13 +50,13 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass, field
 from typing import cast
 
-from ..core import pdu as fc
-from ..core.errors import ExceptionCode, FramingError, ResponseError
-from ..core.line import LineRequest, no_reply
-from ..core.mbap import MbapDecoder, MbapFrame, encode_mbap
-from ..core.outcome import Outcome
-from ..core.rtu import check_identity
-from ..logs import RateLimitedLogger
+from ...core import pdu as fc
+from ...core.errors import ExceptionCode, FramingError, ResponseError
+from ...core.line import LineRequest, no_reply
+from ...core.mbap import MbapDecoder, MbapFrame, encode_mbap
+from ...core.outcome import Outcome
+from ...core.rtu import check_identity
+from ...logs import RateLimitedLogger
 
 log = logging.getLogger("gateway.peer_forward")
 

@@ -27,19 +27,19 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
-from ..config import PAIR_HEARING_DELAY_S, MetricsConfig, RedundancyConfig
-from ..core import pdu as fc
-from ..core.line import LineRequest
-from ..core.outcome import Outcome
-from ..core.redundancy import ChangeReason, Role, RoleMachine
-from ..core.routes import RouteTable
-from ..status import PairStatus
-from .bus import Bus
-from .peer_role import PeerPoller, PeerRole, peer_tls, role_body
+from ...config import PAIR_HEARING_DELAY_S, MetricsConfig, RedundancyConfig
+from ...core import pdu as fc
+from ...core.line import LineRequest
+from ...core.outcome import Outcome
+from ...core.redundancy import ChangeReason, Role, RoleMachine
+from ...core.routes import RouteTable
+from ...status import PairStatus
+from ..bus import Bus
+from .channel import PeerPoller, PeerRole, peer_tls, role_body
 
 if TYPE_CHECKING:
-    from ..metrics import GatewayMetrics
-    from .peer_forward import PeerForwarder
+    from ...metrics import GatewayMetrics
+    from .forward import PeerForwarder
 
 log = logging.getLogger("gateway.pair")
 
