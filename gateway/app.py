@@ -36,7 +36,7 @@ from .core.line import Handover
 from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
-from .io.bus import Bus, Request
+from .io.bus import Alone, Bus, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, role_route, start_http
 from .io.http_guard import Access
@@ -410,7 +410,7 @@ class Gateway:
             return False
         reopened = self._open_bus(line, loop)
         if bus is not None:
-            bus.successor = reopened
+            bus.hand_to(reopened)
         reopened.adopt(queued, handover)
         return True
 
@@ -475,11 +475,13 @@ class Gateway:
     def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> Bus:
         """Start a bus for ``line`` with a clock of its own (a clock serves one sleeper)."""
         clock = PreciseClock(loop)
-        bus = Bus(line, self.metrics, loop, clock, self._line_tls.get(line.name))
+        pair = self.pair
+        role = Alone() if pair is None else pair.line_role()
+        bus = Bus(line, self.metrics, loop, clock, role, self._line_tls.get(line.name))
         self.buses[line.name] = bus
         self._clocks[line.name] = clock
-        if self.pair is not None:
-            self.pair.attach(bus)
+        if pair is not None:
+            pair.attach(bus)
         bus.start()
         return bus
 

@@ -18,6 +18,11 @@ logged once per reason until the line works again.
 Two collaborators keep ``Bus`` to the pump, the masters' side and the hand-over:
 ``LinePort`` (``line_port.py``) opens and reopens the link, and ``LineNotes``
 (``line_notes.py``) turns the core's notes into metrics and log lines.
+
+The driver holds its gateway's role (``LineRole``): asked before every frame, told what
+the line hears. A gateway alone plays ``Alone``; a redundancy pair plays its own
+(``io.pair``), which the driver knows only through this protocol. The pair stands the
+line by (``stand_by``: nothing sent, every request forwarded) and activates it again.
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ import asyncio
 import logging
 import ssl
 import time
-from collections.abc import Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable
+from typing import Protocol
 
 from ..config import LineConfig
 from ..core import pdu as fc
@@ -40,7 +46,6 @@ from .clock import PreciseClock, wait_until
 from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .link import Link, LinkError, TlsLink
-from .pair.line import LineRole
 from .serial_port import SerialLink
 from .tally import LineTally, wall_clock
 from .tls import LineTlsFailure
@@ -53,7 +58,47 @@ _OK = Outcome.OK  # a module global: read once per answer
 Request = LineRequest
 
 
-class Bus(LineRole):
+class LineRole(Protocol):
+    """What the driver asks of the role its gateway plays, and tells it: all it knows of a
+    redundancy pair."""
+
+    @property
+    def quiet_open(self) -> bool:
+        """Open the port driving nothing (RTS, DTR, RS485 receive): the bus may be another's."""
+        ...
+
+    def may_transmit(self) -> bool:
+        """Asked right before every frame. No: the frame is not written and the line pauses
+        (``Bus.refused``) until ``activate``; what it held on the wire, never written, is
+        answered 0x0A at once, not 0x0B after its timeout, nor charged to its slave."""
+        ...
+
+    def heard(self, master_frame: bool) -> None:
+        """Bytes came in: the bus is busy; ``master_frame``: they ended a master frame this
+        gateway did not send."""
+        ...
+
+    def cancel(self, master: Hashable) -> None:
+        """``master`` left: what was forwarded for it (``Bus.stand_by``) is dropped too."""
+        ...
+
+
+class Alone:
+    """The role of a gateway alone: every frame may go; what the line hears is its own."""
+
+    quiet_open = False
+
+    def may_transmit(self) -> bool:
+        return True
+
+    def heard(self, master_frame: bool) -> None:
+        """Nobody to tell."""
+
+    def cancel(self, master: Hashable) -> None:
+        """Nothing was forwarded."""
+
+
+class Bus:
     """One RS485 line: the core that decides and the port it drives."""
 
     def __init__(
@@ -62,9 +107,11 @@ class Bus(LineRole):
         metrics: GatewayMetrics,
         loop: asyncio.AbstractEventLoop,
         clock: PreciseClock,
+        role: LineRole,
         tls_context: ssl.SSLContext | None = None,
     ) -> None:
         self.config = config
+        self.role = role  #: the gateway's role: ``Alone``, or its part in a pair
         #: ``kind = "tls"``: the context of the next handshake (a reload may renew it).
         self.tls_context = tls_context
         self.name = config.name
@@ -88,7 +135,9 @@ class Bus(LineRole):
         self._port = LinePort(self, metrics, loop)
         self._stopping = False
         self._pumping = False
-        self._init_role()
+        self.successor: Bus | None = None  #: the line that replaced this one (``hand_to``)
+        self._redirect: Callable[[LineRequest], bool] | None = None  # hand_to's or stand_by's
+        self.refused = False  #: paused: the role refused a frame (``LineRole.may_transmit``)
         self._watch_wire = False  # ``hand_over`` waits for ``_wire_free``
         self._wire_free = asyncio.Event()
         # The core had nothing to do at the last pump. A bool, and futures made only while
@@ -134,9 +183,18 @@ class Bus(LineRole):
         """Requests waiting for the line."""
         return self._core.queued
 
+    @property
+    def idle(self) -> bool:
+        """Nothing waits and nothing is on the wire."""
+        return self._idle
+
     def slave_states(self) -> dict[int, SlaveState]:
         """The isolation state of every slave the line has an opinion on."""
         return self._core.slave_states()
+
+    def learned_timeouts(self, slaves: Iterable[int]) -> dict[int, float]:
+        """The response timeouts learned for ``slaves`` (those with one)."""
+        return self._core.timing.by_slave(slaves)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -166,7 +224,7 @@ class Bus(LineRole):
         """Give the line up to the one that reopens it (a reload changed its port): send
         nothing more, finish the transaction on the wire (within ``grace``) while requests
         keep queuing, then return the queue and the wire's state and close. The caller
-        sets ``successor`` before it next yields to the loop: later requests go there."""
+        calls ``hand_to`` before it next yields to the loop: later requests go there."""
         core = self._core
         core.pause(time.monotonic())
         self._pump()
@@ -184,6 +242,33 @@ class Bus(LineRole):
         self._stop_taking()
         self._close()
         return queued, handover
+
+    def hand_to(self, successor: Bus) -> None:
+        """Requests go to ``successor``, the line that replaced this one, from now on."""
+        self.successor = successor
+        self._redirect = successor.submit
+
+    def stand_by(self, forward: Callable[[LineRequest], bool]) -> None:
+        """Send nothing and hand every request (those queued too) to ``forward``: the
+        transaction on the wire finishes, and what is heard still teaches the core."""
+        core = self._core
+        core.pause(time.monotonic())
+        core.set_listening(True)
+        if self.successor is None:
+            self._redirect = forward
+        self._pump()
+        for request in core.take_queued():
+            forward(request)
+
+    def activate(self) -> None:
+        """Take the masters' requests and transmit again (``stand_by``, ``refused``)."""
+        if self.successor is None:
+            self._redirect = None
+        self.refused = False
+        core = self._core
+        core.set_listening(False)
+        core.resume(time.monotonic())
+        self._pump()
 
     def _stop_taking(self) -> None:
         """No reopening and no more requests: the core answers what waits 0x0A."""
@@ -225,8 +310,7 @@ class Bus(LineRole):
         if self.successor is not None:
             self.successor.cancel(master)
             return
-        if self.pair is not None:
-            self.pair.forwarder.cancel(master)
+        self.role.cancel(master)
         self._core.cancel(master, time.monotonic())
         self._pump()
 
@@ -254,13 +338,13 @@ class Bus(LineRole):
     # -- events from the port and the clock ----------------------------------------------
 
     def on_data(self, data: bytes) -> None:
-        """Bytes read from the link."""
+        """Bytes read from the link: the core takes them, then the role its evidence."""
         self._heard_at = now = time.monotonic()
-        if self.pair is not None:
-            self.hear_paired(data, now)
-            return
-        self._core.receive(data, now)
+        core = self._core
+        masters = core.last_master_frame_at
+        core.receive(data, now)
         self._pump()
+        self.role.heard(core.last_master_frame_at != masters)
 
     def _on_timer(self) -> None:
         # Armed ``ahead``: this may run just before the deadline. The core decides for the
@@ -344,13 +428,16 @@ class Bus(LineRole):
                         waiter.set_result(None)
 
     def _transmit(self, transmits: list[Transmit]) -> None:
-        pair = self.pair
+        may_transmit = self.role.may_transmit
         for frame, _request, queue_wait, retry in transmits:  # unpacked: no field look-ups
             link = self._link
             if link is None or link.closed:
                 return  # the core has been told (port_lost) and answered 0x0A
-            if pair is not None and not pair.may_transmit():
-                self.lease_refused()  # no lease, no frame: nothing more goes out
+            if not may_transmit():  # the frame is not written (see ``refused``)
+                self.refused = True
+                now = time.monotonic()
+                self._core.pause(now)
+                self._core.abandon(now)
                 return
             if not retry:
                 self._m_queue_wait.observe(queue_wait)
@@ -404,46 +491,51 @@ class Bus(LineRole):
         return self._uart
 
     def status(self, slaves: Iterable[int] = ()) -> LineStatus:
-        """A snapshot of this line and of ``slaves`` (plus any slave it has an opinion on,
-        has answered for or has a name for)."""
-        config = self.config
-        states = self._core.slave_states()
-        tallies = self.tally.slaves
-        names = config.names
-        learned = self._core.timing.by_slave(states)
-        listed = tuple(
-            self._slave_status(slave, states.get(slave, SlaveState.UP), learned.get(slave))
-            for slave in sorted(set(slaves) | set(states) | set(tallies) | set(names))
-            if slave  # a broadcast is no slave
-        )
-        state = _line_state(self.up, self._core.noisy, self._core.shared)
-        return LineStatus(
-            name=self.name,
-            kind=config.kind if config.networked else "url" if config.is_url else "serial",
-            device=config.device,
-            state=state,
-            queued=self.queued,
-            slaves=listed,
-            settings=line_settings(config),
-            uart_errors=self.uart_errors(),
-            not_heard=sum(1 for slave in listed if not slave.heard),
-        )
+        """A snapshot of this line and of ``slaves`` (``line_status``)."""
+        return line_status(self, slaves)
 
-    def _slave_status(self, slave: int, state: SlaveState, learned: float | None) -> SlaveStatus:
-        tally = self.tally.slaves.get(slave)
-        learned_timeout = _rounded(learned)
-        if tally is None:
-            return SlaveStatus(self.name, slave, state, name=self.config.names.get(slave),
-                               learned_timeout=learned_timeout)  # fmt: skip
-        return SlaveStatus(
-            self.name, slave, state,
-            name=self.config.names.get(slave),
-            learned_timeout=learned_timeout,
-            heard=tally.last_seen is not None,
-            requests=tally.requests,
-            exceptions=dict(tally.exceptions),
-            last_seen=wall_clock(tally.last_seen),
-        )  # fmt: skip
+
+def line_status(bus: Bus, slaves: Iterable[int] = ()) -> LineStatus:
+    """A snapshot of ``bus`` and of ``slaves`` (plus any slave it has an opinion on, has
+    answered for or has a name for), from what the line shows of itself."""
+    config = bus.config
+    states = bus.slave_states()
+    tallies = bus.tally.slaves
+    names = config.names
+    learned = bus.learned_timeouts(states)
+    listed = tuple(
+        _slave_status(bus, slave, states.get(slave, SlaveState.UP), learned.get(slave))
+        for slave in sorted(set(slaves) | set(states) | set(tallies) | set(names))
+        if slave  # a broadcast is no slave
+    )
+    return LineStatus(
+        name=bus.name,
+        kind=config.kind if config.networked else "url" if config.is_url else "serial",
+        device=config.device,
+        state=_line_state(bus.up, bus.noisy, bus.shared),
+        queued=bus.queued,
+        slaves=listed,
+        settings=line_settings(config),
+        uart_errors=bus.uart_errors(),
+        not_heard=sum(1 for slave in listed if not slave.heard),
+    )
+
+
+def _slave_status(bus: Bus, slave: int, state: SlaveState, learned: float | None) -> SlaveStatus:
+    tally = bus.tally.slaves.get(slave)
+    name = bus.config.names.get(slave)
+    learned_timeout = _rounded(learned)
+    if tally is None:
+        return SlaveStatus(bus.name, slave, state, name=name, learned_timeout=learned_timeout)
+    return SlaveStatus(
+        bus.name, slave, state,
+        name=name,
+        learned_timeout=learned_timeout,
+        heard=tally.last_seen is not None,
+        requests=tally.requests,
+        exceptions=dict(tally.exceptions),
+        last_seen=wall_clock(tally.last_seen),
+    )  # fmt: skip
 
 
 def line_settings(config: LineConfig) -> str:

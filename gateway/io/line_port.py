@@ -62,7 +62,7 @@ class LinePort:
     def _try_open(self) -> bool:
         bus = self._bus
         try:
-            port = open_serial(bus.config, quiet=bus.quiet_open)
+            port = open_serial(bus.config, quiet=bus.role.quiet_open)
         except SerialPortError as error:
             self._failed(str(error))
             return False

@@ -218,7 +218,7 @@ def test_a_frame_the_lease_check_refuses_is_answered_0x0a_at_once(
             pass
         bus.submit(LineRequest(1, READ_1, "m", lambda pdu, outcome: answers.append((pdu, outcome))))
         record = bus._core.health.slaves.get(1)
-        return bus.refused_by_lease, 0 if record is None else record.misses
+        return bus.refused, 0 if record is None else record.misses
 
     refused, misses = gateway.call(held_past_the_lease_then_asked)
     assert refused

@@ -2,7 +2,9 @@
 
 The graph holds the imports a module makes when it is loaded: those at module level,
 including inside ``try``/``if`` blocks, but not those under ``if TYPE_CHECKING:`` (types
-only) nor those inside a function (run later, on demand).
+only) nor those inside a function (run later, on demand). Between the line driver and the
+redundancy pair, every import counts: type-only ones, those inside functions, and the
+``__init__`` of each package an import passes through.
 """
 
 from __future__ import annotations
@@ -59,16 +61,34 @@ def _targets(module: str, is_package: bool, node: ast.Import | ast.ImportFrom) -
     return {base} | {f"{base}.{alias.name}" for alias in node.names}
 
 
-def import_graph() -> dict[str, set[str]]:
-    """Module → the ``gateway`` modules it imports at load time."""
+def _any_imports(body: list[ast.stmt]) -> Iterator[ast.Import | ast.ImportFrom]:
+    """Every import statement, type-only and inside functions included."""
+    for node in ast.walk(ast.Module(body=body, type_ignores=[])):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            yield node
+
+
+def _packages_of(name: str) -> set[str]:
+    """The packages whose ``__init__`` importing ``name`` runs: ``a.b.c`` → ``a``, ``a.b``."""
+    parts = name.split(".")
+    return {".".join(parts[:end]) for end in range(1, len(parts))}
+
+
+def import_graph(*, every_import: bool = False) -> dict[str, set[str]]:
+    """Module → the ``gateway`` modules it imports at load time; ``every_import``: those
+    it imports anywhere, and the packages each import passes through, too."""
     paths = {_module_name(path): path for path in PACKAGE.rglob("*.py")}
     graph: dict[str, set[str]] = {}
     for module, path in paths.items():
         tree = ast.parse(path.read_text(), str(path))
         is_package = path.name == "__init__.py"
         edges: set[str] = set()
-        for node in _load_time_imports(tree.body):
-            edges |= {name for name in _targets(module, is_package, node) if name in paths}
+        imports = _any_imports if every_import else _load_time_imports
+        for node in imports(tree.body):
+            targets = _targets(module, is_package, node)
+            if every_import:
+                targets |= {package for name in targets for package in _packages_of(name)}
+            edges |= {name for name in targets if name in paths}
         edges.discard(module)
         graph[module] = edges
     return graph
@@ -138,3 +158,23 @@ def test_status_and_trace_do_not_know_the_application() -> None:
     """They read the narrow ``GatewayView`` the app provides, not the app, even for types."""
     for module in ("gateway.live", "gateway.status", "gateway.trace", "gateway.metrics"):
         assert "gateway.app" not in _every_import(module), module
+
+
+DRIVER = "gateway.io.bus"
+PAIR = "gateway.io.pair"
+
+
+def _in_pair(module: str) -> bool:
+    return module == PAIR or module.startswith(PAIR + ".")
+
+
+def test_the_line_driver_and_the_pair_import_each_other_in_no_cycle() -> None:
+    """The pair uses the driver; the driver knows the pair only through its own
+    ``LineRole`` protocol, so no import of any kind leads from it back to the pair."""
+    graph = import_graph(every_import=True)
+    assert DRIVER in graph[f"{PAIR}.role"]  # the pair does import the driver
+    assert PAIR in graph[f"{PAIR}.role"]  # and an import runs its package's __init__
+    tangled = [
+        group for group in find_cycles(graph) if DRIVER in group and any(map(_in_pair, group))
+    ]
+    assert tangled == []

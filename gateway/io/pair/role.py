@@ -2,18 +2,18 @@
 
 Theory of operation. Every decision is ``core.redundancy.RoleMachine``'s. This shell
 feeds it the boot-time clock (``CLOCK_BOOTTIME``: it counts a suspend, so a lease never
-outlives one), the peer's ``/role`` (``peer_role.PeerPoller``) and the bus's evidence
-(each line reports the master frames it did not send and the intact frames it heard),
-and carries out what the machine decides:
+outlives one), the peer's ``/role`` (``channel.PeerPoller``) and the bus's evidence
+(each line's ``PairedLine`` reports the master frames it did not send and the bytes it
+heard), and carries out what the machine decides:
 
 * The lines transmit only while the machine says so: each line asks ``may_transmit``
   right before every frame it writes. A frame refused is not written (never a frame on
   someone else's lease): the line pauses and answers what it held on the wire 0x0A at
-  once (``LineRole.lease_refused``), and the machine, told the time, steps down.
+  once (``Bus.refused``), and the machine, told the time, steps down.
 * Active: every line takes its masters' requests; a line that sent nothing for half a
   lease reads one holding register (``keepalive``) so that the standby hears the bus alive.
 * Standby: the lines only listen (their learning goes on from what they hear) and every
-  request is forwarded to the peer's Modbus listener (``peer_forward``), or answered 0x0A
+  request is forwarded to the peer's Modbus listener (``forward``), or answered 0x0A
   while the peer is not active either, or when it comes from the peer itself (no loops).
 """
 
@@ -36,6 +36,7 @@ from ...core.routes import RouteTable
 from ...status import PairStatus
 from ..bus import Bus
 from .channel import PeerPoller, PeerRole, peer_tls, role_body
+from .line import PairedLine, keepalive_slave
 
 if TYPE_CHECKING:
     from ...metrics import GatewayMetrics
@@ -110,11 +111,14 @@ class Pair:
 
     # -- lifecycle ------------------------------------------------------------------------
 
+    def line_role(self) -> PairedLine:
+        """The role a line of this gateway plays (``Bus``'s ``role``): its port opens
+        driving nothing, its lease check and evidence come here."""
+        return PairedLine(self)
+
     def attach(self, bus: Bus) -> None:
-        """A line about to open (at start or reopened by a reload): it opens listening, its
-        port driving nothing, and takes the pair's role."""
-        bus.pair = self
-        bus.quiet_open = True
+        """A line about to open (at start or reopened by a reload), built with
+        ``line_role()``: it opens listening, and takes the pair's role."""
         if self._applied is Role.ACTIVE:
             bus.activate()
         else:
@@ -146,7 +150,7 @@ class Pair:
         return self.machine.role is Role.STANDBY
 
     def may_transmit(self) -> bool:
-        """The lease check before every frame (``Bus``)."""
+        """The lease check before every frame (each line's ``PairedLine``)."""
         now = self._clock()
         if self.machine.may_transmit(now):
             self.machine.transmitted(now)
@@ -220,7 +224,7 @@ class Pair:
         self._apply()
         if self.machine.may_transmit(now):
             for bus in self.buses.values():
-                if bus.refused_by_lease:
+                if bus.refused:
                     bus.activate()
 
     def _tick(self) -> None:
@@ -278,7 +282,7 @@ class Pair:
         if target is None:
             return
         for bus in self.buses.values():
-            slave, register = target if target != (0, 0) else (bus.heard_slave(), 0)
+            slave, register = target if target != (0, 0) else (keepalive_slave(bus), 0)
             if not slave or not bus.idle:
                 continue
             pdu = struct.pack(">BHH", fc.READ_HOLDING_REGISTERS, register, 1)
