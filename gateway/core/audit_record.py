@@ -26,8 +26,13 @@ Every file (and every restart appending to it) begins with an ``audit_opened`` r
 whose ``prev`` names the hash it chains from: ``GENESIS`` for a new log, the last hash
 of the file when appending, the previous file's last hash after a reopen (logrotate).
 So a changed, removed, inserted or reordered line breaks the chain at that line, and a
-file's first line names the file it follows. The chain has no secret key: it detects
-edits by anyone who does not rewrite every later line (see docs/audit.md).
+file's first line names the file it follows. An ``audit_opened`` record also says
+whether it starts its file (``starts_file``: the file was empty when opened) and how
+many records the file held before it (``records_before``, counted by the writer): a
+file whose first record continues a file had its head cut, and a count that does not
+match the lines before it means lines were cut (``Verifier``). The chain has no
+secret key: it detects edits by anyone who does not rewrite every later line (see
+docs/audit.md).
 
 Nothing here does I/O or reads a clock: times come in as POSIX seconds.
 """
@@ -228,7 +233,8 @@ def refused_record(
 
 def opened_record(now: float, prev: str, reason: str) -> Record:
     """The first record the gateway writes to a file it opened (``reason``: start, reopen);
-    ``Chain.seal`` sets its ``prev`` to the head it really follows."""
+    ``Chain.seal`` sets its ``prev`` to the head it really follows, and the writer adds
+    ``starts_file`` and ``records_before`` (what the file held when it was written)."""
     return {"event": AuditEvent.OPENED.value, "time": timestamp(now), "prev": prev,
             "reason": reason}  # fmt: skip
 
@@ -312,6 +318,14 @@ class Verifier:
     head: str | None = None  #: ``None`` until the first line (it must be ``audit_opened``)
     lines: int = 0
     problem: str | None = field(default=None)
+    #: Records of the current file before the line checked (a file read alone, or one of
+    #: several files concatenated, each starting with ``starts_file``).
+    in_file: int = 0
+
+    def start_file(self) -> None:
+        """The next line is the first of another file."""
+        self.lines = 0
+        self.in_file = 0
 
     def check(self, line: str) -> bool:
         """Check the next line; False (and ``problem`` set) at the first bad one."""
@@ -320,6 +334,7 @@ class Verifier:
         if problem is not None:
             self.problem = f"line {self.lines}: {problem}"
             return False
+        self.in_file += 1
         return True
 
     def _problem(self, line: str) -> str | None:
@@ -335,6 +350,9 @@ class Verifier:
         if not isinstance(record, dict) or canonical(record) != body:
             return "not in canonical form: the line was edited"
         if record.get("event") == AuditEvent.OPENED:
+            cut = self._cut_before(record)
+            if cut is not None:
+                return cut
             prev = record.get("prev")
             if self.head is not None and prev != self.head:
                 return "audit_opened does not follow the line before it (a line was removed?)"
@@ -345,4 +363,25 @@ class Verifier:
         if link(self.head, body) != sealed:
             return "hash mismatch: this line, or one before it, was changed or removed"
         self.head = sealed
+        return None
+
+    def _cut_before(self, record: Record) -> str | None:
+        """What an ``audit_opened`` record's count shows was cut before it (``None``: nothing;
+        records written before the count existed say nothing)."""
+        starts, before = record.get("starts_file"), record.get("records_before")
+        if starts is True and before == 0:
+            self.in_file = 0  # a file of its own (several files concatenated)
+            return None
+        if starts is not False or not isinstance(before, int):
+            return None
+        if self.in_file == 0:
+            return (
+                f"the file's first record continues a file that held {before} records before "
+                "it: its head was cut, or check it after the file it continues"
+            )
+        if before != self.in_file:
+            return (
+                f"audit_opened counts {before} records before it in its file, but "
+                f"{self.in_file} are there: records were cut"
+            )
         return None

@@ -8,6 +8,14 @@ records are dropped, counted (``audit_records_dropped_total``), logged at most o
 minute, and the next record written is a ``records_dropped`` record with the count, so
 the gap shows in the chain. ``reopen`` (SIGHUP) makes the thread close and open the
 path again, for logrotate; the new file's first record chains from the old file's last.
+
+Refusals at accept and denied requests go through ``core.audit_repeats`` first (on
+the loop, under a lock the writer shares): repeats of one from one source are
+counted and written as one record per interval, so a flood costs the file a bounded
+number of records a second per source, and the queue is not filled by it. Every
+``audit_opened`` record says whether it starts its file and how many records the
+file held before it (the writer counts them), so a file cut at its head fails
+``audit verify``.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ from typing import Final
 from ..core.admission import Admission, AnswerLocally, Broadcast, Submit
 from ..core.audit_record import (
     GENESIS,
+    AuditEvent,
     AuditOutcome,
     Chain,
     Pending,
@@ -42,6 +51,7 @@ from ..core.audit_record import (
     refused_record,
     settle,
 )
+from ..core.audit_repeats import Occurrence, Repeats
 from ..core.outcome import Outcome
 
 log = logging.getLogger("gateway.audit")
@@ -138,6 +148,11 @@ class AuditLog:
         self._unreported = 0  # lost records not yet told in a records_dropped record
         self._last_drop_log = -DROP_LOG_INTERVAL_S
         self._config: dict[str, str] | None = None
+        #: Repeated refusals and denials, counted (the loop notes, the writer writes tallies).
+        self._repeats = Repeats()
+        self._repeats_lock = threading.Lock()
+        #: Records in the file open now (the writer counts; read at open for an old file).
+        self._in_file: int | None = None
         self.written = 0  #: records written (the writer thread counts)
         self._thread = threading.Thread(target=self._run, name="audit-writer", daemon=True)
         self._thread.start()
@@ -165,9 +180,7 @@ class AuditLog:
             return None
         if isinstance(result, AnswerLocally):
             if result.outcome is Outcome.DENIED:
-                reason = None if result.denied is None else result.denied.value
-                pending = Pending(self._clock(), listener, peer, role, unit, pdu, None, None)
-                self.put((pending, AuditOutcome.DENIED, result.code.value, reason))
+                self._denied(listener, peer, role, unit, pdu, result)
             return None
         if isinstance(result, Submit):
             line: str | tuple[str, ...] = result.target.line
@@ -178,13 +191,42 @@ class AuditLog:
         pending = Pending(self._clock(), listener, peer, role, unit, pdu, line, slave)
         return AuditTicket(self, pending)
 
+    def _denied(
+        self, listener: str, peer: str, role: str | None, unit: int, pdu: bytes,
+        result: AnswerLocally,
+    ) -> None:  # fmt: skip
+        """A denied write: one record, or counted among its repeats from its source."""
+        reason = None if result.denied is None else result.denied.value
+        code = result.code.value
+        pending = Pending(self._clock(), listener, peer, role, unit, pdu, None, None)
+        kind = (
+            ("listener", listener), ("role", role), ("outcome", AuditOutcome.DENIED.value),
+            ("reason", reason), ("code", code), ("unit", unit), ("function", pdu[0]),
+        )  # fmt: skip
+        occurrence = Occurrence(
+            source_of(peer), AuditEvent.REQUEST.value, kind, (peer, pdu), pending.time
+        )
+        self._counted(occurrence, lambda: pending.record(AuditOutcome.DENIED, code, reason))
+
     def refused(
         self, listener: str, source: str, reason: str, at: RefusedAt = RefusedAt.ACCEPT,
         peer: str | None = None, role: str | None = None, subject: str | None = None,
     ) -> None:  # fmt: skip
-        """A connection closed by the listener's door: at accept, or at a reload."""
-        self.put(refused_record(self._clock(), listener, source, reason, at, peer, role,
-                                subject))  # fmt: skip
+        """A connection closed by the listener's door: at accept (repeats from one source
+        counted), or at a reload (once per open connection: always written)."""
+        now = self._clock()
+        if at is not RefusedAt.ACCEPT:
+            self.put(refused_record(now, listener, source, reason, at, peer, role, subject))
+            return
+        kind = (("listener", listener), ("reason", reason), ("at", at.value))
+        occurrence = Occurrence(source, AuditEvent.CONNECTION_REFUSED.value, kind, None, now)
+        self._counted(occurrence, lambda: refused_record(now, listener, source, reason, at))
+
+    def _counted(self, occurrence: Occurrence, build: Callable[[], Record]) -> None:
+        """Write ``occurrence`` now, or count it among its repeats (``core.audit_repeats``)."""
+        with self._repeats_lock:  # the writer takes the tallies under the same lock
+            for record in self._repeats.note(occurrence, build):
+                self.put(record)
 
     def configured(
         self, action: str, path: str, config: object | None, error: str | None = None
@@ -220,18 +262,28 @@ class AuditLog:
     # -- the writer thread ---------------------------------------------------------------
 
     def _run(self) -> None:
+        self._in_file = count_records(self.path)
         while True:
             self._wake.wait(WRITE_INTERVAL_S)
             self._wake.clear()
+            closing = self._closing
+            self._take_tallies(closing)
             if self._reopen:  # what was queued before the signal goes to the old file
                 self._reopen = False
                 self._drain()
                 self._reopen_file()
             self._drain()
-            if self._closing and not self._queue:
+            if closing and not self._queue:
                 break
         if self._fd != 2:
             os.close(self._fd)
+
+    def _take_tallies(self, everything: bool) -> None:
+        """Queue the tallies of repeats whose interval is over (all of them at the end)."""
+        with self._repeats_lock:
+            repeats = self._repeats
+            records = repeats.flush() if everything else repeats.due(self._clock())
+            self._queue.extend(records)  # bounded per source and second: past the limit too
 
     def _drain(self) -> None:
         queue = self._queue
@@ -255,6 +307,11 @@ class AuditLog:
         if self._unreported:
             records.insert(0, dropped_record(now, self._unreported))
         head = self._chain.head
+        in_file = self._in_file or 0
+        for index, record in enumerate(records):
+            if record.get("event") == AuditEvent.OPENED:  # says what came before it
+                records[index] = {**record, "starts_file": in_file + index == 0,
+                                  "records_before": in_file + index}  # fmt: skip
         data = "".join(self._chain.seal(record) for record in records).encode()
         try:
             _write_all(self._fd, data)
@@ -267,6 +324,7 @@ class AuditLog:
             return
         self._unreported = 0
         self.written += len(records)
+        self._in_file = in_file + len(records)
 
     def _reopen_file(self) -> None:
         try:
@@ -274,9 +332,12 @@ class AuditLog:
         except OSError as error:
             log.error("%s; the audit log stays on the file already open", error)
             return
+        same = _same_file(self._fd, fd)
         if self._fd != 2:
             os.close(self._fd)
         self._fd = fd
+        if not same:  # rotated: a new file (empty, or what someone put there)
+            self._in_file = count_records(self.path)
         self._queue.appendleft(opened_record(self._clock(), self._chain.head, "reopen"))
         log.info("audit log %s reopened", self.path)
 
@@ -285,6 +346,40 @@ class AuditLog:
         if now - self._last_drop_log >= DROP_LOG_INTERVAL_S:
             self._last_drop_log = now
             log.warning("audit log: %d record(s) dropped: %s", count, why)
+
+
+def source_of(peer: str) -> str:
+    """The address in a peer text (``10.0.0.7:50312``, ``[::1]:502``); a device as it is."""
+    if peer.startswith("["):
+        return peer[1 : peer.find("]")] if "]" in peer else peer
+    host, colon, port = peer.rpartition(":")
+    return host if colon and port.isdigit() and ":" not in host else peer
+
+
+def count_records(path: str) -> int:
+    """The records (lines) a regular file at ``path`` holds now; 0 for none, or for
+    standard error, a pipe or a device, where every start begins a new stream."""
+    try:
+        if path == STDERR or not stat.S_ISREG(os.stat(path).st_mode):
+            return 0
+        count = 0
+        last = b"\n"
+        with open(path, "rb") as file:
+            while chunk := file.read(1 << 20):
+                count += chunk.count(b"\n")
+                last = chunk[-1:]
+        return count + (last != b"\n")  # a last line cut short counts too
+    except OSError:
+        return 0
+
+
+def _same_file(old: int, new: int) -> bool:
+    """True when two descriptors name the same file (a reopen without a rotation)."""
+    try:
+        before, after = os.fstat(old), os.fstat(new)
+    except OSError:
+        return False
+    return (before.st_dev, before.st_ino) == (after.st_dev, after.st_ino)
 
 
 def _record(entry: Item) -> Record:
@@ -331,7 +426,7 @@ def verify_files(paths: list[str]) -> tuple[bool, str]:
     first); ``(ok, message)``, the message naming the first bad line."""
     verifier = Verifier()
     for path in paths:
-        verifier.lines = 0
+        verifier.start_file()
         try:
             with open(path, encoding="utf-8", errors="replace", newline="") as file:
                 for line in file:

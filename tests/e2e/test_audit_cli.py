@@ -120,6 +120,17 @@ def test_logrotate_reload_and_verify(
     bad = verify(audit, rotated)  # out of order: the second file does not follow the first
     assert bad.returncode == 1 and "line 1: audit_opened does not follow" in bad.stderr
 
+    # The file after the rotation, its head cut up to the rejected reload's reopen: the
+    # reopen says the file held records before it, so the cut shows.
+    kept = audit.read_text().splitlines(keepends=True)
+    reopen = max(n for n, line in enumerate(kept) if '"event":"audit_opened"' in line)
+    assert reopen > 0 and json.loads(kept[reopen])["records_before"] == reopen
+    headless = tmp_path / "headless"
+    headless.write_text("".join(kept[reopen:]))
+    bad = verify(headless)
+    assert bad.returncode == 1 and "intact" not in bad.stdout + bad.stderr, bad.stdout
+    assert "line 1: the file's first record continues a file" in bad.stderr, bad.stderr
+
 
 def test_an_unwritable_audit_path_stops_the_start_with_the_fix(
     tmp_path: Path, run_gateway: RunGateway
