@@ -428,6 +428,12 @@ class GatewayMetrics:
             "Late-answer windows opened: an attempt failed and its answer may still arrive.",
             ["line"], registry=r,
         )  # fmt: skip
+        self.proof_reads = Counter(
+            p + "proof_reads",
+            "Reads the gateway sent of its own to prove that a slave's lost answer can no "
+            "longer arrive (a request like the lost one waited for that proof).",
+            ["line", "unit"], registry=r,
+        )  # fmt: skip
         self.coalesced = Counter(
             p + "coalesced_requests",
             "Read requests served by another master's identical transaction.",
@@ -624,6 +630,7 @@ class GatewayMetrics:
             self.crc_errors.labels(line, unit)
             self.timeouts.labels(line, unit)
             self.retries.labels(line, unit)
+            self.proof_reads.labels(line, unit)
 
     def line_counters(self, line: str) -> LineCounters:
         """The traffic counters of ``line``; the same object across reloads (counters only grow)."""

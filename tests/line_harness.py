@@ -98,3 +98,106 @@ class LineHarness:
     def discarded(self) -> list[str]:
         """The reasons of the discards noted so far."""
         return [n.detail for n in self.core.notes if n.event is LineEvent.DISCARDED]
+
+
+class DeafWhileBusyLine:
+    """A core on a simulated serial line of single-threaded slaves, with literal times.
+
+    Each slave answers a request ``turnaround(slave, pdu, now)`` seconds after the
+    request's end (``None``: never). While it works it is deaf, as a device with one thread
+    is; or (``deaf=False``) it keeps what it heard and answers each in turn, as a device
+    with a receive buffer does. Its answer carries the data of the request it answers
+    (register ``a`` holds ``a``), so an answer delivered to another request is seen.
+    Masters are closed loops or periodic: ``run`` drives time until ``end``.
+    """
+
+    def __init__(
+        self,
+        core: LineCore,
+        char: float,
+        turnaround: Callable[[int, bytes, float], float | None],
+        deaf: bool = True,
+    ) -> None:
+        import heapq
+
+        self._heap = heapq
+        self.core = core
+        self.char = char
+        self.turnaround = turnaround
+        self.deaf = deaf
+        self.now = 0.0
+        self.busy_until: dict[int, float] = {}
+        self._events: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = 0
+        self.sent: list[bytes] = []  # every frame the core wrote, in order
+        self.outcomes: list[tuple[Hashable, LineRequest, Outcome, bytes]] = []
+        self.wrong = 0  # answers whose data is another request's
+        self.on_answer: Callable[[LineRequest, Outcome], None] = lambda _r, _o: None
+        core.port_opened(-1.0)
+
+    def at(self, when: float, act: Callable[[], None]) -> None:
+        self._seq += 1
+        self._heap.heappush(self._events, (when, self._seq, act))
+
+    def submit(self, master: Hashable, slave: int, pdu: bytes) -> LineRequest:
+        request = LineRequest(slave, pdu, master, lambda _pdu, _outcome: None)
+        self.core.submit(request, self.now)
+        self._pump()
+        return request
+
+    def run(self, end: float) -> None:
+        while True:
+            timer = self.core.get_timer()
+            event_at = self._events[0][0] if self._events else end + 1.0
+            if timer is not None and timer <= event_at and timer <= end:
+                self.now = max(self.now, timer)
+                self.core.handle_timer(self.now)
+            elif event_at <= end:
+                _, _, act = self._heap.heappop(self._events)
+                self.now = max(self.now, event_at)
+                act()
+            else:
+                self.now = end
+                return
+            self._pump()
+
+    def _pump(self) -> None:
+        core = self.core
+        while core.transmits or core.deliveries:
+            transmits, core.transmits = core.transmits, []
+            for transmit in transmits:
+                self.sent.append(transmit.frame)
+                self._hear(transmit.frame)
+            deliveries, core.deliveries = core.deliveries, []
+            for request, pdu, outcome, _wire in deliveries:
+                if outcome is Outcome.OK and pdu[0] == 3 and pdu[2:] != _registers(request.pdu):
+                    self.wrong += 1
+                self.outcomes.append((request.master, request, outcome, pdu))
+                self.on_answer(request, outcome)
+
+    def _hear(self, frame: bytes) -> None:
+        from gateway.core.rtu import encode_rtu
+
+        slave, pdu = frame[0], frame[1:-2]
+        end = self.now + len(frame) * self.char
+        busy_until = self.busy_until.get(slave, -1.0)
+        if slave == 0 or (self.deaf and busy_until > self.now):
+            return  # a broadcast, or deaf: it is still working on an earlier request
+        turnaround = self.turnaround(slave, pdu, self.now)
+        if turnaround is None:
+            return
+        answer = encode_rtu(slave, bytes((3, len(_registers(pdu)))) + _registers(pdu))
+        arrives = max(end, busy_until) + turnaround + len(answer) * self.char
+        self.busy_until[slave] = arrives
+
+        def arrive() -> None:
+            self.core.receive(answer, self.now)
+
+        self.at(arrives, arrive)
+
+
+def _registers(pdu: bytes) -> bytes:
+    """The data of an FC 3 read in ``DeafWhileBusyLine``: register ``a`` holds ``a``."""
+    address = (pdu[1] << 8) | pdu[2]
+    quantity = (pdu[3] << 8) | pdu[4]
+    return b"".join(((address + i) & 0xFFFF).to_bytes(2, "big") for i in range(quantity))

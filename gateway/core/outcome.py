@@ -49,6 +49,7 @@ class LineEvent(StrEnum):
     LINE_NOISY = "line_noisy"  # no usable gap for too long: the queue was answered 0x0B
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
+    PROOF_READ = "proof_read"  # a read of the line's own, sent to prove a lost answer is gone
     COALESCED = "coalesced"  # a read joined an identical queued read
     FOREIGN_MASTER = "foreign_master"  # a request frame this gateway did not send
     LINE_NOT_SHARED = "line_not_shared"  # no foreign master frame heard for ``SHARED_FOR_S``

@@ -77,6 +77,8 @@ class LineNotes:
             )
         elif event is LineEvent.LATE_WINDOW:
             metrics.late_windows.labels(self._bus.name).inc()
+        elif event is LineEvent.PROOF_READ:
+            metrics.proof_reads.labels(self._bus.name, unit).inc()
         elif event is LineEvent.SLAVE_STATE:
             self._slave_state(note)
         elif event is LineEvent.LINE_NOISY:

@@ -362,10 +362,13 @@ LINES = (
         "(a counter increment, a pulse, a queue push). Set true only if every such request "
         "on this line is idempotent."),
     Key(table=_L, name="late_answer_window", type=Type.SECONDS, default="auto", low=0.0,
-        high=60.0, auto="2 x the wait of the attempt that lost it (at most 2 x max_timeout)",
-        help="After a timeout or a garbled answer, the slave's answer may still arrive: for "
-        "this many seconds nothing that could be confused with it (same slave and function) "
-        "is sent to that slave; other slaves are served meanwhile."),
+        high=60.0, auto="until proof that the lost answer cannot come (no time limit)",
+        help="After a timeout or a garbled answer, the slave's answer may still arrive: "
+        "nothing whose answer could be confused with it (same slave, function and byte count "
+        "or echo) is sent to that slave until proof that it cannot come (the answer heard, or "
+        "a later request of another answer length answered; the gateway sends such a read "
+        "itself when a request waits). A number bounds the wait in seconds instead and turns "
+        "those proof reads off; other slaves are served meanwhile."),
     Key(table=_L, name="frame_gap", type=Type.SECONDS, default="auto", low=0.0, high=1.0,
         show=Show.COMMENTED, example="0.00175",
         auto="t3.5 (3.5 characters, 1.75 ms above 19200 baud); one character on ASCII; 0 "

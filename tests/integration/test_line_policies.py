@@ -267,7 +267,9 @@ def test_a_late_answer_through_a_reopened_port_reaches_no_request(
         sim.device(1).holding[7] = 200
         sim.faults(1).reply_delay = 0.0
         assert registers(master.request(1, bytes.fromhex("03 0007 0001"))) == [200]
-    assert sim.stats().responses == 2  # the late answer did come, through the new port
+    # The late answer did come, through the new port; the held read may have brought a
+    # proof read of the gateway's own first (its answer goes to nobody).
+    assert sim.stats().responses in (2, 3)
 
 
 def test_requests_sent_while_a_reopening_line_finishes_its_transaction_wait_for_it(

@@ -10,12 +10,12 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from line_harness import LineHarness
+from line_harness import DeafWhileBusyLine, LineHarness
 
 from gateway.config import LineConfig, build_config
 from gateway.core.framing import RTU, mbap_framing
-from gateway.core.line import LineCore
-from gateway.core.line.response_timing import FLOOR_S, ResponseTiming
+from gateway.core.line import LineCore, LineRequest
+from gateway.core.line.response_timing import EVIDENCE, FLOOR_S, ResponseTiming
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
@@ -46,13 +46,13 @@ class Bus(LineHarness):
         self.now = 0.0
         self.timeouts = 0
 
-    def poll(self, turnaround: float | None) -> tuple[str, float]:
+    def poll(self, turnaround: float | None, slave: int = SLAVE) -> tuple[str, float]:
         """One read; the slave answers ``turnaround`` after the request (``None``: never).
         Returns the outcome and when the master got it."""
-        request = self.submit(SLAVE, read(), self.now)
+        request = self.submit(slave, read(), self.now)
         sent = self.frames()
         assert len(sent) == 1
-        frame = answer()
+        frame = answer(slave)
         arrival = None
         if turnaround is not None:
             arrival = self.now + len(sent[0]) * self.char + turnaround + len(frame) * self.char
@@ -92,6 +92,9 @@ def test_first_contact_waits_initial_timeout_and_retries_back_off_to_max_timeout
     learned = timing()
     assert [learned.wait(SLAVE, 3, attempt) for attempt in (1, 2, 3)] == [1.0, 2.0, 3.0]
     learned.answered(SLAVE, 3, 0.005)
+    assert learned.wait(SLAVE, 3, 1) == 1.0  # one fast answer is no evidence: still initial
+    for _ in range(EVIDENCE - 1):
+        learned.answered(SLAVE, 3, 0.005)
     assert learned.wait(SLAVE, 3, 1) == FLOOR_S  # the floor, not 7.5 ms
     assert learned.wait(SLAVE, 3, 2) == 2 * FLOOR_S
     assert learned.wait(SLAVE, 4, 1) == 1.0  # a function never heard from
@@ -125,7 +128,8 @@ def test_a_number_or_a_slave_timeouts_entry_is_fixed() -> None:
 def test_tcp_lines_learn_per_line() -> None:
     config = LineConfig(name="t", device="/dev/null", kind="tcp", learn_timeouts=True)
     learned = ResponseTiming(config, mbap_framing(), 0.0)
-    learned.answered(1, 3, 0.3)
+    for _ in range(EVIDENCE):
+        learned.answered(1, 3, 0.3)
     assert learned.wait(2, 3, 1) == learned.wait(1, 3, 1) == pytest.approx(0.45)
     assert learned.slave_timeout(7) == pytest.approx(0.45)
 
@@ -230,10 +234,67 @@ def test_the_learned_timeouts_are_exported_per_slave_at_scrape_time() -> None:
     registry = CollectorRegistry()
     metrics = GatewayMetrics(registry)
     bus = Bus(default_line(19200))
-    bus.poll(0.2)
+    for _ in range(EVIDENCE):
+        bus.poll(0.2)
     core = bus.core
     metrics.set_response_timeouts("a", lambda: core.timing.by_slave(core.health.slaves))
     name = "modbus_gateway_slave_response_timeout_seconds"
     exported = registry.get_sample_value(name, {"line": "a", "unit": "1"})
     assert exported == core.timing.learned(SLAVE, 3) == pytest.approx(0.3, abs=0.01)
     assert registry.get_sample_value(name, {"line": "a", "unit": "2"}) is None
+
+
+def closed_loop(line: DeafWhileBusyLine, units: list[int], polls: int) -> list[Outcome]:
+    """One master reading 10 registers of ``units`` in turn, the next as soon as answered."""
+    outcomes: list[Outcome] = []
+    turn = iter(range(1, polls))
+
+    def again(_request: LineRequest, outcome: Outcome) -> None:
+        outcomes.append(outcome)
+        index = next(turn, None)
+        if index is not None:
+            line.submit("m", units[index % len(units)], read(100 * index % 9000, 10))
+
+    line.on_answer = again
+    line.submit("m", units[0], read(0, 10))
+    line.run(3600.0)
+    assert len(outcomes) == polls
+    assert line.wrong == 0
+    return outcomes
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_a_soft_plc_fast_at_first_then_anywhere_in_its_cycle_is_never_timed_out(
+    seed: int,
+) -> None:
+    """One device answering unit ids 1-4: its first 5 answers (over all four) come within
+    40 ms, every later one anywhere in 20-480 ms (it scans its port once per cycle). Polled
+    round-robin 200 times at 115200 baud at defaults: a bound learned from the first fast
+    answers would time out the slow ones; learning waits for evidence first."""
+    draw = random.Random(seed)
+    heard = iter(range(10**6))
+
+    def turnaround(_slave: int, _pdu: bytes, _now: float) -> float:
+        return draw.uniform(0.0, 0.04) if next(heard) < 5 else draw.uniform(0.02, 0.48)
+
+    config = default_line(115200)
+    line = DeafWhileBusyLine(LineCore(config, -1.0), character_time(115200, 8, "N", 1), turnaround)
+    outcomes = closed_loop(line, [1, 2, 3, 4], 200)
+    assert outcomes.count(Outcome.OK) == 200, outcomes
+
+
+def test_a_slave_that_turns_slow_costs_at_most_two_exceptions() -> None:
+    """A slave answering in 10 ms turns to 400 ms after 60 polls: its bound grows at once
+    on the late answer; at most 2 exceptions after the change, none in its last 20 polls."""
+    polls = iter(range(10**6))
+
+    def turnaround(_slave: int, _pdu: bytes, _now: float) -> float:
+        return 0.010 if next(polls) < 60 else 0.400
+
+    config = default_line(19200)
+    line = DeafWhileBusyLine(LineCore(config, -1.0), character_time(19200, 8, "N", 1), turnaround)
+    outcomes = closed_loop(line, [1], 150)
+    before, after = outcomes[:60], outcomes[60:]
+    assert set(before) == {Outcome.OK}
+    assert sum(outcome is not Outcome.OK for outcome in after) <= 2, after
+    assert set(after[-20:]) == {Outcome.OK}, after

@@ -17,13 +17,14 @@ Invariants, each checked by the stateful tests in ``tests/property``:
   the answer to the attempt on the wire (unit, function, length, echo: see the
   framing's response decoder, e.g. ``RtuResponseDecoder``). After an attempt fails
   without its answer (timeout, or garbage that was not the answer itself), the
-  slave's answer may still come: for that slave's *late-answer window* no request
-  that could be confused with the lost one (same slave and function, whose
-  exception replies look alike) is sent;
-  other slaves are served meanwhile. The window closes early once the slave
-  answers a request sent after the loss that could not be confused with it: a
-  slave answers one request at a time, so the lost answer will not follow. The
-  retry of the lost request itself is exempt: any answer to it is its answer.
+  slave's answer may still come, however late: for that slave's *late-answer window*
+  no request that could be confused with the lost one (same slave and answer
+  signature) is sent; other slaves are served meanwhile. The window lasts until proof
+  that the lost answer cannot come (or ``late_answer_window`` seconds, when set): the
+  lost answer heard, or the slave answering a request sent after the loss that could
+  not be confused with it (a slave answers one request at a time, in order). A request
+  held for proof makes the line send a *proof read* of its own (``late``). The retry
+  of the lost request itself is exempt: any answer to it is its answer.
 * **Quiet line.** Nothing is transmitted before ``gap`` seconds of silence after
   the last byte seen on the line or the end of the gateway's own transmission
   (plus the turnaround after a broadcast).

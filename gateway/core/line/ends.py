@@ -22,10 +22,11 @@ from ..rtu import RtuFrame
 from .fair_queue import FairQueue
 from .foreign import ForeignMasters, ForeignRequest
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
-from .late import LateWindows
+from .late import MAX_INCONCLUSIVE, PROOF_FUNCTIONS, LateWindows
 from .order import OrderRules
 from .records import (
     BAD_CHECK,
+    INFINITY,
     SHARED_ANSWER,
     Attempt,
     Delivery,
@@ -80,11 +81,13 @@ class AttemptEnds:
         if record is None:
             record = self.health.record(slave)
         record.answered.add(function)
+        response = frame.pdu
+        if function in PROOF_FUNCTIONS and not response[0] & fc.EXCEPTION_FLAG:
+            record.known_read = request.pdu
         if record.state is SlaveState.UP:
             record.misses = 0  # ``alive``, for a slave that was up
         else:
             self.alive(slave)
-        response = frame.pdu
         if now > attempt.learn_above:  # slower than its slave's peak so far, or a first
             self.timing.answered(slave, function, now - attempt.expected_at)
         if self.late.windows:
@@ -93,6 +96,8 @@ class AttemptEnds:
                 # Perhaps the lost attempt's answer: the slave may be that slow.
                 self.timing.late(slave, function, now - window.sent_at)
             ends = self.late.ends_on(slave, request, response)
+            if request.proof and ends is not True and slave in self.late.windows:
+                ends = self._proof_ended(slave, response, now)
             if ends is True:
                 self.late.close(slave)  # it answered something after the loss: done
             elif ends is False:
@@ -109,6 +114,19 @@ class AttemptEnds:
         else:
             outcome = Outcome.OK
         self._deliver(request, response, outcome, wire)
+
+    def _proof_ended(self, slave: int, response: bytes, now: float) -> bool | None:
+        """A proof read was answered by an exception: proof when no awaited answer has its
+        function (the lost answer would have come first), else nothing proved; after
+        ``MAX_INCONCLUSIVE`` of those the window closes after a time instead."""
+        window = self.late.windows[slave]
+        window.proof = None
+        if (response[0] & 0x7F) not in {signature[0] for signature in window.signatures}:
+            return True
+        window.inconclusive += 1
+        if window.inconclusive >= MAX_INCONCLUSIVE:
+            window.until = now + 2.0 * self.policy.max_timeout
+        return None
 
     def _not_ours(self, attempt: Attempt, now: float) -> None:
         """An answer a foreign master's pending request may own (``foreign``): not delivered.
@@ -268,6 +286,7 @@ class AttemptEnds:
         wire += self._gap
         queue = self.queue
         master = queue.masters.get(attempt.request.master)
+        queue.ended(master, wire, now)
         if attempt.from_credit:
             self.lane.spend(wire, now)
         elif master is not None:
@@ -332,11 +351,12 @@ class AttemptEnds:
         """The slave's answer to ``request`` may still come: nothing that could be taken for
         it goes to this slave until the window ends or the slave shows it is done. A line
         whose answers carry transaction ids needs no window (the id names the answer)."""
-        if not self.wire.quiet_line:
+        if not self.wire.quiet_line or self.framing.transaction_ids is not None:
             return
-        window = self.timing.late_window(slave, request.pdu[0], request.attempts)
+        window = self.timing.late_window()
         self.late.open(slave, request, now + window, sent_at)
-        self.notes.append(Note(LineEvent.LATE_WINDOW, slave, f"{window:g} s"))
+        detail = "until proof" if window == INFINITY else f"{window:g} s"
+        self.notes.append(Note(LineEvent.LATE_WINDOW, slave, detail))
 
     def _set_state(self, slave: int, record: SlaveRecord, state: SlaveState) -> None:
         record.state = state
@@ -381,9 +401,13 @@ class AttemptEnds:
         self._deliver(request, fc.exception_pdu(request.pdu[0], code), outcome, -1.0)
 
     def _deliver(self, request: LineRequest, pdu: bytes, outcome: Outcome, wire: float) -> None:
-        """Deliver exactly once, to ``request`` and every read that joined it."""
+        """Deliver exactly once, to ``request`` and every read that joined it (a proof
+        read's answer goes to nobody)."""
         if self.wire.orders_outstanding:
             self.wire.released(request)
+        if request.proof:
+            request.answered = True
+            return
         deliveries = self.deliveries
         if request.followers:
             self.sharing.joined.pop(request, None)

@@ -5,12 +5,14 @@ transactions took (start-time fair queuing): the master with the smallest virtua
 goes next, and its account is charged with what its transaction actually cost
 (timeouts included), so a master provoking timeouts spends its own share. A master
 that waited while others used the line starts from the line's virtual clock, never
-below it (no banked credit). A master with nothing waiting or on the wire goes next
-after the transaction on the wire (behind others that came so before it), unless its
-account is ahead of every waiting master's: it cannot become the heaviest user that
-way. Each master has its own queue bound (0x06 beyond it); the
-line-wide bound pushes out the longest queue's newest request before refusing a master
-with a shorter queue. A request still unsent after the line's ``max_queue_wait`` is
+below it (no banked credit). A master with nothing waiting or on the wire for at least
+the line's typical transaction goes next after the transaction on the wire (behind
+others that came so before it), unless its account is ahead of every waiting master's:
+it cannot become the heaviest user that way. A master answered a moment ago that asks
+again at once takes its fair turn: it goes behind the round it left. Each master has its
+own queue bound (0x06 beyond it); the line-wide bound pushes out the longest queue's
+newest request before refusing a master with a shorter queue. A request still unsent
+after the line's ``max_queue_wait`` is
 overdue: ``arrivals`` holds the queued requests in submission order, so the oldest is
 found without a scan (requests that left another way are skipped when met at its head).
 
@@ -24,8 +26,12 @@ import heapq
 from collections import deque
 from collections.abc import Callable, Container, Hashable, Iterator
 from dataclasses import dataclass, field
+from typing import Final
 
 from .records import LineRequest, LineStats
+
+#: The weight of the newest transaction in the line's typical one (a moving mean).
+TYPICAL_WEIGHT: Final = 1.0 / 16.0
 
 
 @dataclass(slots=True, eq=False)
@@ -38,6 +44,8 @@ class Master:
     heap_seq: int = -1  # the sequence number of its live heap entry, -1 when not in the heap
     queued: int = 0  # requests waiting (its queue, the lane, the retry slot)
     gone: bool = False
+    #: When its last transaction ended (``None``: never served): see ``enqueue``.
+    answered_at: float | None = None
 
 
 class FairQueue:
@@ -52,6 +60,9 @@ class FairQueue:
         self.vclock = 0.0
         self.vmax = 0.0  # the furthest account of a master that waited (``push``)
         self.queued = 0  # requests waiting for the line, wherever they wait
+        #: The line's typical transaction, the silence after it included (a moving mean of
+        #: what ``ended`` was told): how long a master must have been idle to go first.
+        self.typical = 0.0
         #: Requests queued by ``enqueue``, oldest first; some may have left since (``overdue``).
         self.arrivals: deque[LineRequest] = deque()
 
@@ -76,16 +87,21 @@ class FairQueue:
         self.dequeued(longest, victim)
         return victim
 
-    def enqueue(self, master: Master, request: LineRequest, idle: bool) -> None:
+    def enqueue(self, master: Master, request: LineRequest, idle: bool, now: float) -> None:
         """Queue ``request``; a master that was ``idle`` (nothing waiting or on the wire)
-        goes to the head of the fair order unless its account is ahead of every waiting
-        master's.
+        for at least the line's typical transaction goes to the head of the fair order,
+        unless its account is ahead of every waiting master's.
 
         Start times alone would put it behind every master whose start time equals the
         line's virtual time (a whole round of deep queues), and, once served, behind the rest
         of that round: the virtual time moves one transaction per round. Its account is
         still charged, so it takes no more than the heaviest user: past that it waits its
-        turn.
+        turn. A master answered a moment ago that asks again at once (a closed loop, its
+        network round trip shorter than a transaction) takes its fair turn behind the
+        masters that waited meanwhile, as first come, first served would put it, not the
+        head of the line round after round. Where a transaction is shorter than the
+        masters' round trips (a fast port), every master comes back rested, and the heads
+        go in the order they came: first come, first served again.
         """
         master.queue.append(request)
         self.arrivals.append(request)
@@ -95,7 +111,9 @@ class FairQueue:
         if master.heap_seq < 0:
             if master.vtime < self.vclock:
                 master.vtime = self.vclock
-            self.push(master, idle and master.vtime <= self.vmax)
+            answered_at = master.answered_at
+            rested = answered_at is None or now - answered_at >= self.typical
+            self.push(master, idle and rested and master.vtime <= self.vmax)
 
     def queue_at_front(self, request: LineRequest) -> None:
         """Back from the lane: first, but behind its master's earlier broadcasts."""
@@ -188,6 +206,13 @@ class FairQueue:
         for master, head in skipped:
             self.push(master, head)
         return chosen
+
+    def ended(self, master: Master | None, wire: float, now: float) -> None:
+        """A transaction (``master``'s, if any) ended at ``now``; it held the line ``wire``
+        seconds, the silence after it included."""
+        self.typical += (wire - self.typical) * TYPICAL_WEIGHT
+        if master is not None:
+            master.answered_at = now
 
     def charge(self, master: Master, wire: float, charged: float) -> None:
         """``master``'s transaction took ``wire`` seconds, of which ``charged`` were charged

@@ -46,6 +46,7 @@ class SlaveRecord:
     answered: set[int] = field(default_factory=set)  # functions it has answered
     backoff: float = 0.0
     next_probe_at: float = 0.0
+    known_read: bytes | None = None  # the last read it answered normally (a proof read)
 
 
 class SlaveHealth:

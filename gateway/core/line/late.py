@@ -2,10 +2,20 @@
 
 Theory of operation. For a slave's window no request that could be confused with the
 lost one (same answer signature: ``records.answer_signature``) is sent to it; the
-lost request's own retry is exempt (any answer to it is its answer). The window
-closes at its end, or early once the slave answers a request sent after the loss that
-could not be confused with it, or once the answers of every lost attempt of its owner
-have arrived (a slave answers one request at a time: nothing more will follow).
+lost request's own retry is exempt (any answer to it is its answer). A window lasts
+until proof that the lost answer can no longer come, however late the slave is
+(``late_answer_window``, when set, bounds it in seconds instead). Proof is one of:
+
+* the answers of every lost attempt of its owner have arrived;
+* the slave answered a request sent after the loss that could not be confused with it
+  (a serial slave answers one request at a time, in order: nothing more will follow).
+
+When a request waits for such proof and nothing else would bring it, the line sends a
+*proof read* of its own (``proof_pdu``): a read the slave answered before, or the same
+function at the same address with another count, so that its normal answer cannot be
+taken for any answer the window awaits. Its answer goes to nobody. A proof answered by
+an exception that looks like a lost one proves nothing; after ``MAX_INCONCLUSIVE`` of
+them the window closes after ``2 x max_timeout`` instead.
 
 This part keeps the windows and recognises lost answers in the line's bytes; the
 machine (``machine.LineCore``) opens windows, notes them and acts on what arrives.
@@ -15,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Final
 
 from .. import pdu as fc
 from ..errors import ResponseError
@@ -22,6 +33,34 @@ from ..framing import ResponseDecoder
 from .records import INFINITY, LateWindow, LineRequest, answer_signature
 
 NewDecoder = Callable[[int, bytes], ResponseDecoder]
+
+#: Proof reads answered by an exception that proves nothing, before a window gives up
+#: on proof and closes after a time instead.
+MAX_INCONCLUSIVE: Final = 2
+#: The reads a proof may be (they change nothing): coils, inputs, registers.
+PROOF_FUNCTIONS: Final = frozenset(
+    {fc.READ_COILS, fc.READ_DISCRETE_INPUTS, fc.READ_HOLDING_REGISTERS, fc.READ_INPUT_REGISTERS}
+)
+
+
+def proof_pdu(signatures: set[bytes], known_read: bytes | None, lost: bytes | None) -> bytes | None:
+    """A read whose normal answer cannot be taken for any answer in ``signatures``: the
+    slave's ``known_read`` (a read it answered normally) if it differs, else that read's
+    function and address (or the lost request's, when it is a read) with the smallest
+    count whose answer length differs; ``None`` when no read is known."""
+    if known_read is not None and answer_signature(known_read) not in signatures:
+        return known_read
+    base = known_read if known_read is not None else lost
+    if base is None or base[0] not in PROOF_FUNCTIONS or len(base) < 5:
+        return None
+    function = base[0]
+    bits = function in (fc.READ_COILS, fc.READ_DISCRETE_INPUTS)
+    for step in range(8):
+        count = 8 * step + 1 if bits else step + 1
+        pdu = bytes((function, base[1], base[2], count >> 8, count & 0xFF))
+        if answer_signature(pdu) not in signatures:
+            return pdu
+    return None
 
 
 @dataclass(slots=True, eq=False)
@@ -34,6 +73,8 @@ class Window:
     decoder: ResponseDecoder | None = None  # recognises the lost answer itself
     pending: int = 0  # the owner's attempts whose answers may still come
     sent_at: float | None = None  # when the owner's latest lost attempt was sent
+    proof: LineRequest | None = None  # the proof read sent and not yet ended
+    inconclusive: int = 0  # proof reads answered by an exception that proved nothing
 
 
 class LateWindows:
@@ -42,6 +83,8 @@ class LateWindows:
     def __init__(self, new_decoder: NewDecoder) -> None:
         self.windows: dict[int, Window] = {}
         self.new_decoder = new_decoder
+        #: Slaves whose windows hold a request back and wait for proof (``holds``).
+        self.wanted: set[int] = set()
 
     def open(
         self, slave: int, request: LineRequest, until: float, sent_at: float | None = None
@@ -53,6 +96,8 @@ class LateWindows:
             window = self.windows[slave] = Window()
         window.until = max(window.until, until)
         window.signatures.add(answer_signature(request.pdu))
+        if window.proof is request:
+            window.proof = None  # the proof read failed: another may be sent
         if window.owner is request:
             window.pending += 1  # another attempt of it whose answer may still come
         else:
@@ -91,16 +136,21 @@ class LateWindows:
 
     def close(self, slave: int) -> None:
         del self.windows[slave]
+        self.wanted.discard(slave)
 
     def holds(self, request: LineRequest, now: float) -> bool:
         """True when ``request`` could be confused with a lost answer still on its way."""
         window = self.windows.get(request.slave)
-        return (
-            window is not None
-            and now < window.until
-            and answer_signature(request.pdu) in window.signatures
-            and request is not window.owner
-        )
+        if (
+            window is None
+            or now >= window.until
+            or request is window.owner
+            or answer_signature(request.pdu) not in window.signatures
+        ):
+            return False
+        if window.until == INFINITY and window.proof is None:
+            self.wanted.add(request.slave)  # held until proof: ask for a proof read
+        return True
 
     def ends_on(self, slave: int, request: LineRequest, response: bytes) -> bool | None:
         """``slave`` answered ``request`` (not the owner) with ``response`` during its

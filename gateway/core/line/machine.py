@@ -245,7 +245,7 @@ class LineCore(Sending):
                 return
             if not self._admit_read(request, now):
                 return
-        queue.enqueue(master, request, master.queued == 0 and not on_wire)
+        queue.enqueue(master, request, master.queued == 0 and not on_wire, now)
         self.service(now)
 
     def _push_out(self, master: Master) -> bool:

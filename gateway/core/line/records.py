@@ -149,6 +149,7 @@ class LineRequest:
     epoch: int
     order: int  # its place among the line's submissions (set by ``submit``)
     followers: list[LineRequest]
+    proof: bool  # the line's own read, sent to prove a lost answer can no longer come
 
     def __init__(
         self,
@@ -175,6 +176,7 @@ class LineRequest:
         self.epoch = 0
         self.order = 0
         self.followers = []
+        self.proof = False
 
     @property
     def wanted(self) -> bool:

@@ -11,7 +11,11 @@ comparison: ``Attempt.learn_above``). It is an upper quantile of the last few
 hundred answers, not a mean: a slave slow on 1 request in 10 refreshes it long before it
 forgets, so the bound keeps covering the slow request. The *bound* is that peak times
 ``MARGIN``, never below the floor (``FLOOR_S``, ``NETWORK_FLOOR_S``: the scheduling and
-network jitter a fast slave's answer meets) nor above ``max_timeout``.
+network jitter a fast slave's answer meets, on a busy CPU too) nor above ``max_timeout``.
+Learning starts cautious: until ``EVIDENCE`` answers of a slave and function have been
+heard, the bound stays at ``initial_timeout`` at least (a soft PLC may answer its first
+requests fast and later ones anywhere within its cycle); it grows at once on a slower or
+late answer, and shrinks only by the slow decay.
 
 An attempt's timeout is the predicted answer's transmission time (the longest frame when
 its length cannot be predicted) plus the bound, doubled for each earlier attempt of the
@@ -24,9 +28,11 @@ timeout never raises the bound.
 
 A number for ``timeout`` (or a ``slave_timeouts`` entry for its slave) is fixed: the
 time from the end of the request to the end of the answer, as before, with no back-off.
-The late-answer window (2 x the attempt's wait) and ``noisy_after`` (3 x the line's
-longest bound) follow the learned values unless set. The estimates live as long as the
-line's core: a reload that reopens the line starts afresh, as does a restart.
+``noisy_after`` (3 x the line's longest bound) follows the learned values unless set. The
+late-answer window does not: a lost answer is waited for until proof that it cannot come
+(``late``), whatever was learned, unless ``late_answer_window`` sets a number. The
+estimates live as long as the line's core: a reload that reopens the line starts afresh,
+as does a restart.
 """
 
 from __future__ import annotations
@@ -40,10 +46,14 @@ from ..framing import Framing, LineKind
 from ..rtu import MAX_RTU_FRAME
 from .records import INFINITY, LinePolicy
 
-#: The least bound on a serial line: the old automatic timeout's turnaround allowance.
-FLOOR_S: Final = 0.1
+#: The least bound on a serial line: room for the gateway's own scheduling delay on a
+#: busy CPU (a fast slave's answer read late is not a slow answer).
+FLOOR_S: Final = 0.25
 #: The least bound on a network line (RTU over TCP, tcp, tls): the round trip too.
-NETWORK_FLOOR_S: Final = 0.2
+NETWORK_FLOOR_S: Final = 0.3
+#: Answers of a slave and function before its bound may fall below ``initial_timeout``:
+#: a few fast first answers are no evidence that later ones will be as fast.
+EVIDENCE: Final = 10
 #: The bound is the peak turnaround times this: room for a slower answer than any yet.
 MARGIN: Final = 1.5
 #: The peak keeps this much of itself per answer (halved after ~350 answers).
@@ -84,7 +94,8 @@ class ResponseTiming:
         self.char_time = char_time
         self.floor = FLOOR_S if kind in (LineKind.RTU, LineKind.ASCII) else NETWORK_FLOOR_S
         self.bounds: dict[int, float] = {}  # key -> learned bound (``key``)
-        #: key -> [decaying peak turnaround, attempts since its last decay step, bound]
+        #: key -> [decaying peak turnaround, attempts since its last decay step, bound,
+        #: answers heard (counted up to ``EVIDENCE``)]
         self.peaks: dict[int, list[float]] = {}
         self.predicted: dict[bytes, float] = {}  # request PDU -> its answer's transmission
         self.longest = 0.0  # the longest bound (for ``noisy_after``)
@@ -177,8 +188,10 @@ class ResponseTiming:
         expected = self.expected_at = sent_by + self.answer_time(pdu)
         key = (slave << 8 | pdu[0]) if self.per_slave else pdu[0]
         state = self.peaks.get(key)
-        if state is None:
-            self.learn_above = -INFINITY  # a first answer: whatever it takes teaches
+        if state is None or state[3] < EVIDENCE:
+            self.learn_above = -INFINITY  # among the first answers: whatever it takes teaches
+            if state is not None:
+                state[1] += 1.0
         else:
             self.learn_above = expected + state[0]
             state[1] += 1.0
@@ -206,13 +219,11 @@ class ResponseTiming:
         chars = MAX_ASCII_FRAME if self.ascii else MAX_RTU_FRAME
         return self.wait(slave, function, 1) + 2 * chars * self.char_time
 
-    def late_window(self, slave: int, function: int, attempt: int) -> float:
-        """How long a lost answer may still come: ``late_answer_window``, else 2 x the wait
-        of the attempt that lost it."""
+    def late_window(self) -> float:
+        """How long a lost answer may still come: ``late_answer_window`` when set, else
+        until proof that it cannot (``INFINITY``: see ``late``), whatever was learned."""
         window = self.policy.late_answer_window
-        if window is not None:
-            return window
-        return 2.0 * self.wait(slave, function, attempt)
+        return INFINITY if window is None else window
 
     # -- what the line learns --------------------------------------------------------------
 
@@ -221,8 +232,13 @@ class ResponseTiming:
         key = (slave << 8 | function) if self.per_slave else function
         state = self.peaks.get(key)
         if state is None:
-            self.peaks[key] = [turnaround, 0.0, 0.0]
+            self.peaks[key] = [turnaround, 0.0, 0.0, 1.0]
             self._set_bound(key, turnaround)
+        elif state[3] < EVIDENCE:
+            state[3] += 1.0
+            if turnaround > state[0]:
+                state[0] = turnaround
+            self._set_bound(key, state[0])
         elif turnaround > state[0]:
             state[0] = turnaround
             self._set_bound(key, turnaround)
@@ -239,7 +255,8 @@ class ResponseTiming:
 
     def _set_bound(self, key: int, peak: float) -> None:
         """The bound for ``key`` from its peak: with the margin, the floor and the cap."""
-        bound = min(max(peak * MARGIN, self.floor_now), self.maximum)
+        least = self.floor_now if self.peaks[key][3] >= EVIDENCE else self.initial
+        bound = min(max(peak * MARGIN, least), self.maximum)
         before = self.bounds.get(key, 0.0)
         self.bounds[key] = self.peaks[key][2] = bound
         if bound > self.longest:

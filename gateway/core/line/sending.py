@@ -6,13 +6,26 @@ The middle layer of ``LineCore``'s class body (see ``ends.py`` for the layering)
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Final
 
 from ..errors import ExceptionCode
-from ..outcome import LineEvent, Outcome
+from ..outcome import LineEvent, Outcome, SlaveState
 from .fair_queue import Master
 from .foreign import ANSWERED_BY_ECHO
+from .late import proof_pdu
 from .listening import Listening
-from .records import FRAME_CACHE_SIZE, INFINITY, LineRequest, Note, Transmit, tuple_new
+from .records import (
+    FRAME_CACHE_SIZE,
+    INFINITY,
+    LineRequest,
+    Note,
+    Transmit,
+    no_reply,
+    tuple_new,
+)
+
+#: The master a proof read is charged to when the request that lost its answer is gone.
+PROOF_MASTER: Final = "the line's proof reads"
 
 
 class Sending(Listening):
@@ -84,6 +97,10 @@ class Sending(Listening):
             retry = retries.popleft()
             self.queue.count_waiting(retry, -1)
             return retry, None, False
+        if self.late.wanted:
+            proof = self._proof(now)
+            if proof is not None:
+                return proof
         lane = self.lane
         if lane.requests and lane.credit_now(now) >= 0.0:
             request = self._lane_candidate(now)
@@ -92,10 +109,47 @@ class Sending(Listening):
         picked = self.queue.pop(now, self.wire.first_eligible)
         if picked is not None:
             return picked[0], picked[1], False
+        if self.late.wanted:  # the queue's requests were held: a proof lets them go
+            proof = self._proof(now)
+            if proof is not None:
+                return proof
         if lane.requests:
             request = self._lane_candidate(now, free=True)
             if request is not None:
                 return request, None, False
+        return None
+
+    def _proof(self, now: float) -> tuple[LineRequest, Master | None, bool] | None:
+        """A proof read for a slave whose late-answer window holds a request back (``late``
+        module doc): charged to the master whose request lost its answer, or to the lane's
+        share when the slave is suspect or down (then only when the share allows)."""
+        late = self.late
+        for slave in sorted(late.wanted):
+            window = late.windows.get(slave)
+            if window is None or window.proof is not None or window.until != INFINITY:
+                late.wanted.discard(slave)
+                continue
+            if self.wire.on_wire_to(slave):
+                continue
+            record = self.health.record(slave)
+            owner = window.owner
+            pdu = proof_pdu(window.signatures, record.known_read, owner.pdu if owner else None)
+            if pdu is None:  # nothing known to read: the window closes after a time
+                window.until = now + 2.0 * self.policy.max_timeout
+                late.wanted.discard(slave)
+                continue
+            if self.foreign_pending and self.foreign.holds(slave, pdu, now):
+                continue
+            credit = record.state is not SlaveState.UP
+            if credit and self.lane.credit_now(now) < 0.0:
+                continue  # the isolated slaves' share is spent: later
+            proof = LineRequest(slave, pdu, owner.master if owner else PROOF_MASTER, no_reply)
+            proof.proof = proof.single = True
+            proof.enqueued_at = now
+            window.proof = proof
+            late.wanted.discard(slave)
+            self.notes.append(Note(LineEvent.PROOF_READ, slave, f"function {pdu[0]}"))
+            return proof, None, credit
         return None
 
     def _lane_candidate(self, now: float, free: bool = False) -> LineRequest | None:
@@ -141,8 +195,8 @@ class Sending(Listening):
         stats.bytes_written += len(frame)
         if retry:
             self.notes.append(Note(LineEvent.RETRY, request.slave))
-        self.transmits.append(
-            tuple_new(Transmit, (frame, request, now - request.enqueued_at, retry))
+        self.transmits.append(  # a proof read has no queue wait to observe: as a retry
+            tuple_new(Transmit, (frame, request, now - request.enqueued_at, retry or request.proof))
         )
 
     def frame(self, slave: int, pdu: bytes) -> bytes:

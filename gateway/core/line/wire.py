@@ -21,7 +21,7 @@ from ..errors import ResponseError
 from ..outcome import DiscardReason
 from .fair_queue import Master
 from .records import DISCARD_KINDS, FRAME_CACHE_SIZE, INFINITY, Attempt, LineRequest
-from .response_timing import DECAY_EVERY
+from .response_timing import DECAY_EVERY, EVIDENCE
 
 if TYPE_CHECKING:
     from .machine import LineCore
@@ -224,7 +224,7 @@ class SerialWire(Wire):
         else:
             expected = sent_by + predicted
             deadline = expected + state[2]
-            above = expected + state[0]
+            above = expected + state[0] if state[3] >= EVIDENCE else -INFINITY
             state[1] += 1.0
             if state[1] >= DECAY_EVERY:
                 timing.decay(slave << 8 | pdu[0], state)
