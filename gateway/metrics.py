@@ -18,9 +18,12 @@ A remote client chooses the unit and function of its requests, so
 (a routed address where a device is present); requests to a slave never heard
 from count under ``unit="other"``. With ``--serial`` every address 1..247 is
 routed, and a scan of every unit and function code would otherwise add
-thousands of series for good. The exposition leaves out ``_created`` series
-(``exposition_registry``): they double the output and say nothing a restart
-counter does not.
+thousands of series for good. Likewise a row's outcomes are created at 0 together only
+once its slave answered that function (``_ROW_OUTCOMES``); before that, and for requests
+no line took, each outcome's series comes with its first request: what a master sends
+adds a series per function name and outcome it meets, not a row of seven. The
+exposition leaves out ``_created`` series (``exposition_registry``): they double the
+output and say nothing a restart counter does not.
 """
 
 from __future__ import annotations
@@ -72,6 +75,11 @@ BROADCAST_LINE = "broadcast"
 
 #: Outcomes that show a slave is present: its unit gets its own label in ``requests_total``.
 _HEARD_OUTCOMES = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.CACHED})
+#: Outcomes that show a row is in use (the slave answered that function normally, or a
+#: broadcast went out): only then is every outcome of its row created at 0. Any other
+#: outcome creates its own series alone: a master that sends every function to every
+#: unit adds one series per function and outcome it meets, not the row's whole set.
+_ROW_OUTCOMES = frozenset({Outcome.OK, Outcome.CACHED, Outcome.BROADCAST})
 #: The ``unit`` label of requests to a slave never heard from, and of those without a line.
 OTHER_UNIT = "other"
 #: Unit labels that are always their own: no slave, and broadcast.
@@ -699,10 +707,10 @@ class GatewayMetrics:
         if unit not in _FIXED_UNITS and (line, unit) not in self._heard:
             if outcome not in _HEARD_OUTCOMES:
                 # Not cached: the slave may be heard from later, and then has its own label.
-                self._prepare_row(line, OTHER_UNIT, function)
                 return self.requests.labels(line, OTHER_UNIT, function, outcome)
             self._heard.add((line, unit))
-        self._prepare_row(line, unit, function)
+        if outcome in _ROW_OUTCOMES:  # the row is in use: every outcome it can take at 0
+            self._prepare_row(line, unit, function)
         child = self.requests.labels(line, unit, function, outcome)
         self._request_children[key] = child
         return child

@@ -137,7 +137,7 @@ def test_every_series_of_a_fixed_vocabulary_exists_at_zero_from_the_start() -> N
     assert _series(metrics, p + "requests") == set()  # rows come with their first request
 
 
-def test_a_request_row_gets_every_outcome_it_can_take_at_zero() -> None:
+def test_a_request_row_gets_every_outcome_it_can_take_at_zero_once_in_use() -> None:
     metrics = GatewayMetrics()
     metrics.count_request("a", "5", 3, Outcome.OK)
     metrics.count_request("none", "other", 3, Outcome.NO_ROUTE)
@@ -146,7 +146,7 @@ def test_a_request_row_gets_every_outcome_it_can_take_at_zero() -> None:
     read = "read_holding_registers"
     assert rows == (
         {("a", "5", read, outcome.value) for outcome in LINE_OUTCOMES}
-        | {("none", "other", read, outcome.value) for outcome in LOCAL_OUTCOMES}
+        | {("none", "other", read, "no_route")}  # answered locally: only what happened
         | {("broadcast", "0", "write_single_register", o.value) for o in BROADCAST_OUTCOMES}
     )
     value = metrics.registry.get_sample_value
@@ -154,6 +154,24 @@ def test_a_request_row_gets_every_outcome_it_can_take_at_zero() -> None:
     assert value("modbus_gateway_requests_total", {**labels, "outcome": "ok"}) == 1
     assert value("modbus_gateway_requests_total", {**labels, "outcome": "target_failed"}) == 0
     assert set(LINE_OUTCOMES) | set(LOCAL_OUTCOMES) | set(BROADCAST_OUTCOMES) == set(Outcome)
+
+
+def test_outcomes_a_master_causes_without_an_answer_add_one_series_each() -> None:
+    # Every function to a slave that never answered it, and to no line at all: one series
+    # per function and outcome met, not a row of seven.
+    metrics = GatewayMetrics()
+    for function in range(1, 25):
+        metrics.count_request("a", "5", function, Outcome.BUSY)
+        metrics.count_request("a", "5", function, Outcome.TARGET_FAILED)
+        metrics.count_request("none", "other", function, Outcome.REJECTED)
+    rows = _series(metrics, "modbus_gateway_requests")
+    functions = {row[2] for row in rows}
+    assert len(rows) == 3 * len(functions) and "other" in functions
+    assert {row[1] for row in rows} == {"other"}  # slave 5 never answered: not its own label
+    metrics.count_request("a", "5", 3, Outcome.OK)  # now it answers a read: its row, whole
+    assert {row[3] for row in _series(metrics, "modbus_gateway_requests") if row[1] == "5"} == {
+        outcome.value for outcome in LINE_OUTCOMES
+    }
 
 
 def test_status_reads_the_slave_counters_as_numbers() -> None:
