@@ -496,6 +496,7 @@ class Gateway:
             listener.name: server_context(listener) for listener in config.listeners if listener.tls
         }
         self.metrics.set_certificates(info for tls in built.values() for info in tls.certificates)
+        self.metrics.set_crls(crl for tls in built.values() for crl in tls.crls)
         for name in built:
             self.metrics.prepare_tls_listener(name, (reason.value for reason in HandshakeFailure))
         return built

@@ -1085,15 +1085,46 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             "one. A cap of 16 refuses SCADA and OPC servers that open one connection per "
             "device; delete the line unless you mean to cap each address"
         )
-    return warnings + _pair_warnings(config)
+    return warnings + _endpoint_warnings(metrics) + _pair_warnings(config)
+
+
+def _endpoint_warnings(metrics: MetricsConfig) -> list[str]:
+    """An HTTP endpoint whose documented protections are half set up, or not at all."""
+    warnings: list[str] = []
+    if not metrics.enabled:
+        return warnings
+    if metrics.status_token is not None and metrics.trace_token is None:
+        warnings.append(
+            "metrics.trace_token: not set while status_token is: /status and the page ask "
+            "for a token, /trace (which carries register values) asks for none; set "
+            'trace_token too (docs/http-endpoint.md, "Tokens")'
+        )
+    tokens = metrics.status_token is not None or metrics.trace_token is not None
+    if not is_loopback(metrics.host) and not tokens and metrics.tls_cert is None:
+        shown = metrics.host or "every address"
+        warnings.append(
+            f"metrics.listen: {shown} is reachable from the network, with neither "
+            "status_token nor trace_token nor HTTPS (tls_cert): anyone who reaches it reads "
+            "/status and /trace (register values) in clear; set the tokens and tls_cert, "
+            "tls_key, or listen on 127.0.0.1"
+        )
+    return warnings
 
 
 def _pair_warnings(config: GatewayConfig) -> list[str]:
-    """A pair whose gateways cannot reach each other, or that names its peer by name."""
+    """A pair whose gateways cannot reach each other, that names its peer by name, or
+    whose active lets the bus fall silent."""
     pair = config.redundancy
     if pair.peer is None:
         return []
     warnings: list[str] = []
+    if pair.keepalive is None:
+        warnings.append(
+            'redundancy.keepalive: "off": an active with nothing to send lets its lease end '
+            "half a lease after its last frame, steps down, and the pair takes turns on an "
+            'idle bus (each takeover costs masters 1.5 to 2.5 s); write "auto", or '
+            '"SLAVE:REGISTER" to name the register it reads'
+        )
     remote = not is_loopback(pair.peer[0])
     if remote and is_loopback(config.metrics.host):
         warnings.append(

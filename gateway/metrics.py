@@ -254,6 +254,38 @@ class _CertificateExpiryCollector(Collector):
         yield family
 
 
+class CrlNextUpdate(Protocol):
+    """What the CRL metric needs to know of a revocation list."""
+
+    @property
+    def listener(self) -> str: ...
+
+    @property
+    def issuer(self) -> str: ...
+
+    def seconds_left(self, now: float | None = None) -> float: ...
+
+
+class _CrlNextUpdateCollector(Collector):
+    """``tls_crl_next_update_seconds``: computed at scrape time from each CRL's nextUpdate."""
+
+    def __init__(self, crls: list[CrlNextUpdate]) -> None:
+        self._crls = crls
+
+    def collect(self) -> Iterator[Metric]:
+        family = GaugeMetricFamily(
+            "modbus_gateway_tls_crl_next_update_seconds",
+            "Seconds until the nextUpdate of each revocation list (crl) a tls listener checks "
+            "(negative once passed: every new TLS master is then refused until a current "
+            "list is read at a reload); issuer is the list's issuer.",
+            labels=["listener", "issuer"],
+        )
+        now = time.time()
+        for crl in self._crls:
+            family.add_metric([crl.listener, crl.issuer], crl.seconds_left(now))
+        yield family
+
+
 class LoopHistogram:
     """One histogram series updated only from the event loop: no lock, a bisect and two adds.
 
@@ -585,6 +617,8 @@ class GatewayMetrics:
         r.register(_CertificateExpiryCollector(self._certificates))
         self._line_certificates: list[CertificateExpiry] = []
         r.register(_CertificateExpiryCollector(self._line_certificates, owner="line"))
+        self._crls: list[CrlNextUpdate] = []
+        r.register(_CrlNextUpdateCollector(self._crls))
         self.info = Info(
             "modbus_gateway_build", "Version, build (compiled or interpreted) and lines.",
             registry=r,
@@ -672,6 +706,11 @@ class GatewayMetrics:
     def set_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
         """The certificates whose ``notAfter`` is exported (replaced on every reload)."""
         self._certificates[:] = list(certificates)
+
+    def set_crls(self, crls: Iterable[CrlNextUpdate]) -> None:
+        """The tls listeners' revocation lists whose nextUpdate is exported (replaced on
+        every reload)."""
+        self._crls[:] = list(crls)
 
     def set_line_certificates(self, certificates: Iterable[CertificateExpiry]) -> None:
         """The tls lines' certificates whose ``notAfter`` is exported (replaced on reload)."""

@@ -147,6 +147,20 @@ class CertificateInfo:
         return self.not_after.timestamp() - (time.time() if now is None else now)
 
 
+@dataclass(frozen=True, slots=True)
+class CrlInfo:
+    """One revocation list a listener checks, for the nextUpdate metric: once it passes,
+    OpenSSL refuses every new TLS master (``untrusted_certificate``)."""
+
+    listener: str
+    issuer: str
+    next_update: datetime
+
+    def seconds_left(self, now: float | None = None) -> float:
+        """Seconds until ``nextUpdate`` (negative once passed)."""
+        return self.next_update.timestamp() - (time.time() if now is None else now)
+
+
 def _subject(certificate: x509.Certificate) -> str:
     from cryptography.x509.oid import NameOID
 
@@ -247,6 +261,8 @@ class ServerTls:
     authorities: tuple[x509.Certificate, ...] = ()
     #: The listener's revocation lists (``crl``), for the same judgement.
     revocations: tuple[x509.CertificateRevocationList, ...] = ()
+    #: Those lists' nextUpdate, for the metric (a list without one is left out).
+    crls: tuple[CrlInfo, ...] = ()
 
 
 def check_chain(path: str, key: str, moment: datetime) -> list[x509.Certificate]:
@@ -329,7 +345,12 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
     context.settled = _context(listener, ssl.SSLContext)
     _load_files(context.settled, listener)
     context._msg_callback = _observe  # type: ignore[attr-defined]
-    return ServerTls(context, infos, tuple(authorities), revocations)
+    crls = tuple(
+        CrlInfo(listener.name, _issuer_name(crl), crl.next_update_utc)
+        for crl in revocations
+        if crl.next_update_utc is not None
+    )
+    return ServerTls(context, infos, tuple(authorities), revocations, crls)
 
 
 class ListenerContext(ssl.SSLContext):

@@ -29,6 +29,7 @@ from conftest import (
 )
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.x509.oid import NameOID
 
 from gateway.config import build_config
 from gateway.io.tls import TlsSetupError, certificate_facts, server_context
@@ -161,3 +162,34 @@ def test_the_facts_of_a_revoked_chain(pki: Pki, tmp_path: Path) -> None:
     forged = other.sign(pki.other_root.key, hashes.SHA256())
     facts = certificate_facts(chain("operator"), [root], [forged])
     assert facts is not None and not facts.revoked
+
+
+def crl_samples(gw: RunningGateway) -> dict[tuple[str, str], float]:
+    """``tls_crl_next_update_seconds`` by (listener, issuer), as a scrape reads them."""
+
+    def read() -> dict[tuple[str, str], float]:
+        return {
+            (sample.labels["listener"], sample.labels["issuer"]): sample.value
+            for family in gw.gateway.metrics.registry.collect()
+            if family.name == "modbus_gateway_tls_crl_next_update_seconds"
+            for sample in family.samples
+        }
+
+    return gw.call(read)
+
+
+def test_the_crls_next_update_is_counted_down_and_read_again_at_a_reload(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki, tmp_path: Path
+) -> None:
+    crl = pki.write_crl(tmp_path / "crl.pem", next_update=7 * DAY)
+    tables = tables_with(make_sim, pki, crl)
+    gw = make_gateway(tables)
+    names = pki.intermediate.certificate.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    issuer = str(names[0].value)
+    [(labels, left)] = crl_samples(gw).items()
+    assert labels == ("tls", issuer)
+    assert 7 * 86400 - 120 < left <= 7 * 86400
+    pki.write_crl(crl, next_update=2 * DAY)  # the next list is due sooner
+    gw.run(gw.gateway.reload(build_config(tables, "<reloaded>")))
+    [(labels, left)] = crl_samples(gw).items()
+    assert labels == ("tls", issuer) and 2 * 86400 - 120 < left <= 2 * 86400
