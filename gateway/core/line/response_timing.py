@@ -255,7 +255,9 @@ class ResponseTiming:
 
     def _set_bound(self, key: int, peak: float) -> None:
         """The bound for ``key`` from its peak: with the margin, the floor and the cap."""
-        least = self.floor_now if self.peaks[key][3] >= EVIDENCE else self.initial
+        least = self.floor_now
+        if self.peaks[key][3] < EVIDENCE and self.initial > least:
+            least = self.initial  # no evidence yet: not below the first contact's wait
         bound = min(max(peak * MARGIN, least), self.maximum)
         before = self.bounds.get(key, 0.0)
         self.bounds[key] = self.peaks[key][2] = bound
