@@ -266,6 +266,7 @@ class Group:
             "ok_by_master": sorted(self.ok_by_master.values()),
             "latency_ms": {
                 "p50": 1000 * percentile(latencies, 0.50),
+                "p90": 1000 * percentile(latencies, 0.90),
                 "p99": 1000 * percentile(latencies, 0.99),
                 "max": 1000 * (latencies[-1] if latencies else 0.0),
             },
