@@ -50,7 +50,7 @@ from .core import pdu as fc
 from .core.outcome import Outcome
 from .io.http import GuardedRoute, PacedRenderer, extra_headers, respond
 from .io.http_guard import Access
-from .metrics import GatewayMetrics
+from .metrics import NO_LINE, GatewayMetrics
 from .status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
 from .trace import FrameTrace, parse_function, reply_outcome
 
@@ -62,8 +62,10 @@ QUEUE_LIMIT = 1024
 MAX_STREAMS = 16
 #: After a ``/status`` request, per-slave latencies are gathered for this long.
 WATCH_S = 30.0
-#: Recent answers per slave kept for its p50/p99.
+#: Recent answers per slave kept for its p50/p99 (those of the last ``LATENCY_WINDOW_S``).
 LATENCY_SAMPLES = 512
+#: The latency figures of the status page cover this much of the recent past, not since start.
+LATENCY_WINDOW_S = 300.0
 #: Requests remembered for their reply's latency and route.
 MAX_PENDING = 4096
 #: Bytes of a stream buffered in the process and in the kernel's send buffer, each.
@@ -273,7 +275,7 @@ class TraceHub:
         self._clock = clock
         self.streams: set[TraceStream] = set()
         self._pending: dict[tuple[str, int, int], _Pending] = {}
-        self._latencies: dict[tuple[str, int], deque[float]] = {}
+        self._latencies: dict[tuple[str, int], deque[tuple[float, float]]] = {}
         self._watched_until = 0.0
         self._unwatch: asyncio.TimerHandle | None = None
         self._m_dropped = metrics.trace_dropped.labels()
@@ -327,11 +329,13 @@ class TraceHub:
             self._pending.clear()
 
     def slave_latency(self, line: str, slave: int) -> tuple[float | None, float | None]:
-        """p50 and p99 in seconds over the slave's recent answers (``None`` without any)."""
+        """p50 and p99 in seconds over the slave's answers of the last ``LATENCY_WINDOW_S``
+        (at most ``LATENCY_SAMPLES``); ``None`` without any."""
         samples = self._latencies.get((line, slave))
-        if not samples:
+        since = self._clock() - LATENCY_WINDOW_S
+        ordered = sorted(latency for at, latency in samples or () if at >= since)
+        if not ordered:
             return None, None
-        ordered = sorted(samples)
         last = len(ordered) - 1
         return ordered[round(0.5 * last)], ordered[round(0.99 * last)]
 
@@ -370,12 +374,13 @@ class TraceHub:
         if outcome is None:
             outcome = reply_outcome(pdu)
         arrived, line, slave, asked = self._pending.pop((peer, transaction_id, unit), _UNKNOWN)
-        latency = None if arrived is None else self._clock() - arrived
+        now = self._clock()
+        latency = None if arrived is None else now - arrived
         if latency is not None and line is not None and slave is not None and outcome in _ANSWERED:
             samples = self._latencies.get((line, slave))
             if samples is None:
                 samples = self._latencies[(line, slave)] = deque(maxlen=LATENCY_SAMPLES)
-            samples.append(latency)
+            samples.append((now, latency))
         if self.streams:
             function = pdu[0] & 0x7F if pdu else 0
             self._publish(TraceEvent(time.time(), "reply", peer, transaction_id, unit, function,
@@ -421,6 +426,7 @@ class StatusView:
         # line → (time, wire seconds, CRC errors, utilisation) at the previous snapshot
         self._last: dict[str, tuple[float, float, int, float | None]] = {}
         self._history: dict[str, UtilisationHistory] = {}
+        self._latency: dict[str, LatencyWindow] = {}
 
     def snapshot(self) -> GatewayStatus:
         """The gateway's state now."""
@@ -428,10 +434,13 @@ class StatusView:
         view = self._view
         faults = _SlaveFaults(self._metrics)
         units = self._units()
+        no_route = self._no_route()
         return GatewayStatus(
             version=__version__,
             uptime=round(now - self._started, 3),
-            lines=tuple(self._line(status, now, faults, units) for status in view.line_states()),
+            lines=tuple(
+                self._line(status, now, faults, units, no_route) for status in view.line_states()
+            ),
             masters=view.masters(),
             listen=view.listen(),
             trace_clients=len(self._hub.streams),
@@ -439,7 +448,17 @@ class StatusView:
             time=round(time.time(), 3),
             functions=self._functions(),
             pair=view.pair_status(),
+            unrouted=no_route.get(NO_LINE, 0),
         )
+
+    def _no_route(self) -> dict[str, int]:
+        """Requests answered 0x0A without a slave, by line: that line was down or full;
+        ``NO_LINE``: their unit has no route."""
+        counts: dict[str, int] = {}
+        for (line, _unit, _function, outcome), count in self._metrics.requests.series():
+            if outcome == Outcome.NO_ROUTE.value and count:
+                counts[line] = counts.get(line, 0) + count
+        return counts
 
     def _units(self) -> dict[tuple[str, int], list[int]]:
         """(line, slave address) → the unit ids routed to it now."""
@@ -462,6 +481,7 @@ class StatusView:
         now: float,
         faults: _SlaveFaults,
         units: Mapping[tuple[str, int], list[int]],
+        unavailable: Mapping[str, int],
     ) -> LineStatus:
         """One line's own status, with what the metrics and the hub know of it."""
         name = status.name
@@ -485,15 +505,21 @@ class StatusView:
         history = self._history.get(name)
         if history is None:
             history = self._history[name] = UtilisationHistory()
+        window = self._latency.get(name)
+        if window is None:
+            window = self._latency[name] = LatencyWindow()
+        recent, window_s = window.recent(now, histogram.counts)
         return replace(
             status,
             state=state,
             utilisation=status.utilisation if status.utilisation is not None else utilisation,
             slaves=slaves,
-            p50=quantile(histogram.upper_bounds, histogram.counts, 0.5),
-            p99=quantile(histogram.upper_bounds, histogram.counts, 0.99),
+            p50=quantile(histogram.upper_bounds, recent, 0.5),
+            p99=quantile(histogram.upper_bounds, recent, 0.99),
+            latency_window_s=round(window_s, 1),
             history=history.sample(now, self._metrics.wire_duration.labels(name).sum),
             history_s=HISTORY_S,
+            unavailable=unavailable.get(name, 0),
         )
 
     def _activity(self, name: str, now: float) -> tuple[bool, float | None]:
@@ -528,6 +554,35 @@ class _SlaveFaults:
 
 def _per_slave(series: Iterable[tuple[tuple[str, ...], int]]) -> dict[tuple[str, int], int]:
     return {(line, int(unit)): count for (line, unit), count in series if unit.isdigit()}
+
+
+class LatencyWindow:
+    """A line's request-duration histogram as it stood at past snapshots, so that its p50
+    and p99 cover the last ``LATENCY_WINDOW_S`` instead of the time since start.
+
+    One snapshot per ``HISTORY_S`` is kept, taken when ``/status`` is read. The base is the
+    newest snapshot at least the window old, else the oldest: a page that has watched for
+    less than the window sees the figures since it began to, and the window it covers is
+    returned with them. A snapshot much older than the window (nobody read ``/status`` in
+    between) is no base: the figures would cover the unwatched time too.
+    """
+
+    def __init__(self) -> None:
+        self._snapshots: deque[tuple[float, tuple[int, ...]]] = deque()
+
+    def recent(self, now: float, counts: Iterable[int]) -> tuple[tuple[int, ...], float]:
+        """The histogram's counts since the base, and the seconds since the base."""
+        current = tuple(counts)
+        snapshots = self._snapshots
+        if not snapshots or now - snapshots[-1][0] >= HISTORY_S:
+            snapshots.append((now, current))
+        stale = LATENCY_WINDOW_S + 2 * HISTORY_S
+        while len(snapshots) > 1 and (
+            now - snapshots[1][0] >= LATENCY_WINDOW_S or now - snapshots[0][0] > stale
+        ):
+            snapshots.popleft()
+        since, base = snapshots[0]
+        return tuple(c - b for c, b in zip(current, base, strict=True)), now - since
 
 
 class UtilisationHistory:

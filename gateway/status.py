@@ -35,7 +35,7 @@ class SlaveStatus:
     line: str
     unit: int
     state: SlaveState
-    p50: float | None = None  # seconds, over the recent answers; None before any
+    p50: float | None = None  # seconds, over the answers of the last 5 minutes; None before any
     p99: float | None = None
     errors: int = 0  # timeouts and CRC errors since start
     units: tuple[int, ...] = ()  # the unit ids masters use for it (``unit`` is its address)
@@ -62,13 +62,17 @@ class LineStatus:
     queued: int  # requests waiting for the line now
     utilisation: float | None = None  # share of the last interval the wire was busy, 0..1
     slaves: tuple[SlaveStatus, ...] = ()
-    p50: float | None = None  # request latency as masters see it, seconds, since start
+    p50: float | None = None  # request latency as masters see it, seconds, recent
     p99: float | None = None
+    #: Seconds the p50 and p99 cover: the last 5 minutes, or less while the page has been
+    #: watching for less (0: nothing yet).
+    latency_window_s: float = 0.0
     settings: str = ""  # the port's settings as an operator reads them: "9600 8E1"
     history: tuple[float | None, ...] = ()  # utilisation per ``history_s``, oldest first
     history_s: float = 0.0
     uart_errors: Mapping[str, int] | None = None  # kernel counters (TIOCGICOUNT), by kind
     not_heard: int = 0  # routed slaves in ``slaves`` that have not answered
+    unavailable: int = 0  # requests for it answered 0x0A since start: the line down or full
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +85,7 @@ class MasterStatus:
     requests: int
     role: str | None = None  # on a tls listener, the client certificate's role ("NULL": none)
     denied: int = 0  # requests its listener's policy refused
+    unrouted: int = 0  # requests to a unit with no route (answered 0x0A)
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +113,7 @@ class GatewayStatus:
     time: float = 0.0  # wall-clock seconds of the snapshot (``last_seen`` is relative to it)
     functions: tuple[str, ...] = ()  # function names masters have sent (trace filters)
     pair: PairStatus | None = None  # None for a gateway without a pair
+    unrouted: int = 0  # requests to units with no route since start, every listener (0x0A)
 
 
 class GatewayView(Protocol):

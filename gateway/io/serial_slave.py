@@ -121,6 +121,7 @@ class SerialSlave:
         self._stopping = False
         self._open_error = ""
         self.requests = 0  #: requests served (addressed to a routed unit)
+        self.denied = 0  #: requests the listener's policy refused (answered 0x01)
         self.ignored = 0  #: frames ignored in silence (not for us, bad CRC, not a request)
         self.echoes = 0  #: bytes of our own answers dropped as their echo (``echo = true``)
         self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
@@ -146,7 +147,8 @@ class SerialSlave:
             return []
         listener = f"{self.name} {self._serial.device} ({self.framing})"
         in_flight = 1 if self._pending is not None else 0
-        return [MasterStatus(self._serial.device, listener, in_flight, self.requests)]
+        return [MasterStatus(self._serial.device, listener, in_flight, self.requests,
+                             denied=self.denied)]  # fmt: skip
 
     def start(self) -> None:
         """Open the port, or keep trying in the background."""
@@ -306,6 +308,8 @@ class SerialSlave:
             self._submit(number, unit, pdu, result.target, ticket)
         elif isinstance(result, AnswerLocally):
             function = pdu[0]
+            if result.outcome is Outcome.DENIED:
+                self.denied += 1
             self._answer(number, unit, fc.exception_pdu(function, result.code), result.outcome)
             count_local_answer(self._metrics, self.name, self.policy, None, function, result)
 

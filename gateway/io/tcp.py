@@ -252,6 +252,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self._closed = False
         self.requests = 0  #: frames received, for the status page
         self.denied = 0  #: requests the listener's policy refused, for the status page
+        self.unrouted = 0  #: requests to a unit with no route (0x0A), for the status page
         #: When this master last became idle: accepted, sent a complete request, or had its
         #: last request answered. Stray bytes do not count.
         self.idle_since = accepted
@@ -462,6 +463,8 @@ class MasterConnection(asyncio.BufferedProtocol):
         )  # fmt: skip
         if answer.outcome is Outcome.DENIED:
             self.denied += 1
+        elif answer.outcome is Outcome.NO_ROUTE:
+            self.unrouted += 1
         count_local_answer(
             server.metrics, server.name, server.policy, self.principal.role, function, answer
         )
@@ -859,6 +862,7 @@ class ModbusTcpServer:
                 connection.requests,
                 connection.role_text,
                 connection.denied,
+                connection.unrouted,
             )
             for connection in self._connections
         ]

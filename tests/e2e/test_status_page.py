@@ -5,13 +5,21 @@ Screenshots go to ``tmp_path``, or to ``$STATUS_SCREENSHOTS`` when set (to look 
 
 from __future__ import annotations
 
+import base64
+import io
+import ipaddress
+import json
 import os
+import subprocess
 from pathlib import Path
+from typing import Any
 
 from cdp import Browser
 from conftest import GatewayFactory, GatewayOnSim, SimFactory, require_tool
 
+from gateway.pcap import PcapngWriter
 from gateway.sim import plc, zl69x
+from gateway.trace_client import TraceCapture
 
 READ_2 = bytes.fromhex("03 0000 0002")
 
@@ -164,6 +172,8 @@ def test_the_console_in_chromium(
             assert "100" in browser.evaluate(options)
             functions = "[...document.querySelectorAll('#dl-function option')].map(o => o.value)"
             assert "read_holding_registers" in browser.evaluate(functions)
+            _refused_and_recent(browser, master, peer)
+            _pause_and_download(browser, master, shots / "console-trace.pcapng", host)
             _shoot(browser, shots / "console-1400x900.png", WIDE)
             _shoot(browser, shots / "console-390x844.png", PHONE)
             _shoot(browser, shots / "console-1400x900.png", WIDE)
@@ -184,3 +194,58 @@ def test_the_console_in_chromium(
         assert errors == []
     finally:
         browser.close()
+
+
+def _refused_and_recent(browser: Browser, master: Any, peer: str) -> None:
+    """Unrouted and denied requests counted per master and for the gateway; latency labelled
+    with the window it covers; the utilisation chart with its scale."""
+    assert master.request(200, READ_2) == b"\x83\x0a"  # no line serves unit 200
+    assert master.request(1, bytes.fromhex("08 0004 0000")) == b"\x88\x01"  # listen only: denied
+    master_row = f'#masters tr[data-peer="{peer}"]'
+    browser.wait_for(f"{_text(master_row + ' td.unrouted')} === '1'", "the unrouted request")
+    assert browser.evaluate(_text(f"{master_row} td.denied")) == "1"
+    browser.wait_for("document.getElementById('unrouted').dataset.count === '1'",
+                     "the gateway's count of requests with no route")  # fmt: skip
+    assert browser.evaluate(_text("#lines tr[data-line='a'] td.unavailable")) == "0"
+    window = browser.evaluate(_text("#latencywindow"))
+    assert window.startswith("latency: p50 and p99 as masters see it, last "), window
+    assert browser.evaluate(_text("#lines tr[data-line='a'] td.p50")).endswith(" ms")
+    scale = browser.evaluate("document.querySelector('#lines svg.spark').dataset.scale")
+    assert float(scale) in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+    top = browser.evaluate(_text("#lines svg.spark text.top"))
+    assert top == f"{float(scale) * 100:g} %", top
+
+
+def _pause_and_download(browser: Browser, master: Any, capture: Path, host: str) -> None:
+    """Paused, the trace shows nothing new and says how much waits; resumed, it shows it.
+    What it holds downloads as the same pcapng ``trace --pcap`` writes, byte for byte."""
+    trace = "document.getElementById('trace').textContent"
+    browser.evaluate("document.getElementById('pause').click()")
+    assert browser.evaluate(_text("#pause")) == "resume"
+    assert master.request(1, bytes.fromhex("03 0007 0001"))[:2] == b"\x03\x02"
+    browser.wait_for(f"{_text('#held')}.includes('paused, 2 new waiting')", "events held back")
+    assert "address=7" not in browser.evaluate(trace)
+    browser.evaluate("document.getElementById('pause').click()")
+    browser.wait_for(f"{trace}.includes('address=7')", "the held-back request after resume")
+    assert browser.evaluate(_text("#pause")) == "pause"
+    events = json.loads(browser.evaluate("JSON.stringify(held)"))
+    page = base64.b64decode(browser.evaluate(
+        "(() => { const b = pcapng(held); let s = ''; "
+        "for (const x of b) s += String.fromCharCode(x); return btoa(s); })()"
+    ))  # fmt: skip
+    expected = io.BytesIO()
+    writer = PcapngWriter(expected, ipaddress.ip_address(host))
+    capture_of = TraceCapture(writer)
+    for event in events:
+        capture_of.add(event)
+    assert writer.packets > 0
+    assert page == expected.getvalue()
+    browser.evaluate("document.getElementById('download').click()")  # no error on the page
+    capture.write_bytes(page)
+    tshark = require_tool("tshark")
+    decoded = subprocess.run(
+        [tshark, "-r", str(capture), "-Y", "mbtcp || mbrtu", "-T", "fields", "-e", "frame.number"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert decoded.returncode == 0, decoded.stderr
+    assert len(decoded.stdout.split()) == writer.packets, decoded.stdout

@@ -313,7 +313,7 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
                           names={"2": "meter"})  # fmt: skip
     gw = make_gateway({
         "server": {"policy": "readers"},
-        "policies": {"readers": {"rules": [{"units": [1, 2, 3, 100], "access": "read"}]}},
+        "policies": {"readers": {"rules": [{"units": [1, 2, 3, 100, 200], "access": "read"}]}},
         "lines": {"a": line},
         "routes": [{"unit": 100, "line": "a", "slave": 2}],
     })  # fmt: skip
@@ -326,6 +326,7 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
         assert master.request(1, READ_10)[:2] == b"\x03\x14"
         assert master.request(1, bytes.fromhex("03 FFF0 0001")) == b"\x83\x02"
         assert master.request(1, bytes.fromhex("06 0001 0001")) == b"\x86\x01"  # denied
+        assert master.request(200, READ_10) == b"\x83\x0a"  # allowed, but no route
         assert master.request(100, READ_10)[:2] == b"\x03\x14"
         sim.faults(2).silent = True
         assert master.request(100, READ_10) == b"\x83\x0b"  # a timeout
@@ -340,7 +341,8 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
         assert exception["values"] == {"exception": 2, "name": "illegal data address"}
         now = status(gw)
         (entry,) = now["masters"]
-        assert (entry["denied"], entry["role"], entry["requests"]) == (1, None, 5)
+        assert (entry["denied"], entry["role"], entry["requests"]) == (1, None, 6)
+        assert entry["unrouted"] == 1 and now["unrouted"] == 1
     (after,) = now["lines"]
     slaves = {s["unit"]: s for s in after["slaves"]}
     one, two = slaves[1], slaves[2]
@@ -352,3 +354,5 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
     assert after["not_heard"] == 1  # slave 3 never answered
     assert "read_holding_registers" in now["functions"]
     assert after["history_s"] == live.HISTORY_S and isinstance(after["history"], list)
+    assert after["unavailable"] == 0  # the line was up and had room
+    assert 0 < after["latency_window_s"] <= live.LATENCY_WINDOW_S  # since the first look

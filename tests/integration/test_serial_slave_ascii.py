@@ -359,7 +359,7 @@ def test_the_master_on_the_line_is_listed_and_traced(reverse: Any) -> None:
     (entry,) = status(gateway)["masters"]
     assert entry == {
         "peer": device, "listener": f"field {device} (ascii)", "in_flight": 0, "requests": 3,
-        "role": None, "denied": 0,
+        "role": None, "denied": 0, "unrouted": 0,
     }  # fmt: skip
 
 

@@ -16,7 +16,7 @@ from gateway.config import ConfigError, build_config
 from gateway.core.outcome import Outcome
 from gateway.io.tally import LineTally
 from gateway.io.uart import UartError, uart_errors
-from gateway.live import HISTORY_S, UtilisationHistory
+from gateway.live import HISTORY_S, LATENCY_WINDOW_S, LatencyWindow, UtilisationHistory
 from gateway.metrics import GatewayMetrics
 
 
@@ -102,6 +102,22 @@ def test_the_utilisation_ring_fills_unwatched_intervals_with_their_average() -> 
     for step in range(200):
         ring.sample(100.0 + (5 + step) * HISTORY_S, 10.0 * HISTORY_S)
     assert len(ring.sample(1e6, 10.0 * HISTORY_S)) == 60
+
+
+def test_line_latency_covers_the_recent_window_not_the_time_since_start() -> None:
+    """The counts since the snapshot a window ago; the window it covers is said with them."""
+    window = LatencyWindow()
+    # An hour of fast answers before anybody looked: none of it counts.
+    assert window.recent(3600.0, (1000, 0, 0)) == ((0, 0, 0), 0.0)
+    assert window.recent(3601.0, (1000, 5, 0)) == ((0, 5, 0), 1.0)  # watching for 1 s
+    for step in range(1, 200):  # watched for longer than the window, one read per second
+        counts, covered = window.recent(3601.0 + step, (1000, 5 + step, step))
+    assert (counts, covered) == ((0, 204, 199), 200.0)  # less than the window: all of it
+    counts, covered = window.recent(3601.0 + 400, (1000, 204, 400))
+    assert LATENCY_WINDOW_S <= covered <= LATENCY_WINDOW_S + HISTORY_S
+    assert counts[0] == 0 and counts[2] >= 300  # the slow answers of the last 5 minutes only
+    # The page closed for an hour: a snapshot that old is no base, the window starts again.
+    assert window.recent(3601.0 + 4000, (1000, 204, 9999)) == ((0, 0, 0), 0.0)
 
 
 def test_a_pty_has_no_uart_error_counters() -> None:
