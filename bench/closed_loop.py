@@ -81,6 +81,9 @@ def _closed_figures(run: Run, masters: int, paced: bool) -> dict[str, Any]:
     mean_tx = 1.0 / load.ok_per_s if load.ok_per_s else float("inf")
     line_use = load.ok_per_s / fc03_budget(BAUDRATE).max_per_s if paced else None
     wait = {key: load.latency_ms.get(key, 0.0) / 1000 for key in ("p50", "p99", "max")}
+    # A read still unanswered when the window closed has waited at least this long.
+    unanswered = load.groups.get("main", {}).get("oldest_unanswered_ms", 0.0) / 1000
+    wait["max"] = max(wait["max"], unanswered)
     p99_limit = P99_ROUNDS * masters * mean_tx
     worst_limit = WORST_ROUNDS * masters * mean_tx + WORST_SLACK_S
     failures = sum(load.exceptions.values()) + load.lost + load.disconnects
@@ -99,6 +102,7 @@ def _closed_figures(run: Run, masters: int, paced: bool) -> dict[str, Any]:
         "line_use": line_use,
         "mean_transaction_s": mean_tx,
         "wait_s": wait,
+        "oldest_unanswered_s": unanswered,
         "good_per_master": {
             "min": min(per_master, default=0),
             "max": max(per_master, default=0),

@@ -242,6 +242,9 @@ class Group:
         self.lost = 0  #: whole run
         self.latencies: list[float] = []
         self.ok_by_master: Counter[int] = Counter()  #: inside the window
+        #: The longest any request of the group had waited, unanswered, when the window
+        #: closed (its wait is at least that; its answer, if any, is not in ``latencies``).
+        self.oldest_unanswered = 0.0
         #: With ``record``: [sent, answered or None, unit, outcome] per request, whole run;
         #: outcome "ok", "wrong", "lost" or an exception's key (``0x83/0x0b``).
         self.records: list[list[Any]] = []
@@ -264,6 +267,7 @@ class Group:
             "wrong": self.wrong,
             "lost": self.lost,
             "ok_by_master": sorted(self.ok_by_master.values()),
+            "oldest_unanswered_ms": 1000 * self.oldest_unanswered,
             "latency_ms": {
                 "p50": 1000 * percentile(latencies, 0.50),
                 "p90": 1000 * percentile(latencies, 0.90),
@@ -828,6 +832,10 @@ async def run(spec: LoadSpec) -> LoadResult:
         await asyncio.sleep(spec.duration)
     recorder.measuring = False
     recorder.window_end = time.perf_counter()
+    for master in masters:
+        for entry in master.outstanding.values():
+            waited = recorder.window_end - entry[0]
+            master.group.oldest_unanswered = max(master.group.oldest_unanswered, waited)
     cpu_after = _cpu_snapshot(spec.watch_pids)
     own_cpu = time.process_time() - own_before
     machine_cpu = machine_busy_seconds() - machine_before

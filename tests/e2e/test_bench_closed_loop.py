@@ -44,6 +44,8 @@ def test_closed_loop_and_absent_periodic_measure_both_servers_and_both_runs(
             found = shape[server]
             assert found["tx_per_s"] > 0, stdout
             assert found["wrong_answers"] == 0
+            # Every master has a read outstanding when the window closes: the worst counts it.
+            assert 0 < found["oldest_unanswered_s"] <= found["wait_s"]["max"]
             assert found["run"]["simulator"]["early_requests"] == 0 or not found["paced"]
     bare = closed["10_paced"]["bare_forwarder"]
     # First come, first served: each read waits for the other 9 masters' reads, so the
