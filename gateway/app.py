@@ -223,6 +223,8 @@ class Gateway:
         )
         check_devices_usable(config, quiet=config.redundancy.paired)  # held or unusable: stop
         if config.redundancy.paired:  # before the lines open: they open listening
+            from .io.pair.build import build_pair  # a gateway alone loads none of the pair
+
             self.pair = build_pair(config, self.buses, self.metrics)
         for line in config.lines:
             self._open_bus(line, loop)
@@ -296,10 +298,9 @@ class Gateway:
         """``GET /role``'s status and body: this gateway's role in its pair."""
         if self.pair is not None:
             return self.pair.role_body()
-        from .core.redundancy import Role
-        from .io.pair.channel import role_body
+        from .io.pair.channel import alone_role_body
 
-        return 200, role_body(Role.ACTIVE, 0.0, self.config.redundancy.priority, False)
+        return alone_role_body(self.config.redundancy.priority)
 
     def is_ready(self) -> tuple[bool, str]:
         """Readiness for /readyz: the listener is up and every line is open."""
@@ -475,13 +476,12 @@ class Gateway:
     def _open_bus(self, line: LineConfig, loop: asyncio.AbstractEventLoop) -> Bus:
         """Start a bus for ``line`` with a clock of its own (a clock serves one sleeper)."""
         clock = PreciseClock(loop)
-        pair = self.pair
-        role = Alone() if pair is None else pair.line_role()
+        role = Alone() if self.pair is None else self.pair.line_role()
         bus = Bus(line, self.metrics, loop, clock, role, self._line_tls.get(line.name))
         self.buses[line.name] = bus
         self._clocks[line.name] = clock
-        if pair is not None:
-            pair.attach(bus)
+        if self.pair is not None:
+            self.pair.attach(bus)
         bus.start()
         return bus
 
@@ -510,8 +510,7 @@ class Gateway:
         return {name: tls.context for name, tls in built.items()}
 
     def _build_router(self) -> Router:
-        """The routing table every listener's admission runs, and a standby's forwarding
-        too: built at start and again by each reload."""
+        """The routing table of every listener's admission and of a standby's forwarding."""
         routes = {
             unit: Target(self.buses[route.line], route.slave)
             for unit, route in self.config.routes.items()
@@ -568,25 +567,6 @@ def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:
     if pair is not None and pair.standing_by:
         notes.append("standby: requests are forwarded to the active peer")
     return True, "; ".join(["ok", *notes])
-
-
-def build_pair(config: GatewayConfig, buses: dict[str, Bus], metrics: GatewayMetrics) -> Pair:
-    """One gateway of a pair: its role machine, its peer poller and its forwarder (imported
-    only by a paired gateway)."""
-    from .io.pair.forward import PeerForwarder
-    from .io.pair.role import Pair
-
-    redundancy = config.redundancy
-    assert redundancy.peer_modbus is not None
-    # Longer than the active can take: its queue's longest wait, then two attempts at most.
-    waits = [line.max_queue_wait or 5.0 for line in config.lines]
-    timeout = max(waits) + 2 * max(line.max_timeout for line in config.lines)
-    listen = config.server.host
-    local_host = None if listen in ("0.0.0.0", "::", "") else listen
-    forwarder = PeerForwarder(*redundancy.peer_modbus, {},  # the router's units (reroute)
-                              asyncio.get_running_loop(), timeout=timeout,
-                              local_host=local_host)  # fmt: skip
-    return Pair(redundancy, config.metrics, buses, forwarder, metrics)
 
 
 class _Signals:

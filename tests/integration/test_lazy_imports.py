@@ -3,7 +3,8 @@
 A gateway started from a plain Modbus TCP configuration, serving a serial line, in a
 fresh interpreter (nothing else imported first): ``cryptography`` is not loaded (it
 comes with the first certificate, on TLS listeners and lines), the simulator is not
-loaded outside the demo, and pymodbus, a test and benchmark tool, is never loaded.
+loaded outside the demo, nor the redundancy pair's modules without a pair, and pymodbus,
+a test and benchmark tool, is never loaded.
 """
 
 from __future__ import annotations
@@ -56,9 +57,9 @@ def _loaded_while_serving() -> set[str]:
     return set(loaded)
 
 
-def test_a_plain_tcp_gateway_loads_no_tls_library_no_simulator_no_pymodbus() -> None:
+def test_a_plain_tcp_gateway_loads_no_tls_library_no_simulator_no_pair_no_pymodbus() -> None:
     loaded = _loaded_while_serving()
     assert "gateway.io.tls" in loaded and "gateway.metrics" in loaded  # it did start
     unwanted = {name for name in loaded if name.split(".")[0] in ("cryptography", "pymodbus")}
-    unwanted |= {name for name in loaded if name.startswith("gateway.sim")}
+    unwanted |= {name for name in loaded if name.startswith(("gateway.sim", "gateway.io.pair"))}
     assert not unwanted, sorted(unwanted)

@@ -4,6 +4,7 @@ token, over HTTPS with a test PKI; every failure is *unreachable*, never a role.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import socket
 import ssl
@@ -225,3 +226,27 @@ def test_a_frame_the_lease_check_refuses_is_answered_0x0a_at_once(
     assert answers == [(bytes((0x83, 0x0A)), Outcome.NO_ROUTE)]  # within the same call
     assert misses == 0
     wait_until(lambda: gateway.call(lambda: pair.standing_by), "the gateway standing by")
+
+
+def test_a_gateway_alone_answers_its_role_active_and_unpaired(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    """keepalived's check script follows a gateway alone too: 200, active, not paired."""
+    sim = make_sim({1: plc(1)})
+    gateway = make_gateway({"lines": {"a": {"device": sim.path, "units": [1]}}})
+    address = gateway.gateway.metrics_address
+    assert address is not None
+
+    async def ask() -> tuple[int, bytes]:
+        reader, writer = await asyncio.open_connection(*address)
+        host = f"{address[0]}:{address[1]}"
+        writer.write(f"GET /role HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n".encode())
+        answer = await asyncio.wait_for(reader.read(), DEADLINE_S)
+        writer.close()
+        status, _headers, body = split_answer(answer)
+        return status, body
+
+    status, body = asyncio.run(ask())
+    assert status == 200
+    assert parse_role(status, body) == PeerRole(Role.ACTIVE, 0.0, 100)
+    assert json.loads(body)["paired"] is False

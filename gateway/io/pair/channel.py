@@ -54,6 +54,11 @@ def role_body(
     return (json.dumps(document) + "\n").encode()
 
 
+def alone_role_body(priority: int) -> tuple[int, bytes]:
+    """``/role`` of a gateway without a peer: 200, active, nothing claimed, not paired."""
+    return 200, role_body(Role.ACTIVE, 0.0, priority, False)
+
+
 def parse_role(status: int, body: bytes) -> PeerRole:
     """The peer's answer; ``ValueError`` for anything but a ``/role`` document."""
     if status not in (200, 503):
