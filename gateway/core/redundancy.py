@@ -2,9 +2,12 @@
 
 Theory of operation (docs/redundancy.md gives the long form and the proof). RS-485 has
 no arbitration, so exactly one gateway of a pair may transmit: the *active*, and only
-while it holds a *lease*. The machine is pure: every input carries ``now`` (seconds on
-one clock that counts suspend, CLOCK_BOOTTIME in the shell), ``next_deadline()`` says
-when ``tick`` must next run, and nothing here reads a clock or does I/O.
+while it holds a *lease*. The machine is pure and speaks the line core's contract:
+every input carries ``now`` (seconds on one clock that counts suspend, CLOCK_BOOTTIME in
+the shell), ``get_timer()`` says when ``handle_timer(now)`` must next run, and what the
+shell is to do comes out as actions: ``changes`` (set every line to the new role) and
+``keepalives`` (read one register on each idle line). Nothing here reads a clock or does
+I/O; the lease check (``may_transmit``) is a question the shell asks before each frame.
 
 Evidence comes from two channels: the peer's ``/role`` answers (or their failure), and
 the bus (frames heard). The invariants:
@@ -100,6 +103,13 @@ class RoleChange:
 
 
 @dataclass(frozen=True, slots=True)
+class KeepAlive:
+    """The active sent nothing for half a lease: a frame now lets the standby hear it."""
+
+    at: float
+
+
+@dataclass(frozen=True, slots=True)
 class RoleTiming:
     """The pair's times, and the ones derived from them (all in seconds)."""
 
@@ -122,7 +132,7 @@ class RoleTiming:
 
     @property
     def heartbeat(self) -> float:
-        """The longest a live shell goes without an input (``next_deadline`` sees to it)."""
+        """The longest a live shell goes without an input (``get_timer`` sees to it)."""
         return self.lease / 4
 
     @property
@@ -215,7 +225,7 @@ class RoleMachine:
     """One gateway's role: inputs with ``now``, the lease check, the next deadline.
 
     Every comparison with time is written ``now >= instant + span``, the same sum
-    ``next_deadline`` returns, so a tick at the deadline sees it reached despite rounding.
+    ``get_timer`` returns, so a timer run at the deadline sees it reached despite rounding.
     """
 
     def __init__(
@@ -234,8 +244,9 @@ class RoleMachine:
         self._role = Role.STANDBY
         self.peer = PeerView()
         self.contest = Contest(priority, tiebreak)
-        #: Role changes not yet drained by the shell, oldest first.
+        #: Actions for the shell, oldest first: role changes, and keep-alives to send.
         self.changes: list[RoleChange] = []
+        self.keepalives: list[KeepAlive] = []
         self._last_input = start
         self._stale_until = NEVER  # peer evidence received at or before it is stale
         self._watching_since = start  # the bus has been watched without a gap since
@@ -294,10 +305,13 @@ class RoleMachine:
         self._sent_at = now
         self._decide(now)
 
-    def tick(self, now: float) -> None:
-        """Time passed: run at ``next_deadline()`` (earlier is harmless)."""
+    def handle_timer(self, now: float) -> None:
+        """Time passed: run at ``get_timer()`` (earlier is harmless). An active that has
+        sent nothing for half a lease asks for a keep-alive (``keepalives``)."""
         self._advance(now)
         self._decide(now)
+        if self.keepalive_due(now):
+            self.keepalives.append(KeepAlive(now))
 
     def drain_changes(self) -> list[RoleChange]:
         """The role changes since the last drain, oldest first."""
@@ -330,15 +344,16 @@ class RoleMachine:
         return RoleReport(Role.STANDBY, 0.0, self.priority, respected)
 
     def keepalive_due(self, now: float) -> bool:
-        """True when the active has sent nothing for half a lease (keep-alive on)."""
+        """True when the active has sent nothing for half a lease (keep-alive on): what
+        ``handle_timer`` asks before it emits a ``KeepAlive``."""
         return (
             self.timing.keepalive
             and self.role is Role.ACTIVE
             and now >= self._sent_at + self.timing.keepalive_every
         )
 
-    def next_deadline(self) -> float:
-        """When ``tick`` must next run: never more than a quarter lease away."""
+    def get_timer(self) -> float:
+        """When ``handle_timer`` must next run: never more than a quarter lease away."""
         deadline = self._last_input + self.timing.heartbeat
         if self.role is Role.ACTIVE:
             candidates = [self._expiry]

@@ -1,6 +1,6 @@
 """The redundancy role machine, with literal times (defaults: lease 1 s, takeover_after 1.5 s).
 
-Derived times used below: the shell ticks at least every 0.25 s (a quarter lease); a
+Derived times used below: the shell's timer runs at least every 0.25 s (a quarter lease); a
 gap of more than 0.5 s between inputs is a time jump; the keep-alive is due after 0.5 s
 without a frame; the active's lease reaches at most 0.7 s past its last frame or its
 takeover (1.5 - hearing_delay 0.3 - 0.5).
@@ -32,6 +32,7 @@ from hypothesis.stateful import (
 from gateway.core.redundancy import (
     ChangeReason,
     Contest,
+    KeepAlive,
     Role,
     RoleChange,
     RoleMachine,
@@ -53,12 +54,21 @@ def _run(
     each: Callable[[RoleMachine, float], None],
     step: float = 0.25,
 ) -> None:
-    """Call ``each`` then ``tick`` at every instant; transmit keep-alives when due."""
+    """Call ``each`` then ``handle_timer`` at every instant; transmit the keep-alives it
+    asks for."""
     for now in _times(start, stop, step):
         each(machine, now)
-        machine.tick(now)
-        if machine.keepalive_due(now) and machine.may_transmit(now):
+        machine.handle_timer(now)
+        if _keepalive_asked(machine) and machine.may_transmit(now):
             machine.transmitted(now)
+
+
+def _keepalive_asked(machine: RoleMachine) -> bool:
+    """Whether ``handle_timer`` asked for a keep-alive since the last look (the action
+    taken, as the shell takes it)."""
+    asked = bool(machine.keepalives)
+    machine.keepalives.clear()
+    return asked
 
 
 def _role(machine: RoleMachine) -> Role:
@@ -96,11 +106,12 @@ def _pair_step(active: RoleMachine, standby: RoleMachine, now: float, network: b
         else:
             asking.peer_unreachable(now)
     for machine in (active, standby):
-        machine.tick(now)
+        machine.handle_timer(now)
     for sender, hearer in ((active, standby), (standby, active)):
+        wanted = _keepalive_asked(sender)
         if holding and sender is active:
-            continue  # its line waits for a slave's answer
-        if sender.keepalive_due(now) and sender.may_transmit(now):
+            continue  # its line waits for a slave's answer (asked again at the next timer)
+        if wanted and sender.may_transmit(now):
             sender.transmitted(now)
             hearer.master_frame_heard(now)
 
@@ -148,7 +159,7 @@ def test_a_lone_gateway_takes_over_after_takeover_after_of_quiet_bus() -> None:
     assert _role(machine) is Role.STANDBY
     _run(machine, 0.25, 1.25, _unreachable)
     assert _role(machine) is Role.STANDBY
-    assert machine.next_deadline() == 1.5
+    assert machine.get_timer() == 1.5
     machine.peer_unreachable(1.5)
     assert _role(machine) is Role.ACTIVE
     assert machine.drain_changes() == [RoleChange(1.5, Role.ACTIVE, ChangeReason.TAKEOVER)]
@@ -218,10 +229,10 @@ def test_takeover_waits_for_the_lease_the_peer_last_reported() -> None:
     assert _role(machine) is Role.STANDBY  # the bus has been quiet long enough since 1.5
     # A frame sent just before 2.75 is heard a hearing delay (0.3 s) later at most.
     for now in (2.75, 3.0):
-        machine.tick(now)
+        machine.handle_timer(now)
         assert _role(machine) is Role.STANDBY
-    assert machine.next_deadline() == pytest.approx(3.05)
-    machine.tick(3.05)
+    assert machine.get_timer() == pytest.approx(3.05)
+    machine.handle_timer(3.05)
     assert _role(machine) is Role.ACTIVE
 
 
@@ -233,8 +244,8 @@ def test_a_standby_answer_lets_the_higher_priority_take_over_and_the_lower_wait(
     low = RoleMachine(1, start=0.0)
     _run(low, 0.25, 2.25, lambda m, now: m.peer_report(now, Role.STANDBY, 0.0, 2))
     assert _role(low) is Role.STANDBY
-    assert low.next_deadline() == 2.5  # 1.5 + one lease of stagger
-    low.tick(2.5)
+    assert low.get_timer() == 2.5  # 1.5 + one lease of stagger
+    low.handle_timer(2.5)
     assert _role(low) is Role.ACTIVE
 
 
@@ -308,9 +319,9 @@ def _equal_pair(tiebreaks: tuple[int, int], until: float) -> tuple[RoleMachine, 
             asking.peer_report(now, report.role, report.lease_remaining, report.priority,
                                report.peer_lease_remaining, asked_at=now)  # fmt: skip
         for machine in (a, b):
-            machine.tick(now)
+            machine.handle_timer(now)
         for sender, hearer in ((a, b), (b, a)):
-            if sender.keepalive_due(now) and sender.may_transmit(now):
+            if _keepalive_asked(sender) and sender.may_transmit(now):
                 sender.transmitted(now)
                 in_flight.append((now + 0.1, hearer))
     return a, b
@@ -355,7 +366,7 @@ def test_a_jump_of_more_than_half_a_lease_makes_a_standby_watch_again() -> None:
     machine = RoleMachine(1, start=0.0)
     _run(machine, 0.25, 1.0, _unreachable)
     machine.peer_unreachable(1.75)  # a 0.75 s gap: frames may have been missed
-    machine.tick(1.75)
+    machine.handle_timer(1.75)
     assert _role(machine) is Role.STANDBY
     assert machine.takeover_at() == 3.25
 
@@ -365,16 +376,16 @@ def test_a_pause_of_half_a_lease_is_not_a_jump() -> None:
     machine.peer_unreachable(1.75)
     assert machine.may_transmit(2.0)  # 0.25 s after the last input, lease to 2.2
     assert not machine.may_transmit(2.3)  # past the lease
-    machine.tick(2.0)
+    machine.handle_timer(2.0)
     assert _role(machine) is Role.ACTIVE
 
 
 def test_an_active_that_sends_nothing_loses_its_lease_at_its_reach() -> None:
     machine = _active_lone()
     machine.peer_unreachable(1.75)
-    machine.tick(2.0)
-    assert machine.next_deadline() == pytest.approx(2.2)  # 1.5 + 0.7, nothing sent
-    machine.tick(2.2)
+    machine.handle_timer(2.0)
+    assert machine.get_timer() == pytest.approx(2.2)  # 1.5 + 0.7, nothing sent
+    machine.handle_timer(2.2)
     assert _role(machine) is Role.STANDBY
     assert machine.changes[-1].reason is ChangeReason.LEASE_EXPIRED
 
@@ -387,6 +398,16 @@ def test_keep_alives_keep_the_lease_for_as_long_as_the_evidence_holds() -> None:
     assert 0.5 <= machine.lease_remaining(30.0) <= 1.0
     assert not machine.keepalive_due(30.0)
     assert machine.keepalive_due(30.5)
+
+
+def test_the_timer_asks_for_a_keep_alive_half_a_lease_after_the_last_frame() -> None:
+    """The keep-alive is an action out of ``handle_timer``, as the line core's are."""
+    machine = _active_lone()  # its first keep-alive went out at the takeover, 1.5
+    machine.peer_unreachable(1.75)
+    machine.handle_timer(1.75)
+    assert machine.keepalives == []
+    machine.handle_timer(2.0)
+    assert machine.keepalives == [KeepAlive(2.0)]
 
 
 def test_without_evidence_from_the_peer_the_lease_runs_out() -> None:
@@ -446,8 +467,8 @@ class _Pair:
             else:
                 report = peer.report(now)
                 machine.peer_report(now, report.role, report.lease_remaining, report.priority)
-        machine.tick(now)
-        if machine.keepalive_due(now) and machine.may_transmit(now):
+        machine.handle_timer(now)
+        if _keepalive_asked(machine) and machine.may_transmit(now):
             machine.transmitted(now)
             self.frames.append((now + self.STEP, 1 - index))
 
@@ -489,7 +510,7 @@ def test_timing_is_checked() -> None:
     assert RoleTiming().frame_reach == pytest.approx(0.7)
     machine = RoleMachine(1, start=5.0)
     with pytest.raises(ValueError, match="backwards"):
-        machine.tick(4.0)
+        machine.handle_timer(4.0)
 
 
 # -- two machines on a simulated network and bus, driven by hypothesis ------------------
@@ -543,7 +564,7 @@ class _Node:
 class PairOnOneBus(RuleBasedStateMachine):
     """Two role machines, a lossy partitionable network, a shared bus, freezes and kills.
 
-    The shell is modelled: ticks at ``next_deadline``, polls every 0.25 s (given up after
+    The shell is modelled: its timer runs at ``get_timer``, polls every 0.25 s (given up after
     0.2 s), a keep-alive whenever due and allowed, masters' requests at random; a frame
     sent reaches the other gateway within 0.25 s; frames reaching a frozen gateway wait
     in its kernel buffer and are read after it resumes (in either order with its timer);
@@ -598,7 +619,7 @@ class PairOnOneBus(RuleBasedStateMachine):
         assert node.machine is not None
         node.tick_gen += 1
         self._push(
-            node.machine.next_deadline(), _Kind.TICK, node.index, node.incarnation, node.tick_gen
+            node.machine.get_timer(), _Kind.TICK, node.index, node.incarnation, node.tick_gen
         )
 
     def _net(self, src: int, dst: int) -> float | None:
@@ -631,7 +652,7 @@ class PairOnOneBus(RuleBasedStateMachine):
         machine, peer = node.machine, self.nodes[1 - node.index]
         assert machine is not None
         if event.kind is _Kind.TICK:
-            machine.tick(self.now)
+            machine.handle_timer(self.now)
         elif event.kind is _Kind.POLL:
             self._poll(node, peer)
         elif event.kind is _Kind.ARRIVE:
@@ -670,6 +691,9 @@ class PairOnOneBus(RuleBasedStateMachine):
         machine = node.machine
         assert machine is not None
         self._note_changes(node)
+        # A keener shell than the gateway's, which sends one when ``handle_timer`` asks: a
+        # due keep-alive goes out after any input (the same question, asked more often).
+        machine.keepalives.clear()
         due = self.now >= node.busy_until and machine.keepalive_due(self.now)
         if due and machine.may_transmit(self.now):
             self._transmit(node)

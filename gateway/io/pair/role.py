@@ -127,7 +127,7 @@ class Pair:
     def start(self) -> None:
         """Begin as standby: the lines listen until the machine says otherwise."""
         self._loop = asyncio.get_running_loop()
-        self._apply()
+        self._pump()
         self.poller.start()
 
     async def stop(self) -> None:
@@ -185,13 +185,13 @@ class Pair:
     def master_frame_heard(self) -> None:
         """A line heard a master frame it did not send."""
         self.machine.master_frame_heard(self._clock())
-        self._apply()
+        self._pump()
 
     def frame_heard(self) -> None:
         """A line heard bytes: the bus is busy (a lapsed lease may show here first)."""
         self.machine.frame_heard(self._clock())
         if self.machine.changes:
-            self._apply()
+            self._pump()
 
     def _peer_role(self, peer: PeerRole) -> None:
         if peer.priority == self.config.priority and not self._warned_equal:
@@ -205,13 +205,13 @@ class Pair:
         self.machine.peer_report(self._clock(), peer.role, peer.lease_remaining, peer.priority,
                                  peer.peer_lease_remaining, peer.asked_at)  # fmt: skip
         self.forwarder.peer_active = peer.role is Role.ACTIVE
-        self._apply()
+        self._pump()
 
     def _peer_unreachable(self, _why: str) -> None:
         self._peer = None
         self.machine.peer_unreachable(self._clock())
         self.forwarder.peer_active = False
-        self._apply()
+        self._pump()
 
     # -- carrying out ---------------------------------------------------------------------
 
@@ -220,24 +220,27 @@ class Pair:
         down (the lease lapsed, or the clock jumped) and the lines stand by. Should it still
         hold a lease by then, the lines the refusal paused resume."""
         now = self._clock()
-        self.machine.tick(now)
-        self._apply()
+        self.machine.handle_timer(now)
+        self._pump()
         if self.machine.may_transmit(now):
             for bus in self.buses.values():
                 if bus.refused:
                     bus.activate()
 
-    def _tick(self) -> None:
+    def _on_timer(self) -> None:
         self._timer = None
-        now = self._clock()
-        self.machine.tick(now)
-        if self.machine.keepalive_due(now):
-            self._keep_alive()
-        self._apply()
+        self.machine.handle_timer(self._clock())
+        self._pump()
 
-    def _apply(self) -> None:
-        """Drain the machine's changes, set the lines to its role, arm the next tick."""
-        for change in self.machine.drain_changes():
+    def _pump(self) -> None:
+        """Carry out the machine's actions, in the order the timer always took them (a
+        keep-alive, then the role changes: each logged and counted, the lines set to the
+        role), then arm its timer."""
+        machine = self.machine
+        if machine.keepalives:
+            machine.keepalives.clear()  # one read per line, however many were asked for
+            self._keep_alive()
+        for change in machine.drain_changes():
             log.warning("pair: now %s (%s)", change.role.value, _REASONS[change.reason])
             if change.role is Role.ACTIVE:
                 self._metrics.redundancy_takeovers.inc()
@@ -256,12 +259,10 @@ class Pair:
         loop = self._loop
         if loop is None:
             return
-        deadline = self.machine.next_deadline()
-        delay = self.config.lease / 4 if deadline is None else deadline - self._clock()
-        delay = min(max(delay, 0.0), self.config.lease / 4)
+        delay = min(max(self.machine.get_timer() - self._clock(), 0.0), self.config.lease / 4)
         if self._timer is not None:
             self._timer.cancel()
-        self._timer = loop.call_later(delay, self._tick)
+        self._timer = loop.call_later(delay, self._on_timer)
 
     def _forward_for(self, line: str) -> Callable[[LineRequest], bool]:
         forwarder = self.forwarder
