@@ -239,6 +239,7 @@ class LineConfig:
     rs485_delay_after_tx: float = 0.0
     units: tuple[int, ...] = ()
     dead_after: int = 3
+    reconnect_after: int = 3
     probe_interval: float = 1.0
     probe_max_interval: float = 30.0
     slave_timeouts: Mapping[int, float] = field(default_factory=dict)

@@ -45,7 +45,7 @@ from prometheus_client.registry import Collector
 
 from . import __version__, build
 from .core.line import LineStats
-from .core.outcome import DiscardReason, Outcome, SlaveState
+from .core.outcome import DiscardReason, Outcome, ReconnectReason, SlaveState
 from .core.pdu import function_name
 from .core.reasons import CloseReason, MasterFault, RejectReason
 
@@ -468,6 +468,13 @@ class GatewayMetrics:
             "Late-answer windows opened: an attempt failed and its answer may still arrive.",
             ["line"], registry=r,
         )  # fmt: skip
+        self.line_reconnects = Counter(
+            p + "line_reconnects",
+            "Times a network line's connection was closed and opened again by the line's "
+            "decision, by reason (out_of_step: a header no Modbus TCP slave sends; silent: "
+            "answers missed in a row with nothing heard on it).",
+            ["line", "reason"], registry=r,
+        )  # fmt: skip
         self.proof_reads = Counter(
             p + "proof_reads",
             "Reads the gateway sent of its own to prove that a slave's lost answer can no "
@@ -664,6 +671,8 @@ class GatewayMetrics:
             self.slaves_isolated.labels(line, state).set(0)
         self.late_windows.labels(line)
         self.foreign_master_frames.labels(line)
+        for reason in ReconnectReason:
+            self.line_reconnects.labels(line, reason)
 
     def prepare_units(self, targets: Iterable[tuple[str, int]]) -> None:
         """Create the per-slave fault series at 0 for each routed ``(line, slave)``."""

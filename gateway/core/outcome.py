@@ -50,10 +50,18 @@ class LineEvent(StrEnum):
     LINE_QUIET = "line_quiet"  # a gap appeared again after the line was noisy
     LATE_WINDOW = "late_window"  # a request was held back because of a possible late answer
     PROOF_READ = "proof_read"  # a read of the line's own, sent to prove a lost answer is gone
+    RECONNECT = "reconnect"  # close the connection and open it again (``ReconnectReason``)
     COALESCED = "coalesced"  # a read joined an identical queued read
     FOREIGN_MASTER = "foreign_master"  # a request frame this gateway did not send
     LINE_NOT_SHARED = "line_not_shared"  # no foreign master frame heard for ``SHARED_FOR_S``
     SHARED_ANSWER = "shared_answer"  # an answer another master's request may own: not delivered
+
+
+class ReconnectReason(StrEnum):
+    """Why a network line's connection is closed and opened again: the ``reason`` label."""
+
+    OUT_OF_STEP = "out_of_step"  # a frame header no Modbus TCP slave sends
+    SILENT = "silent"  # answers missed in a row, nothing heard on it from any slave
 
 
 class DiscardReason(StrEnum):

@@ -376,13 +376,17 @@ class Bus:
         if not self._stopping:
             self._port.schedule_reopen(REOPEN_MAX_DELAY if refused else REOPEN_FIRST_DELAY)
 
-    def resync(self) -> None:
-        """Drop a connection whose byte stream can no longer be split into frames."""
+    def reconnect(self, why: str) -> None:
+        """The core decided to make the connection again (``LineEvent.RECONNECT``): close
+        it and reopen it with back-off; the core keeps what waits meanwhile."""
         link = self._link
         if link is None or link.closed or self._stopping:
             return
+        log.warning("line %s: %s: %s; reconnecting", self.name, self.config.device, why)
         link.close()
-        self.on_lost(ConnectionError("a frame header no Modbus TCP slave sends; reconnecting"))
+        self._link = None
+        self._m_line_up.set(0)
+        self._port.schedule_reopen()
 
     # -- the pump ------------------------------------------------------------------------
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from ..core.line import Note
 from ..core.line.foreign import SHARED_FOR_S
-from ..core.outcome import DiscardReason, LineEvent, SlaveState
+from ..core.outcome import LineEvent, ReconnectReason, SlaveState
 from ..logs import RateLimitedLogger
 from ..metrics import UNIT_LABELS, GatewayMetrics
 
@@ -65,10 +65,6 @@ class LineNotes:
             metrics.retries.labels(self._bus.name, unit).inc()
         elif event is LineEvent.DISCARDED:
             metrics.discarded_frames.labels(self._bus.name, note.detail).inc()
-            if (
-                note.detail == DiscardReason.BAD_HEADER
-            ):  # a Modbus TCP stream out of step: reconnect
-                self._loop.call_soon(self._bus.resync)
             self.fault_log.note(
                 f"line {self._bus.name}",
                 "discarded input",
@@ -77,6 +73,15 @@ class LineNotes:
             )
         elif event is LineEvent.LATE_WINDOW:
             metrics.late_windows.labels(self._bus.name).inc()
+        elif event is LineEvent.RECONNECT:
+            reason = ReconnectReason(note.detail)
+            metrics.line_reconnects.labels(self._bus.name, reason).inc()
+            why = (
+                f"{note.amount} answers missed in a row, nothing heard on it from any slave"
+                if reason is ReconnectReason.SILENT
+                else "a frame header no Modbus TCP slave sends"
+            )
+            self._loop.call_soon(self._bus.reconnect, why)
         elif event is LineEvent.PROOF_READ:
             metrics.proof_reads.labels(self._bus.name, unit).inc()
         elif event is LineEvent.SLAVE_STATE:

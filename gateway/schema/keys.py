@@ -434,6 +434,12 @@ LINES = (
         "line for the timeout; one probe at a time goes to it, and its first answer brings "
         "it back. Only timeouts of function codes the slave has answered before count, so a "
         "master sending a code the slave ignores cannot isolate it. 0 disables isolation."),
+    Key(table=_L, name="reconnect_after", type=Type.INTEGER, default=3, low=0, high=1000,
+        help="On tcp, tls and rtu-over-tcp lines: a connection that answered before and then "
+        "misses this many answers in a row, with nothing heard on it from any slave, is "
+        "closed and opened again (with back-off). Reads on the wire then are sent again on "
+        "the new connection, other requests are answered 0x0B, and the timeouts on the "
+        "silent connection do not count against the slaves. 0 never reconnects."),
     Key(table=_L, name="probe_interval", type=Type.SECONDS, default=1.0, low=0.01,
         high=3600.0,
         help="Seconds before the first probe of an isolated slave; the interval then "

@@ -7,6 +7,7 @@ slave and the answer is matched by the gateway's id.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
@@ -92,7 +93,8 @@ def test_a_tcp_line_takes_an_address_not_a_device() -> None:
 
 
 def test_a_slave_out_of_step_is_reconnected(make_gateway: GatewayFactory) -> None:
-    """A header no Modbus TCP slave sends: the connection is dropped and made again."""
+    """A header no Modbus TCP slave sends: the connection is dropped and made again, and the
+    read on the wire is sent again on the new one."""
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
     connections: list[int] = []
@@ -106,9 +108,11 @@ def test_a_slave_out_of_step_is_reconnected(make_gateway: GatewayFactory) -> Non
                 if number == 1:
                     conn.sendall(request[:2] + b"\x00\x01\x00\x03\x07\x83\x02")  # protocol id 1
                     conn.recv(260)  # until the gateway closes it
-                else:
-                    conn.sendall(request[:4] + b"\x00\x05\x07\x03\x02\x12\x34")
-                    conn.recv(260)
+                    continue
+                with contextlib.suppress(OSError):  # every request, until the gateway stops
+                    while request:
+                        conn.sendall(request[:4] + b"\x00\x05\x07\x03\x02\x12\x34")
+                        request = conn.recv(260)
         listener.close()
 
     thread = threading.Thread(target=slave, daemon=True)
@@ -117,13 +121,67 @@ def test_a_slave_out_of_step_is_reconnected(make_gateway: GatewayFactory) -> Non
     gw = make_gateway({"lines": {"plc": table}})
     wait_up(gw)
     with gw.connect() as client:
-        assert client.request(7, h("03 0000 0001")) == h("83 0A")  # the stream was dropped
-        wait_up(gw)  # the 0x0A came from dropping the connection: it is down until remade
+        # The stream was dropped; the read went again on the new connection.
+        assert client.request(7, h("03 0000 0001")) == h("03 02 1234")
         assert client.request(7, h("03 0000 0001")) == h("03 02 1234")
     assert connections == [1, 2]
     found = samples(gw)
     assert (
         found[series("modbus_gateway_discarded_frames_total", line="plc", reason="bad_header")] == 1
     )
+    reconnects = series("modbus_gateway_line_reconnects_total", line="plc", reason="out_of_step")
+    assert found[reconnects] == 1
     gw.stop()
     thread.join(DEADLINE_S)
+
+
+def test_a_connection_that_stops_answering_is_made_again(make_gateway: GatewayFactory) -> None:
+    """A device whose first connection hangs after 10 answers (its socket task died) but
+    that serves new connections: after 3 answers missed in a row, nothing heard on it, the
+    gateway reconnects, and the master's polls are served again. The timeouts on the dead
+    connection do not make the slave suspect."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    connections: list[int] = []
+    stop = threading.Event()
+
+    def serve(conn: socket.socket, number: int) -> None:
+        answered = 0
+        with conn, contextlib.suppress(OSError):
+            while not stop.is_set():
+                request = conn.recv(260)
+                if not request:
+                    return
+                if number == 1 and answered >= 10:
+                    continue  # hung: reads, never answers
+                conn.sendall(request[:4] + b"\x00\x05\x07\x03\x02\x12\x34")
+                answered += 1
+
+    def slave() -> None:
+        listener.settimeout(DEADLINE_S)
+        with contextlib.suppress(OSError):
+            while not stop.is_set():
+                conn, _ = listener.accept()
+                connections.append(len(connections) + 1)
+                threading.Thread(target=serve, args=(conn, len(connections)), daemon=True).start()
+
+    thread = threading.Thread(target=slave, daemon=True)
+    thread.start()
+    table = {"kind": "tcp", "address": f"127.0.0.1:{port}", "units": [7], "retries": 0}
+    gw = make_gateway({"lines": {"plc": table}})
+    wait_up(gw)
+    replies = []
+    with gw.connect() as client:
+        for _ in range(30):
+            replies.append(client.request(7, h("03 0000 0001")))
+    stop.set()
+    listener.close()
+    assert replies[:10] == [h("03 02 1234")] * 10
+    assert replies[-10:] == [h("03 02 1234")] * 10  # served again on the new connection
+    assert len(connections) == 2
+    found = samples(gw)
+    reconnects = series("modbus_gateway_line_reconnects_total", line="plc", reason="silent")
+    assert found[reconnects] == 1
+    assert found[series("modbus_gateway_slaves_isolated", line="plc", state="suspect")] == 0
+    assert found[series("modbus_gateway_slaves_isolated", line="plc", state="down")] == 0
+    gw.stop()

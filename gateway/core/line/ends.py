@@ -17,7 +17,7 @@ from collections import deque
 from .. import pdu as fc
 from ..errors import ExceptionCode, ResponseError
 from ..framing import Framing
-from ..outcome import DiscardReason, LineEvent, Outcome, SlaveState
+from ..outcome import DiscardReason, LineEvent, Outcome, ReconnectReason, SlaveState
 from ..rtu import RtuFrame
 from .fair_queue import FairQueue
 from .foreign import ForeignMasters, ForeignRequest
@@ -65,6 +65,11 @@ class AttemptEnds:
     foreign_pending: dict[int, list[ForeignRequest]]
     answered_at: float | None
     _stopping: bool
+    _up: bool
+    reconnecting: bool
+    _heard_on_connection: bool
+    _silent_misses: int
+    _silent_streak: dict[int, tuple[SlaveState, int]]
 
     def complete(self, attempt: Attempt, frame: RtuFrame, now: float) -> None:
         """The slave answered the request on the wire (the wire has ended ``attempt``)."""
@@ -168,9 +173,14 @@ class AttemptEnds:
         if not damaged:
             self._open_window(slave, record, request, now, attempt.sent_at)
         before = record.state
+        silent = False
         if error is None:
             timeout = self.timing.wait(slave, request.pdu[0], request.attempts)
             self.notes.append(Note(LineEvent.TIMEOUT, slave, f"no answer within {timeout:g} s"))
+            silent = self._heard_on_connection and self.policy.networked
+            if silent and self.policy.reconnect_after:
+                self._silent_misses += 1
+                self._silent_streak.setdefault(slave, (record.state, record.misses))
             state = self.health.count_timeout(record, request.pdu[0], now, self.policy)
             if state is not None:
                 self._set_state(slave, record, state)
@@ -198,6 +208,34 @@ class AttemptEnds:
             and self.timing.first_contact(slave)
         ):
             self._absent(slave, now)
+        reconnect_after = self.policy.reconnect_after
+        if silent and reconnect_after and self._silent_misses >= reconnect_after:
+            self._reconnect(ReconnectReason.SILENT, self._silent_misses)
+
+    def _reconnect(self, reason: ReconnectReason, missed: int = 0) -> None:
+        """Close the connection and open it again (the driver does, on the note): reads on
+        the wire go again on the new connection, other attempts are answered 0x0B, the queue
+        waits. The timeouts of a silent connection do not count against its slaves."""
+        if self.reconnecting or not self._up:
+            return
+        self.reconnecting = True
+        self._heard_on_connection = False
+        self._silent_misses = 0
+        for slave, (state, misses) in self._silent_streak.items():
+            record = self.health.record(slave)
+            if state is SlaveState.UP and record.state is not SlaveState.UP:
+                self.alive(slave)
+            record.misses = misses
+        self._silent_streak.clear()
+        for attempt in reversed(self.wire.take_all()):
+            request = attempt.request
+            if fc.is_safe_to_retry(request.pdu) and request.wanted and not request.proof:
+                request.single = False
+                self.retries.appendleft(request)
+                self.queue.count_waiting(request, +1)
+            else:
+                self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
+        self.notes.append(Note(LineEvent.RECONNECT, 0, reason, missed))
 
     def _absent(self, slave: int, now: float) -> None:
         """``slave`` missed its first contact: the first contacts still queued for other
@@ -395,6 +433,8 @@ class AttemptEnds:
 
     def discard(self, reason: DiscardReason, count: int, slave: int = 0) -> None:
         self.notes.append(Note(LineEvent.DISCARDED, slave, reason, count))
+        if reason is DiscardReason.BAD_HEADER:  # a Modbus TCP stream out of step
+            self._reconnect(ReconnectReason.OUT_OF_STEP)
 
     def _answer(self, request: LineRequest, code: ExceptionCode, outcome: Outcome) -> None:
         self.sharing.close(request)

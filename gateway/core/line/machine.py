@@ -86,6 +86,12 @@ class LineCore(Sending):
         self._up = False
         self._stopping = False
         self._paused = False
+        #: A network line's connection is being made again (``_reconnect``): nothing goes.
+        self.reconnecting = False
+        self._heard_on_connection = False  # something came in since it was (re)opened
+        self._silent_misses = 0  # timeouts in a row with nothing heard on the connection
+        #: Slaves that timed out during that silence: their state and misses before it.
+        self._silent_streak: dict[int, tuple[SlaveState, int]] = {}
         self._submitted = 0  # requests submitted so far (``LineRequest.order``)
         self._apply_policy(policy)
         self.wire.bind(self)
@@ -344,6 +350,8 @@ class LineCore(Sending):
         """The port is open: requests are taken from now on."""
         self.wire.opened()
         self._up = True
+        self.reconnecting = False
+        self._heard_on_connection = False
         self.quiet_since = max(self.quiet_since, now)
         self.service(now)
 
@@ -404,6 +412,10 @@ class LineCore(Sending):
     def receive(self, data: bytes, now: float) -> None:
         """Bytes read from the line at ``now``."""
         self.stats.bytes_read += len(data)
+        self._heard_on_connection = True
+        if self._silent_misses:
+            self._silent_misses = 0
+            self._silent_streak.clear()
         self.wire.receive(data, now)
 
     def handle_timer(self, now: float) -> None:

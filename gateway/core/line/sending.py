@@ -41,6 +41,7 @@ class Sending(Listening):
     _noisy: bool
     _up: bool
     _paused: bool
+    reconnecting: bool
     _gap: float
 
     def service(self, now: float) -> None:
@@ -52,6 +53,7 @@ class Sending(Listening):
             or not self._up
             or not self.queue.queued
             or self._paused
+            or self.reconnecting
         ):
             self._wanting_since = None
             return
@@ -110,7 +112,8 @@ class Sending(Listening):
         if picked is not None:
             return picked[0], picked[1], False
         if self.late.wanted:  # the queue's requests were held: a proof lets them go
-            proof = self._proof(now)
+            waiting = self.queue.queued - len(self.lane.requests) - len(self.retries)
+            proof = self._proof(now, free=waiting <= 0)
             if proof is not None:
                 return proof
         if lane.requests:
@@ -119,10 +122,13 @@ class Sending(Listening):
                 return request, None, False
         return None
 
-    def _proof(self, now: float) -> tuple[LineRequest, Master | None, bool] | None:
+    def _proof(
+        self, now: float, free: bool = False
+    ) -> tuple[LineRequest, Master | None, bool] | None:
         """A proof read for a slave whose late-answer window holds a request back (``late``
         module doc): charged to the master whose request lost its answer, or to the lane's
-        share when the slave is suspect or down (then only when the share allows)."""
+        share when the slave is suspect or down (then when the share allows, or ``free``:
+        nothing else waits, as the lane's own requests go)."""
         late = self.late
         for slave in sorted(late.wanted):
             window = late.windows.get(slave)
@@ -142,7 +148,9 @@ class Sending(Listening):
                 continue
             credit = record.state is not SlaveState.UP
             if credit and self.lane.credit_now(now) < 0.0:
-                continue  # the isolated slaves' share is spent: later
+                if not free:
+                    continue  # the isolated slaves' share is spent: later
+                credit = False
             proof = LineRequest(slave, pdu, owner.master if owner else PROOF_MASTER, no_reply)
             proof.proof = proof.single = True
             proof.enqueued_at = now
