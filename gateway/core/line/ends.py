@@ -414,8 +414,9 @@ class AttemptEnds:
     def _lane_put(self, request: LineRequest, now: float, first_contact: bool = False) -> None:
         """Wait in the isolated slaves' lane: one attempt, answered 0x0B if not sent in time."""
         slave, function = request.slave, request.pdu[0]
-        if first_contact:  # there at the next free slot: one probe, then the quiet before it
-            deadline = now + self.timing.longest_attempt(slave, function) + FIRST_CONTACT_QUIET_S
+        if first_contact:  # there at the next free slot: the quiet before it, then the probe
+            hold = self.timing.longest_attempt(slave, function)
+            deadline = now + hold + max(hold, FIRST_CONTACT_QUIET_S)
         else:
             deadline = now + self.timing.wait(slave, function, 1)
         self.lane.put(request, deadline, first_contact)

@@ -113,7 +113,11 @@ class FairQueue:
                 master.vtime = self.vclock
             answered_at = master.answered_at
             rested = answered_at is None or now - answered_at >= self.typical
-            self.push(master, idle and rested and master.vtime <= self.vmax)
+            # At most two typical transactions ahead of the virtual time: rested masters that
+            # keep coming cannot keep the others' turn from coming (the virtual time moves on
+            # those others' turns only).
+            light = master.vtime <= self.vmax and master.vtime <= self.vclock + 2 * self.typical
+            self.push(master, idle and rested and light)
 
     def queue_at_front(self, request: LineRequest) -> None:
         """Back from the lane: first, but behind its master's earlier broadcasts."""

@@ -12,12 +12,13 @@ credit banked at that rate (at most one second's share) pays for their wire time
 are any, a first contact with another slave never heard from is a probe too: it holds
 the line for ``initial_timeout``, most likely for nothing (a scan, a stale address
 list). It waits in the lane, goes on the lane's credit, and goes free (the lane's
-credit in debt) only after the line and the request stayed quiet
-``FIRST_CONTACT_QUIET_S``: a master polling a live slave in a loop, whose next request
-comes a few milliseconds after its answer, is never held behind it. Among first
-contacts, the lightest master's goes first, then the slave asked for longest; it waits
-in the lane until the next free chance has passed (one probe's longest hold and the
-quiet after it), then is answered 0x0B unsent.
+credit in debt) only after the line and the request stayed quiet as long as the probe
+would hold the line (its longest attempt, at least ``FIRST_CONTACT_QUIET_S``): a master
+polling a live slave more often than that is never held behind a free probe, and one
+polling less often meets at most one per poll. The absent addresses cost the masters
+that ask them, not the others. Among first contacts, the lightest master's goes first,
+then the slave asked for longest; it waits in the lane until the next free chance has
+passed (the quiet before it and the probe's longest hold), then is answered 0x0B unsent.
 
 These parts answer questions and keep counts; the machine (``machine.LineCore``)
 makes the transitions and emits the notes.
@@ -140,11 +141,13 @@ class ProbeLane:
         self.first_contacts.discard(request.slave)
         request.lane_deadline = INFINITY
 
-    def free_at(self, quiet_since: float, request: LineRequest) -> float:
+    def free_at(self, quiet_since: float, request: LineRequest, hold: float) -> float:
         """When the first contact ``request`` may go without the lane's credit: the line
-        and the request itself quiet for ``FIRST_CONTACT_QUIET_S`` (so the masters that
-        ask in the same moment compete for it, not the first to ask)."""
-        return max(quiet_since, self.last_loss, request.enqueued_at) + FIRST_CONTACT_QUIET_S
+        and the request itself quiet as long as it would ``hold`` the line, at least
+        ``FIRST_CONTACT_QUIET_S`` (so the masters that ask in the same moment compete for
+        it, not the first to ask, and a master polling more often is not held behind it)."""
+        quiet = hold if hold > FIRST_CONTACT_QUIET_S else FIRST_CONTACT_QUIET_S
+        return max(quiet_since, self.last_loss, request.enqueued_at) + quiet
 
     def holds(self, request: LineRequest) -> bool:
         return self.requests.get(request.slave) is request

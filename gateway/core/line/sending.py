@@ -181,7 +181,8 @@ class Sending(Listening):
         if best is None:
             return None
         if free and best.slave in lane.first_contacts:
-            free_at = lane.free_at(self.quiet_since, best)
+            hold = self.timing.longest_attempt(best.slave, best.pdu[0])
+            free_at = lane.free_at(self.quiet_since, best, hold)
             if now < free_at:
                 self._send_at = free_at  # ``service`` keeps it when nothing goes now
                 return None
