@@ -49,7 +49,7 @@ def _missing(reason: str) -> None:
 
 def _tool(name: str, hint: str) -> str:
     """Path of a checker program: beside this interpreter (a venv's bin/, not always on
-    PATH when the tests run as ``.venv/bin/python -m pytest``), else on PATH."""
+    PATH when the tests run as ``.venv-test/bin/python -m pytest``), else on PATH."""
     beside = Path(sys.executable).with_name(name)
     path = str(beside) if beside.is_file() else shutil.which(name)
     if path is None:
@@ -267,6 +267,14 @@ def test_smoke_test_script_lints() -> None:
 # ------------------------------------------------------------------------ CI and the README
 
 
+#: The README's comment above its test command.
+TEST_COMMAND = (
+    "Install and run the tests, in a venv of their own (an editable, interpreted install):"
+)
+#: The venv the test command makes: not the user's ``.venv``, which holds the compiled build.
+TEST_VENV = ".venv-test"
+
+
 def _readme_command(comment: str) -> str:
     """The shell line that follows ``# comment`` in the README's first code block."""
     lines = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
@@ -275,14 +283,23 @@ def _readme_command(comment: str) -> str:
 
 
 def test_ci_runs_exactly_the_readme_test_command_in_a_fresh_venv() -> None:
-    command = _readme_command("Install and run the tests:")
-    assert command.startswith("python3 -m venv .venv && "), command
+    command = _readme_command(TEST_COMMAND)
+    assert command.startswith(f"python3 -m venv {TEST_VENV} && "), command
     script = _ci_script()
     assert command in script
-    assert script.index("rm -rf .venv") < script.index(command)
+    assert script.index(f"rm -rf {TEST_VENV}") < script.index(command)
     after = script[script.index(command) + 1 :]
-    for check in (".venv/bin/ruff check .", ".venv/bin/ruff format --check .", ".venv/bin/mypy"):
-        assert check in after, f".ci/run must run {check!r} after the tests"
+    for check in ("ruff check .", "ruff format --check .", "mypy"):
+        assert f"{TEST_VENV}/bin/{check}" in after, f".ci/run must run {check!r} after the tests"
+
+
+def test_the_test_command_leaves_the_run_commands_venv_alone() -> None:
+    """The run command installs the compiled build into .venv; the tests' editable install
+    goes elsewhere, so following the README in order does not replace it."""
+    run = _readme_command(RUN_COMMAND)
+    test = _readme_command(TEST_COMMAND)
+    assert run.startswith("python3 -m venv .venv && ")
+    assert ".venv/" not in test and " .venv " not in test, test
 
 
 #: The markers that set tests aside from the fast tier (registered in pyproject.toml).
@@ -336,11 +353,11 @@ def test_the_fast_tier_is_the_default_and_warnings_are_errors() -> None:
 def test_ci_runs_the_marked_tiers_after_the_fast_tier() -> None:
     """Every test runs in CI exactly once: in the README's command or in the marked tiers."""
     script = _ci_script()
-    fast = script.index(_readme_command("Install and run the tests:"))
-    prefix = ".venv/bin/python -m pytest -q -m "
+    fast = script.index(_readme_command(TEST_COMMAND))
+    prefix = f"{TEST_VENV}/bin/python -m pytest -q -m "
     tiers = [i for i, line in enumerate(script) if line.startswith(prefix)]
     assert len(tiers) == 1 and tiers[0] > fast, f".ci/run must run {prefix}'...' after the tests"
-    assert tiers[0] < script.index(".venv/bin/ruff check .")
+    assert tiers[0] < script.index(f"{TEST_VENV}/bin/ruff check .")
     (marked,) = shlex.split(script[tiers[0]].removeprefix(prefix))
     options = shlex.split(_pytest_settings()["addopts"])
     default = options[options.index("-m") + 1]
@@ -369,10 +386,14 @@ def test_every_test_here_carries_its_tier_marker(marker: str, where: str) -> Non
     assert deselected and int(deselected.group(1)) > 0, left.stdout[-3000:]
 
 
+#: The README's comment above its run command.
+RUN_COMMAND = (
+    "Install and run the gateway with its built-in simulated RTU line (no hardware needed):"
+)
+
+
 def test_the_run_command_needs_only_python3_and_venv() -> None:
-    command = _readme_command(
-        "Install and run the gateway with its built-in simulated RTU line (no hardware needed):"
-    )
+    command = _readme_command(RUN_COMMAND)
     assert command.startswith("python3 -m venv .venv && .venv/bin/pip install . && ")
     assert " pip install" not in command.replace(".venv/bin/pip install", "")
 

@@ -108,9 +108,9 @@ def test_tls_keys_reach_the_gateway_through_load_credential(
     try:
         port = gateway.wait_for(r"listening on 127\.0\.0\.1:(\d+) \(Modbus/TCP Security\)")[1]
         example = _docs_block("<!-- tls-python -->", "python")
-        assert "port=802" in example
+        assert "port=8802" in example
         read = subprocess.run(
-            [sys.executable, "-c", example.replace("port=802", f"port={port}")],
+            [sys.executable, "-c", example.replace("port=8802", f"port={port}")],
             cwd=tmp_path, capture_output=True, text=True, timeout=DEADLINE_S * 3, check=False,
         )  # fmt: skip
         assert read.returncode == 0, read.stderr
