@@ -4,13 +4,14 @@
 #   - a Modbus TCP request (FC03, unit 1, address 0, count 10) gets a normal response,
 #   - GET /healthz answers 200 and the image's HEALTHCHECK command passes,
 #   - the process runs as the unprivileged user, in the dialout group,
+#   - it holds the compiled build (`modbus-gateway --version`),
 #   - SIGTERM (docker/podman stop) ends it cleanly with exit code 0.
 # Exits non-zero with a message naming the failed step; cleans up what it created.
 #
 # Engine: Docker when `docker info` answers; otherwise buildah + podman with a private
-# vfs store (no daemon, no registry): a Debian bookworm root file system made with
-# debootstrap (cached) stands in for the Dockerfile's base image, and pip installs
-# offline from wheels downloaded on the host.
+# vfs store (no daemon, no registry): Debian bookworm root file systems made with
+# debootstrap (cached) stand in for the Dockerfile's base images (the builder's with gcc
+# and the Python headers), and pip installs offline from wheels downloaded on the host.
 #
 # Environment:
 #   SMOKE_ENGINE=docker|podman   force an engine (default: docker if it answers)
@@ -78,11 +79,12 @@ cleanup() {
 trap cleanup EXIT
 trap 'die "command failed (exit $?): $BASH_COMMAND"' ERR
 
-# The base image named by the Dockerfile (ARG PYTHON_IMAGE=...), fully qualified.
-base_image() {
+# An image the Dockerfile names by default (ARG PYTHON_IMAGE=..., ARG BUILDER_IMAGE=...),
+# fully qualified.
+image_arg() {
     local ref
-    ref=$(sed -n 's/^ARG PYTHON_IMAGE=//p' "$DOCKERFILE" | head -n1)
-    [[ -n $ref ]] || die "no 'ARG PYTHON_IMAGE=' default in $DOCKERFILE"
+    ref=$(sed -n "s/^ARG $1=//p" "$DOCKERFILE" | head -n1)
+    [[ -n $ref ]] || die "no 'ARG $1=' default in $DOCKERFILE"
     case "$ref" in
         */*/*|*.*/*|localhost/*) printf '%s\n' "$ref" ;;
         */*) printf 'docker.io/%s\n' "$ref" ;;
@@ -170,14 +172,17 @@ EOF
     export BUILDAH_ISOLATION=chroot
 }
 
-# A Debian bookworm root file system with python3 + venv, standing in for the base
-# image: same Debian release and Python minor version as python:3.11-slim-bookworm.
+# Debian bookworm root file systems standing in for the base images: the same Debian release
+# and Python minor version as python:3.11-slim-bookworm (the runtime: python3 and its venv
+# module) and python:3.11-bookworm (the builder: with gcc and the Python headers too).
+readonly RUNTIME_PACKAGES=python3,python3-venv,ca-certificates
+readonly BUILDER_PACKAGES=$RUNTIME_PACKAGES,gcc,libc6-dev,python3-dev
 import_base_image() {
-    local base="$1" tarball="$CACHE/$SUITE-python3-rootfs.tar"
+    local image="$1" packages="$2" name="$3" tarball="$CACHE/$SUITE-$3-rootfs.tar"
     if [[ ! -s $tarball ]]; then
-        step "debootstrap $SUITE rootfs (cached afterwards in $tarball)"
-        local rootfs="$WORK/rootfs"
-        debootstrap --variant=minbase --include=python3,python3-venv,ca-certificates \
+        step "debootstrap $SUITE rootfs with $packages (cached afterwards in $tarball)"
+        local rootfs="$WORK/rootfs-$name"
+        debootstrap --variant=minbase --include="$packages" \
             "$SUITE" "$rootfs" >"$WORK/debootstrap.log" 2>&1 \
             || { tail -n 20 "$WORK/debootstrap.log" >&2; die "debootstrap failed"; }
         rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/lib/apt/lists/*
@@ -185,10 +190,10 @@ import_base_image() {
         tar -C "$rootfs" -cf "$tarball.tmp" . && mv "$tarball.tmp" "$tarball"
         rm -rf "$rootfs"
     fi
-    step "import base image as $base"
-    podman import --quiet "$tarball" localhost/modbus-gateway-smoke-base:$SUITE >/dev/null \
+    step "import base image as $image"
+    podman import --quiet "$tarball" "localhost/modbus-gateway-smoke-$name:$SUITE" >/dev/null \
         || die "podman import failed"
-    podman tag localhost/modbus-gateway-smoke-base:$SUITE "$base"
+    podman tag "localhost/modbus-gateway-smoke-$name:$SUITE" "$image"
 }
 
 build_with_buildah() {
@@ -318,6 +323,15 @@ PY
     [[ $ids == *"(dialout)"* ]] || die "the gateway's user is not in the dialout group"
 }
 
+check_build() {
+    step "the image holds the compiled build"
+    local version
+    version=$(eng exec "$NAME" modbus-gateway --version) || die "modbus-gateway --version failed"
+    log "$version"
+    [[ $version == *"(compiled)"* ]] \
+        || die "not the compiled build: '$version' (does the builder image have gcc?)"
+}
+
 check_stop() {
     step "SIGTERM stops the gateway with exit code 0"
     eng stop -t 15 "$NAME" >/dev/null 2>"$WORK/stop.err" \
@@ -364,7 +378,8 @@ main() {
             ;;
         podman)
             setup_podman
-            import_base_image "$(base_image)"
+            import_base_image "$(image_arg PYTHON_IMAGE)" "$RUNTIME_PACKAGES" python3
+            import_base_image "$(image_arg BUILDER_IMAGE)" "$BUILDER_PACKAGES" python3-gcc
             build_with_buildah "$ctx" "$offline"
             ;;
         *) die "unknown SMOKE_ENGINE=$ENGINE (docker or podman)" ;;
@@ -375,6 +390,7 @@ main() {
     wait_ready
     check_modbus_and_health "$(host_port 5020)" "$(host_port 9502)"
     check_inside
+    check_build
     check_stop
     log "image built in ${t_built}s; run checks in $(( $(date +%s) - T0 - t_built ))s"
 }
