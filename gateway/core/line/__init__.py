@@ -77,8 +77,9 @@ machine changes what becomes of a request and emits actions):
   ``flights``: ``FlightWire`` (several attempts by transaction id on a TCP line);
 * ``foreign``: frames heard that no attempt asked for, other masters' requests among
   them, and those requests awaiting their answers;
-* ``machine`` (``LineCore``; its class body in four layers: ``ends``, ``listening``,
-  ``sending``, ``machine``) and ``pipelined`` (``LineCore`` holding a ``FlightWire``).
+* ``machine``: ``LineCore``, the one class that makes every transition (its module
+  opens with the table of them), and ``pipelined`` (``LineCore`` holding a
+  ``FlightWire``).
 """
 
 from __future__ import annotations
