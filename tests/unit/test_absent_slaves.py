@@ -208,8 +208,7 @@ def test_a_request_to_a_slave_never_heard_from_is_not_retried() -> None:
 def test_a_slow_slave_never_heard_from_is_served_at_defaults_beside_absent_units() -> None:
     """The first-contact rule stands among absent addresses: a slave that needs 0.8 s,
     asked for the first time just after an absent unit missed, is still waited for
-    ``initial_timeout`` once the line has been quiet as long as that probe holds it, and
-    its answer is taken."""
+    ``initial_timeout`` once the line is quiet, and its answer is taken."""
     plant = Plant(line_config())
     plant.submit("scan", 100)
     plant.pump()
@@ -226,7 +225,7 @@ def test_a_slow_slave_never_heard_from_is_served_at_defaults_beside_absent_units
         core.handle_timer(timer)
         plant.pump()
     sent_at = plant.sent[-1][0]
-    assert sent_at <= asked + core.timing.longest_attempt(2, 3) + 1e-9
+    assert sent_at <= asked + FIRST_CONTACT_QUIET_S + 1e-9
     answer = encode_rtu(2, bytes((3, 4)) + bytes(4))
     core.receive(answer, sent_at + 0.8)
     plant.now = sent_at + 0.8
@@ -237,8 +236,8 @@ def test_a_slow_slave_never_heard_from_is_served_at_defaults_beside_absent_units
 def test_masters_asking_in_the_same_moment_compete_for_a_free_probe() -> None:
     """A free probe does not go to the first master to ask once the line is quiet (the
     masters whose requests were answered 0x0B together ask again together, the same one
-    first each time): a first contact waits itself as long as it would hold the line, and
-    the master that used the line least goes."""
+    first each time): a first contact waits ``FIRST_CONTACT_QUIET_S`` itself, and the
+    master that used the line least goes."""
     plant = Plant(line_config())
     plant.submit("scan", 100)
     plant.pump()
@@ -257,7 +256,7 @@ def test_masters_asking_in_the_same_moment_compete_for_a_free_probe() -> None:
         core.handle_timer(timer)
         plant.pump()
     assert plant.sent[1][1] == LIVE
-    assert plant.sent[1][0] == pytest.approx(2.001 + core.timing.longest_attempt(LIVE, 3))
+    assert plant.sent[1][0] == pytest.approx(2.001 + FIRST_CONTACT_QUIET_S)
 
 
 def test_with_isolation_turned_off_first_contacts_are_queued_as_usual_again() -> None:

@@ -21,7 +21,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.config import LineConfig
+from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
@@ -322,3 +322,45 @@ def test_a_hundred_masters_on_a_fast_line_are_served_alike() -> None:
     waits = [wait for values in wire.waits.values() for wait in values]
     assert max(waits) <= 0.1, sorted(waits)[-5:]
     assert min(served.values()) >= 0.9 * max(served.values()), served
+
+
+def test_a_scan_of_absent_addresses_costs_its_own_master_not_a_periodic_one() -> None:
+    """One connection keeps 4 reads in flight to random unit ids 100-247 (no slave behind
+    them) beside a master reading 10 registers of unit 1 every 0.2 s, at 19200 baud at
+    defaults. Each first contact with an absent address may hold the line for 1 s: it
+    must not take the periodic master's turn. Its median stays within max(10 x its quiet
+    median, 100 ms) and it keeps more than half its poll rate."""
+    import random
+
+    def periodic_waits(scan: bool) -> list[float]:
+        draw = random.Random(3)
+        wire = Wire(baud=19200, turnaround=0.002)
+        table = {"device": "/dev/null", "baudrate": 19200}  # the defaults, learning timeouts
+        wire.core = LineCore(build_config({"lines": {"a": table}}).lines[0], -1.0)
+        wire.core.port_opened(-1.0)
+        wire.silent.update(range(100, 248))
+
+        def poll(index: int) -> None:
+            wire.submit("periodic", read(index % 100, 10), slave=1)
+
+        def probe() -> None:
+            wire.submit("scan", read(0, 10), slave=draw.randint(100, 247))
+
+        def again(request: LineRequest, _outcome: str) -> None:
+            if request.master == "scan":
+                wire.at(wire.now + 0.001, probe)
+
+        wire.on_answer = again
+        for index in range(100):  # 20 s
+            wire.at(0.3 + 0.2 * index, functools.partial(poll, index))
+        if scan:
+            for _ in range(4):
+                wire.at(0.0, probe)
+        wire.run_until(21.0)
+        return wire.waits["periodic"]
+
+    quiet = periodic_waits(scan=False)
+    beside = periodic_waits(scan=True)
+    quiet_median = quantile(quiet, 0.5)
+    assert quantile(beside, 0.5) <= max(10 * quiet_median, 0.1), (quiet_median, sorted(beside))
+    assert len(beside) >= len(quiet) / 2

@@ -12,13 +12,16 @@ credit banked at that rate (at most one second's share) pays for their wire time
 are any, a first contact with another slave never heard from is a probe too: it holds
 the line for ``initial_timeout``, most likely for nothing (a scan, a stale address
 list). It waits in the lane, goes on the lane's credit, and goes free (the lane's
-credit in debt) only after the line and the request stayed quiet as long as the probe
-would hold the line (its longest attempt, at least ``FIRST_CONTACT_QUIET_S``): a master
-polling a live slave more often than that is never held behind a free probe, and one
-polling less often meets at most one per poll. The absent addresses cost the masters
-that ask them, not the others. Among first contacts, the lightest master's goes first,
-then the slave asked for longest; it waits in the lane until the next free chance has
-passed (the quiet before it and the probe's longest hold), then is answered 0x0B unsent.
+credit in debt) only after the line and the request stayed quiet
+``FIRST_CONTACT_QUIET_S``, or, while a master that used the line less is polling (it was
+answered within twice the probe's hold), as long as the probe would hold the line (its
+longest attempt): a lighter master polling a live slave more often than that is never
+held behind a free probe, and one polling less often meets at most one per poll. The
+absent addresses cost the masters that ask them, not the others; a light master's own
+first contact still goes after the short quiet. Among first contacts, the lightest
+master's goes first, then the slave asked for longest; it waits in the lane until the
+next free chance has passed (the quiet before it and the probe's longest hold), then is
+answered 0x0B unsent.
 
 These parts answer questions and keep counts; the machine (``machine.LineCore``)
 makes the transitions and emits the notes.

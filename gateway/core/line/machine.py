@@ -565,6 +565,24 @@ class LineCore:
                 return request, None, False
         return None
 
+    def _lighter_master_polls(self, probe: LineRequest, now: float, hold: float) -> bool:
+        """True when another master that used the line less than ``probe``'s was answered
+        within ``2 x hold``: it polls, and a free probe would hold its next poll up for
+        ``hold`` (``health`` module doc: the absent addresses cost their own masters)."""
+        masters = self.queue.masters
+        own = masters.get(probe.master)
+        account = own.vtime if own is not None else 0.0
+        for master in masters.values():
+            answered_at = master.answered_at
+            if (
+                master is not own
+                and answered_at is not None
+                and now - answered_at <= 2.0 * hold
+                and master.vtime < account
+            ):
+                return True
+        return False
+
     def _proof(
         self, now: float, free: bool = False
     ) -> tuple[LineRequest, Master | None, bool] | None:
@@ -624,7 +642,10 @@ class LineCore:
         if best is None:
             return None
         if free and best.slave in lane.first_contacts:
+            # Without the share's credit: not into the gap before a lighter master's poll.
             hold = self.timing.longest_attempt(best.slave, best.pdu[0])
+            if not self._lighter_master_polls(best, now, hold):
+                hold = 0.0  # nobody lighter comes back soon: only the short quiet
             free_at = lane.free_at(self.quiet_since, best, hold)
             if now < free_at:
                 self._send_at = free_at  # ``service`` keeps it when nothing goes now
