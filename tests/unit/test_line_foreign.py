@@ -427,13 +427,17 @@ def test_a_held_retry_goes_once_the_foreign_request_expires() -> None:
 
 def test_frames_in_one_read_during_our_attempt_are_taken_in_order() -> None:
     """The other master's request, then two answers, read at once while ours waits: the
-    first answer is refused (whose?), the second settles both, the retry is answered."""
+    first answer is refused (whose?), the second settles both, the retry is answered. The
+    request-shaped frame comes from the slave our attempt asks: it is awaited as a foreign
+    request (the protection holds) but not counted as another master (it may be that
+    slave's malformed answer)."""
     line = Line()
     request = line.submit(1, read(100), 0.0)
     line.frames()
     theirs, ours = registers_answer(1, read(0), 500), registers_answer(1, read(100), 7)
     line.receive(encode_rtu(1, read(0)) + theirs + ours, 0.02)
-    assert line.foreign_notes() == 1 and len(line.notes(LineEvent.SHARED_ANSWER)) == 1
+    assert line.foreign_notes() == 0 and len(line.notes(LineEvent.SHARED_ANSWER)) == 1
+    assert not line.core.shared
     line.advance(0.03)
     assert line.frames() == [encode_rtu(1, read(100))]
     line.receive(ours, 0.05)
@@ -525,3 +529,25 @@ def test_a_request_whose_first_bytes_check_as_an_empty_answer_is_heard() -> None
     stream = encode_rtu(3, read(0, 1, 1)) + encode_rtu(3, read(131, 1, 4))
     line.receive(stream, 1.0 + len(stream) * CHAR)
     assert line.foreign_notes() == 2
+
+
+def test_a_slave_answering_a_write_with_the_value_it_stored_is_no_second_master() -> None:
+    """Some slaves answer an FC 6 write with the value they actually stored (clamped to
+    their range), not the exact echo: an intact frame shaped like an FC 6 request, from the
+    slave being asked, inside its answer window. It is that slave's malformed answer: the
+    line is not marked shared (an active gateway of a pair would step down for it), and
+    the write is answered 0x0B once its wait is over, never OK."""
+    line = Line(retries=0)
+    write = line.submit(1, bytes.fromhex("0600010100"), 0.0)  # write 0x0100
+    sent = line.frames()
+    assert sent == [encode_rtu(1, bytes.fromhex("0600010100"))]
+    clamped = encode_rtu(1, bytes.fromhex("06000100ff"))  # it stored 0x00FF
+    line.receive(clamped, 0.02)
+    assert line.foreign_notes() == 0 and not line.core.shared
+    assert line.core.last_master_frame_at is None
+    line.timer()
+    assert line.answer_of(write)[1] is Outcome.TARGET_FAILED
+    assert not line.core.shared
+    # A request frame to another slave is another master's, as before.
+    line.receive(encode_rtu(7, read(0)), 3.0)
+    assert line.core.shared

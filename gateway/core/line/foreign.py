@@ -24,7 +24,14 @@ An intact frame (valid CRC or LRC) is classified, first match wins:
    request is answered; its turnaround (answer start minus request end, as the line
    measures its own) is learned;
 3. a request (a function code whose request length the frame has): a *foreign master
-   frame*. A foreign request awaits its answer until an answer with its signature is
+   frame*. Except when it comes from the slave our attempt on the wire asks, within that
+   attempt: then it may as well be that slave's malformed answer (some slaves answer an FC
+   6 write with the value they stored, not the exact echo). It is awaited as a foreign
+   request all the same (every protection below stays: our attempt fails as one without
+   its answer, 0x0B or a retry where safe), but it marks the line neither shared nor
+   heard from another master, so an active gateway of a pair does not step down for it.
+   The price: a second master addressing that very slave during that very attempt is not
+   counted for that frame; A foreign request awaits its answer until an answer with its signature is
    heard or the line's longest timeout (``max_timeout``) passed;
 4. anything else: a frame, nothing more.
 
@@ -90,6 +97,9 @@ class HeardKind(Enum):
     OURS = "ours"  # an answer to one of this gateway's requests
     ANSWER = "answer"  # the answer to a pending foreign request
     MASTER = "master"  # a request this gateway did not send
+    #: Shaped like a request, from the slave our attempt asks: its malformed answer, or
+    #: another master's request to it. Awaited as a foreign request, counted as neither.
+    ASKED = "asked"
     FRAME = "frame"  # an intact frame, none of the above
 
 
@@ -160,21 +170,28 @@ class ForeignMasters:
     # -- framing ---------------------------------------------------------------------------
 
     def feed(
-        self, data: bytes, now: float, char_time: float, own: Own, stop: bool = False
+        self,
+        data: bytes,
+        now: float,
+        char_time: float,
+        own: Own,
+        stop: bool = False,
+        asked: int = -1,
     ) -> list[Heard]:
         """Bytes heard at ``now``: the intact frames they complete, classified. With
         ``stop``, framing stops after a master frame: what follows it stays unframed (our
-        attempt's decoder takes it: ``take_unframed``)."""
+        attempt's decoder takes it: ``take_unframed``). ``asked``: the slave our attempt on
+        the wire asks; a frame from it is its (malformed) answer, never a master's."""
         buffer = self.buffer
         heard: list[Heard] = []
         if not self.ascii:
             started = now - len(data) * char_time
             if buffer and started - self.last_at > self.split_after:
-                self._cut(heard, self.last_at, own, False, final=True)
+                self._cut(heard, self.last_at, own, False, asked, final=True)
                 buffer.clear()  # what waited for more before the gap: no frame ends there
         buffer += data
         self.last_at = now
-        self._cut(heard, now, own, stop)
+        self._cut(heard, now, own, stop, asked)
         del buffer[: max(0, len(buffer) - 2 * MAX_RTU_FRAME)]
         return heard
 
@@ -185,16 +202,22 @@ class ForeignMasters:
         return rest
 
     def _cut(
-        self, heard: list[Heard], at: float, own: Own, stop: bool, final: bool = False
+        self,
+        heard: list[Heard],
+        at: float,
+        own: Own,
+        stop: bool,
+        asked: int = -1,
+        final: bool = False,
     ) -> None:
         """Cut intact frames from the buffer's front into ``heard``, classified."""
         while True:
             frame = self._next_ascii() if self.ascii else self._next_rtu(own, final)
             if frame is None:
                 return
-            found = self._classify(frame[0], frame[1:], at, own)
+            found = self._classify(frame[0], frame[1:], at, own, asked)
             heard.append(found)
-            if stop and found.kind is HeardKind.MASTER:
+            if stop and (found.kind is HeardKind.MASTER or found.kind is HeardKind.ASKED):
                 return
 
     def _next_rtu(self, own: Own, final: bool) -> bytes | None:
@@ -264,7 +287,7 @@ class ForeignMasters:
 
     # -- what a frame is ------------------------------------------------------------------
 
-    def _classify(self, slave: int, pdu: bytes, at: float, own: Own) -> Heard:
+    def _classify(self, slave: int, pdu: bytes, at: float, own: Own, asked: int = -1) -> Heard:
         self.last_frame_at = at
         frame = bytes((slave,)) + pdu
         length = len(frame) + 2  # as an RTU frame (ASCII's LRC is one byte, RTU's CRC two)
@@ -290,17 +313,21 @@ class ForeignMasters:
             until = self.own_echoes.get(frame)
             if until is not None and at < until:
                 return Heard(HeardKind.OURS, slave, pdu, at)  # a very late answer of ours
-            return self._master_frame(slave, pdu, at)
+            return self._master_frame(slave, pdu, at, counted=slave != asked)
         return Heard(HeardKind.FRAME, slave, pdu, at)
 
-    def _master_frame(self, slave: int, pdu: bytes, at: float) -> Heard:
-        """A request this gateway did not send: it awaits its answer (not a broadcast)."""
-        self.last_master_frame_at = at
+    def _master_frame(self, slave: int, pdu: bytes, at: float, counted: bool = True) -> Heard:
+        """A request this gateway did not send: it awaits its answer (not a broadcast).
+        Not ``counted``: from the slave our attempt asks, it may be that slave's malformed
+        answer as well; awaited all the same, but it marks nothing shared."""
         request = ForeignRequest(slave, pdu, at, at + self.keep_for)
+        if not counted:
+            if slave:
+                self._await(slave, request, at)
+            return Heard(HeardKind.ASKED, slave, pdu, at, request)
+        self.last_master_frame_at = at
         if slave:
-            waiting = self.pending.setdefault(slave, [])
-            waiting[:] = [r for r in waiting if at < r.until][-(PENDING_PER_SLAVE - 1) :]
-            waiting.append(request)
+            self._await(slave, request, at)
         if self.listening:
             self.heard_master_frames += 1
         else:
@@ -308,6 +335,11 @@ class ForeignMasters:
             self.shared = True
             self.shared_until = at + SHARED_FOR_S
         return Heard(HeardKind.MASTER, slave, pdu, at, request)
+
+    def _await(self, slave: int, request: ForeignRequest, at: float) -> None:
+        waiting = self.pending.setdefault(slave, [])
+        waiting[:] = [r for r in waiting if at < r.until][-(PENDING_PER_SLAVE - 1) :]
+        waiting.append(request)
 
     def _settle(self, slave: int, request: bytes) -> None:
         """An answer to our ``request`` came after one that looked the same was refused to

@@ -743,7 +743,7 @@ class LineCore:
 
     # -- listening: frames heard that no attempt took (other masters; the pair reads the bus)
 
-    def hear(self, data: bytes, now: float, stop: bool = False) -> bool:
+    def hear(self, data: bytes, now: float, stop: bool = False, asked: int = -1) -> bool:
         """Bytes heard at ``now`` that no attempt took: note foreign master frames, learn
         from their answers; ``True`` when a master frame was among them (with ``stop``,
         the bytes after it are left to ``foreign.take_unframed``)."""
@@ -758,13 +758,15 @@ class LineCore:
             )
         foreign = self.foreign
         master = False
-        for heard in foreign.feed(data, now, self.char_time, own, stop):
+        for heard in foreign.feed(data, now, self.char_time, own, stop, asked):
             if heard.kind is HeardKind.MASTER:
                 master = True
                 if not foreign.listening:
                     self.notes.append(
                         Note(LineEvent.FOREIGN_MASTER, heard.slave, f"function {heard.pdu[0]}")
                     )
+            elif heard.kind is HeardKind.ASKED:
+                master = True  # awaited like a master's request, noted as none
             elif heard.kind is HeardKind.ANSWER and heard.request is not None:
                 self._learn_from(heard.request, heard.at)
         return master

@@ -286,7 +286,7 @@ class SerialWire(Wire):
                 frame = decoder.feed(data)
             except ResponseError as error:
                 if unheard:  # not the answer (or not only): perhaps another master's frames
-                    master = line.hear(attempt.heard + unheard, now, True)
+                    master = line.hear(attempt.heard + unheard, now, True, attempt.request.slave)
                     attempt.heard = unheard = b""
                     if master:  # no damaged answer: the answer may follow it
                         decoder.reset()
@@ -365,7 +365,7 @@ class SerialWire(Wire):
     def _unheard(self, attempt: Attempt, now: float) -> None:
         """The attempt fails: the bytes its decoder kept without a verdict were no answer."""
         if attempt.heard:
-            self.line.hear(attempt.heard, now)
+            self.line.hear(attempt.heard, now, asked=attempt.request.slave)
             attempt.heard = b""
 
     def _strip_echo(self, data: bytes) -> bytes:
