@@ -1122,6 +1122,28 @@ class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
     }
     floor = NETWORK_FLOOR_S
 
+    def __init__(self) -> None:
+        super().__init__()
+        #: The slaves' turnarounds while the connection is silent (empty: it answers).
+        self.silenced: dict[int, float | None] = {}
+
+    @rule()
+    def connection_goes_silent(self) -> None:
+        """The device's socket task dies: nothing more comes back on this connection, the
+        requests on it included (a reconnect, ``pump``, brings a connection that answers
+        again; the slaves answer at their old pace on it)."""
+        self.silenced = {unit: slave.delay for unit, slave in self.slaves.items()}
+        for unit, slave in self.slaves.items():
+            self.slaves[unit] = replace(slave, delay=None)
+
+    def pump(self) -> None:
+        reconnect = any(note.event is LineEvent.RECONNECT for note in self.core.notes)
+        if reconnect and self.silenced:
+            for unit, delay in self.silenced.items():  # the new connection answers
+                self.slaves[unit] = replace(self.slaves[unit], delay=delay)
+            self.silenced = {}
+        super().pump()
+
     def deadline_of(self, request: LineRequest, frame: bytes) -> float:
         """The core's own deadline: the learned one (checked by ``check_deadline``)."""
         attempts = [a for a in self.attempts() if a.request is request]
@@ -1293,5 +1315,27 @@ def test_answers_later_than_any_timer_reach_no_other_request() -> None:
         machine.wait(step=0.4)
     for _ in range(10):
         machine.long_wait(step=1.0)
+    assert not machine.problems, machine.problems
+    machine.teardown()
+
+
+def test_a_read_handed_to_a_reopened_line_after_a_reconnect_takes_no_later_joiner() -> None:
+    """Found by the machine: a read on the wire of a pipelined line out of step is sent
+    again after the reconnect; a reload then hands it to a reopened line, where a later
+    identical read joined it, and got the answer of a transmission made before it was
+    submitted. A request's first attempt on a line closes it to joiners, whatever an
+    earlier line did with it."""
+    machine = LearnedPipelinedLineMachine()
+    machine.begin_reopen()
+    machine.write_then_read_back(address=0, master="a", other="a", slave=1)
+    machine.finish_reopen()
+    machine.out_of_step(split=1)
+    machine.begin_reopen()
+    machine.out_of_step(split=1)
+    machine.finish_reopen()
+    machine.begin_reopen()
+    machine.wait(step=0.0005)
+    machine.again(index=0, master="a")
+    machine.finish_reopen()
     assert not machine.problems, machine.problems
     machine.teardown()

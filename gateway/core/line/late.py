@@ -15,7 +15,9 @@ When a request waits for such proof and nothing else would bring it, the line se
 function at the same address with another count, so that its normal answer cannot be
 taken for any answer the window awaits. Its answer goes to nobody. A proof answered by
 an exception that looks like a lost one proves nothing; after ``MAX_INCONCLUSIVE`` of
-them the window closes after ``2 x max_timeout`` instead.
+them the window closes after ``2 x max_timeout`` instead, as it does at once for a slave
+that never answered anything (a proof read would meet its silence too) or when no read
+of the slave is known.
 
 This part keeps the windows and recognises lost answers in the line's bytes; the
 machine (``machine.LineCore``) opens windows, notes them and acts on what arrives.

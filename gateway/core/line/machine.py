@@ -600,7 +600,10 @@ class LineCore:
                 continue
             record = self.health.record(slave)
             owner = window.owner
-            pdu = proof_pdu(window.signatures, record.known_read, owner.pdu if owner else None)
+            pdu = None
+            if record.answered:  # a slave never heard from would time a proof read out too
+                lost = owner.pdu if owner else None
+                pdu = proof_pdu(window.signatures, record.known_read, lost)
             if pdu is None:  # nothing known to read: the window closes after a time
                 window.until = now + 2.0 * self.policy.max_timeout
                 late.wanted.discard(slave)
@@ -657,8 +660,8 @@ class LineCore:
     def _send(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> None:
         retry = request.attempts > 0
         request.attempts += 1
-        if not request.sent:
-            request.sent = True
+        if not retry:  # its first attempt on this line (a handed-over one's too): no more
+            request.sent = True  # reads join it, whatever an earlier line did with it
             self.sharing.close(request)
         frame = self.wire.start(request, master, now, credit)
         if request.pdu[0] in ANSWERED_BY_ECHO and self.framing.transaction_ids is None:
@@ -981,7 +984,9 @@ class LineCore:
         self._silent_streak.clear()
         for attempt in reversed(self.wire.take_all()):
             request = attempt.request
-            if fc.is_safe_to_retry(request.pdu) and request.wanted and not request.proof:
+            if self._paused:  # a reload takes what waits: what was on the wire ends here
+                self._answer(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
+            elif fc.is_safe_to_retry(request.pdu) and request.wanted and not request.proof:
                 request.single = False
                 self.retries.appendleft(request)
                 self.queue.count_waiting(request, +1)
