@@ -429,7 +429,8 @@ class LineCore:
         turnaround still runs, and the slaves' lost answers may still come. An MBAP line
         hands on no late-answer windows: its lost answers went with the old connection."""
         windows = self.late.handover() if self.framing.transaction_ids is None else []
-        return Handover(self.quiet_since, tuple(windows), self.foreign.handover())
+        kind = self.framing.kind
+        return Handover(self.quiet_since, tuple(windows), self.foreign.handover(), kind)
 
     def take_over(self, handover: Handover, now: float) -> None:
         """Start where the line this one replaces left the wire: quiet no earlier than it
@@ -437,7 +438,9 @@ class LineCore:
         self.quiet_since = max(self.quiet_since, handover.quiet_since)
         if handover.heard is not None:
             self.foreign.take_over(handover.heard, now)
-        if self.framing.transaction_ids is None:  # else answers carry transaction ids
+        # Answers carry transaction ids on MBAP lines; and a lost answer in another framing
+        # (a reload that changed RTU to ASCII) cannot be taken for one in this line's.
+        if self.framing.transaction_ids is None and handover.framing in ("", self.framing.kind):
             for window in handover.windows:
                 if window.until > now:
                     self.health.record(window.slave)

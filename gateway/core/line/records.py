@@ -252,6 +252,7 @@ class Handover(NamedTuple):
     quiet_since: float  # no frame before this plus the gap (a broadcast's turnaround)
     windows: tuple[LateWindow, ...]
     heard: HeardBus | None = None  # other masters heard (``foreign``)
+    framing: str = ""  # the framing its windows' answers would come in (``LineKind``)
 
 
 class Note(NamedTuple):
