@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 from conftest import DEADLINE_S, SimFactory, release, require_tool
 
+from gateway.core.line.response_timing import EVIDENCE
 from gateway.sim import UnitFaults, plc
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys")
@@ -30,9 +31,10 @@ def test_a_slave_that_falls_silent_is_0x0b_before_the_masters_1s_timeout_at_9600
 ) -> None:
     """Default timeout and retries at 9600 8N1: mbpoll reports 0x0B, not a timeout of its own.
 
-    The gateway has learned the slave's turnaround from its answers: two attempts (the
-    learned bound, at least 0.1 s, then twice it) end well within mbpoll's 1 s. A slave
-    never heard from gets ``initial_timeout`` (1 s) instead: it may just be slow.
+    The gateway has learned the slave's turnaround from its answers (10 of them: a few fast
+    first answers are no evidence): two attempts (the learned bound, at least 0.25 s, then
+    twice it) end within mbpoll's 1 s. A slave not yet learned gets ``initial_timeout``
+    (1 s) instead: it may just be slow.
     """
     mbpoll = require_tool("mbpoll")
     sim = make_sim({1: plc(1)})
@@ -58,7 +60,7 @@ def test_a_slave_that_falls_silent_is_0x0b_before_the_masters_1s_timeout_at_9600
                 capture_output=True, text=True, timeout=DEADLINE_S, check=False,
             )  # fmt: skip
 
-        for _ in range(3):
+        for _ in range(EVIDENCE + 1):
             good = poll(1)
             assert good.returncode == 0, good.stdout + good.stderr
         sim.line.set_faults(1, UnitFaults(silent=True))
