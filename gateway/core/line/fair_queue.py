@@ -32,6 +32,9 @@ from .records import LineRequest, LineStats
 
 #: The weight of the newest transaction in the line's typical one (a moving mean).
 TYPICAL_WEIGHT: Final = 1.0 / 16.0
+#: A master idle this long (or the round of waiting requests, if shorter) polls now and
+#: then: it goes next. One asking again sooner polls flat out: it takes its fair turn.
+REST_S: Final = 0.1
 
 
 @dataclass(slots=True, eq=False)
@@ -89,8 +92,8 @@ class FairQueue:
 
     def enqueue(self, master: Master, request: LineRequest, idle: bool, now: float) -> None:
         """Queue ``request``; a master that was ``idle`` (nothing waiting or on the wire)
-        for at least the line's typical transaction goes to the head of the fair order,
-        unless its account is ahead of every waiting master's.
+        as long as the round of waiting requests would take (at most ``REST_S``) goes to the
+        head of the fair order, unless its account is ahead of every waiting master's.
 
         Start times alone would put it behind every master whose start time equals the
         line's virtual time (a whole round of deep queues), and, once served, behind the rest
@@ -112,7 +115,10 @@ class FairQueue:
             if master.vtime < self.vclock:
                 master.vtime = self.vclock
             answered_at = master.answered_at
-            rested = answered_at is None or now - answered_at >= self.typical
+            # Idle as long as the round it would pass (the waiting requests' typical
+            # transactions), up to ``REST_S``: a closed loop's round trip is shorter.
+            rest = min(self.queued * self.typical, REST_S)
+            rested = answered_at is None or now - answered_at >= rest
             # At most two typical transactions ahead of the virtual time: rested masters that
             # keep coming cannot keep the others' turn from coming (the virtual time moves on
             # those others' turns only).
