@@ -1339,3 +1339,38 @@ def test_a_read_handed_to_a_reopened_line_after_a_reconnect_takes_no_later_joine
     machine.finish_reopen()
     assert not machine.problems, machine.problems
     machine.teardown()
+
+
+def test_a_first_contact_in_the_lane_leaves_it_when_its_slave_answers_another_master() -> None:
+    """Found by the learned machine at depth: b's write to slave 2, never heard from, waits
+    in the lane as a first contact beside absent units; slave 2 then answers a's requests.
+    b's read of slave 2, queued as usual now, went before b's write still in the lane. A
+    slave heard from sends its waiting first contact back to the queue, ahead of its
+    master's later requests."""
+    machine = LearnedLineMachine()
+    machine.broadcast(master="a")
+    machine.fresh(kind="read", master="a", unit=10)
+    machine.wait(step=0.4)
+    machine.babble(length=4, seed=147)
+    machine.write_then_read_back(address=0, master="a", other="a", slave=3)
+    machine.wait(step=0.01)
+    machine.fresh(kind="read", master="a", unit=11)
+    machine.slow_sometimes(delay=0.12, every=3, slave=1)
+    machine.again(index=0, master="a")
+    machine.write_then_read_back(address=0, master="a", other="a", slave=2)
+    machine.babble(length=1, seed=0)
+    machine.broadcast(master="a")
+    machine.wait(step=0.01)
+    machine.fresh(kind="read", master="b", unit=10)
+    machine.wait(step=0.01)
+    machine.fresh(kind="read", master="c", unit=20)
+    machine.wait(step=0.0005)
+    machine.wait(step=0.4)
+    machine.write_then_read_back(address=0, master="b", other="a", slave=2)
+    machine.fresh(kind="read", master="a", unit=10)
+    machine.wait(step=0.01)
+    machine.wait(step=0.15)
+    machine.again(index=7, master="b")
+    machine.wait(step=0.01)
+    assert not machine.problems, machine.problems
+    machine.teardown()

@@ -849,6 +849,14 @@ class LineCore:
             record.known_read = request.pdu
         if record.state is SlaveState.UP:
             record.misses = 0  # ``alive``, for a slave that was up
+            lane = self.lane
+            if lane.first_contacts and slave in lane.first_contacts:
+                # Heard now: another master's first contact with it, waiting in the lane,
+                # goes back to the queue, before its master's later requests to it.
+                waiting = lane.requests.get(slave)
+                if waiting is not None:
+                    self._lane_remove(waiting)
+                    self._queue_at_front(waiting)
         else:
             self.alive(slave)
         if now > attempt.learn_above:  # slower than its slave's peak so far, or a first
