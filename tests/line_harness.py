@@ -100,7 +100,46 @@ class LineHarness:
         return [n.detail for n in self.core.notes if n.event is LineEvent.DISCARDED]
 
 
-class DeafWhileBusyLine:
+class SimulatedTime:
+    """Literal time for a core and what happens around it: ``at`` schedules an act,
+    ``run`` fires the core's timer and the acts in time order until ``end``, pumping the
+    core's actions after each (``_pump``: the subclass's driver)."""
+
+    core: LineCore
+
+    def __init__(self) -> None:
+        import heapq
+
+        self._heap = heapq
+        self.now = 0.0
+        self._events: list[tuple[float, int, Callable[[], object]]] = []
+        self._seq = 0
+
+    def at(self, when: float, act: Callable[[], object]) -> None:
+        self._seq += 1
+        self._heap.heappush(self._events, (when, self._seq, act))
+
+    def run(self, end: float) -> None:
+        while True:
+            timer = self.core.get_timer()
+            event_at = self._events[0][0] if self._events else end + 1.0
+            if timer is not None and timer <= event_at and timer <= end:
+                self.now = max(self.now, timer)
+                self.core.handle_timer(self.now)
+            elif event_at <= end:
+                _, _, act = self._heap.heappop(self._events)
+                self.now = max(self.now, event_at)
+                act()
+            else:
+                self.now = end
+                return
+            self._pump()
+
+    def _pump(self) -> None:
+        raise NotImplementedError
+
+
+class DeafWhileBusyLine(SimulatedTime):
     """A core on a simulated serial line of single-threaded slaves, with literal times.
 
     Each slave answers a request ``turnaround(slave, pdu, now)`` seconds after the
@@ -118,48 +157,23 @@ class DeafWhileBusyLine:
         turnaround: Callable[[int, bytes, float], float | None],
         deaf: bool = True,
     ) -> None:
-        import heapq
-
-        self._heap = heapq
+        super().__init__()
         self.core = core
         self.char = char
         self.turnaround = turnaround
         self.deaf = deaf
-        self.now = 0.0
         self.busy_until: dict[int, float] = {}
-        self._events: list[tuple[float, int, Callable[[], None]]] = []
-        self._seq = 0
         self.sent: list[bytes] = []  # every frame the core wrote, in order
         self.outcomes: list[tuple[Hashable, LineRequest, Outcome, bytes]] = []
         self.wrong = 0  # answers whose data is another request's
         self.on_answer: Callable[[LineRequest, Outcome], None] = lambda _r, _o: None
         core.port_opened(-1.0)
 
-    def at(self, when: float, act: Callable[[], None]) -> None:
-        self._seq += 1
-        self._heap.heappush(self._events, (when, self._seq, act))
-
     def submit(self, master: Hashable, slave: int, pdu: bytes) -> LineRequest:
         request = LineRequest(slave, pdu, master, lambda _pdu, _outcome: None)
         self.core.submit(request, self.now)
         self._pump()
         return request
-
-    def run(self, end: float) -> None:
-        while True:
-            timer = self.core.get_timer()
-            event_at = self._events[0][0] if self._events else end + 1.0
-            if timer is not None and timer <= event_at and timer <= end:
-                self.now = max(self.now, timer)
-                self.core.handle_timer(self.now)
-            elif event_at <= end:
-                _, _, act = self._heap.heappop(self._events)
-                self.now = max(self.now, event_at)
-                act()
-            else:
-                self.now = end
-                return
-            self._pump()
 
     def _pump(self) -> None:
         core = self.core

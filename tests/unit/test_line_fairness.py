@@ -10,16 +10,15 @@ loop, no port, no sleeping.
 from __future__ import annotations
 
 import functools
-import heapq
 import itertools
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from line_harness import SimulatedTime
 
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
@@ -52,14 +51,7 @@ def transaction_time(pdu: bytes, char: float = CHAR, turnaround: float = TURNARO
     return (len(encode_rtu(SLAVE, pdu)) + len(answer_frame(pdu))) * char + turnaround
 
 
-@dataclass(order=True)
-class _Event:
-    at: float
-    seq: int
-    act: Callable[[], object] = field(compare=False)
-
-
-class Wire:
+class Wire(SimulatedTime):
     """A line core and a sequential slave on one simulated clock; the test plays the driver."""
 
     def __init__(self, baud: int = BAUD, turnaround: float = TURNAROUND, **settings: Any) -> None:
@@ -67,42 +59,20 @@ class Wire:
         self.char = character_time(baud, 8, "N", 1)
         self.turnaround = turnaround
         self.silent: set[int] = set()  # slaves that never answer
+        super().__init__()
         self.core = LineCore(config, -1.0)
         self.core.port_opened(-1.0)
-        self.now = 0.0
-        self._events: list[_Event] = []
-        self._seq = 0
         self.sent: list[LineRequest] = []  # in the order their frames went on the wire
         self.wire_time: dict[str, float] = {}  # by master
         self.waits: dict[str, list[float]] = {}  # by master: submission to answer
         self.refused = 0
         self.on_answer: Callable[[LineRequest, str], None] = lambda _request, _outcome: None
 
-    def at(self, when: float, act: Callable[[], object]) -> None:
-        self._seq += 1
-        heapq.heappush(self._events, _Event(when, self._seq, act))
-
     def submit(self, master: str, pdu: bytes, slave: int = SLAVE) -> LineRequest:
         request = LineRequest(slave, pdu, master, lambda _pdu, _outcome: None)
         self.core.submit(request, self.now)
         self._pump()
         return request
-
-    def run_until(self, end: float) -> None:
-        while True:
-            timer = self.core.get_timer()
-            event_at = self._events[0].at if self._events else end + 1.0
-            if timer is not None and timer <= event_at and timer <= end:
-                self.now = max(self.now, timer)
-                self.core.handle_timer(self.now)
-            elif event_at <= end:
-                event = heapq.heappop(self._events)
-                self.now = max(self.now, event.at)
-                event.act()
-            else:
-                self.now = end
-                return
-            self._pump()
 
     def _pump(self) -> None:
         core = self.core
@@ -172,7 +142,7 @@ def test_a_polite_master_beside_seventeen_deep_pipelines_waits_one_transaction_a
     start = 0.25
     for index in range(int((duration - start) / POLITE_PERIOD)):
         wire.at(start + index * POLITE_PERIOD, lambda: wire.submit("polite", read(0, 1)))
-    wire.run_until(duration + 1.0)
+    wire.run(duration + 1.0)
 
     waits = wire.waits["polite"]
     assert len(waits) == int((duration - start) / POLITE_PERIOD)
@@ -197,7 +167,7 @@ def test_a_master_asking_more_than_its_share_waits_its_turn() -> None:
     for index in range(40):
         send = functools.partial(wire.submit, "heavy", read(30000 + index, DEEP_QUANTITY))
         wire.at(0.25 + index * 0.3, send)
-    wire.run_until(13.0)
+    wire.run(13.0)
     heavy = wire.wire_time["heavy"]
     deep = [time for master, time in wire.wire_time.items() if master.startswith("deep")]
     # Without the fair share it would take ~0.28 s of every 0.3 s; with it, about a fifth.
@@ -220,12 +190,12 @@ def test_masters_with_nothing_waiting_go_next_after_the_transaction_on_the_wire(
     together with one request each are the next ones on the wire, in the order they came."""
     wire = Wire(max_queue_per_master=32, max_queue=256)
     keep_deep(wire, masters, pipeline, quantity)
-    wire.run_until(arrival)
+    wire.run(arrival)
     before = len(wire.sent)  # the transaction on the wire, if any, is in already
     names = [f"new{index}" for index in range(newcomers)]
     for index, name in enumerate(names):
         wire.submit(name, read(61000 + index, 1))  # distinct: none joins another's
-    wire.run_until(arrival + 2 * transaction_time(read(0, 125)) + newcomers)
+    wire.run(arrival + 2 * transaction_time(read(0, 125)) + newcomers)
     following = [str(request.master) for request in wire.sent[before:]]
     assert following[:newcomers] == names
 
@@ -240,12 +210,12 @@ def test_a_master_that_paid_for_a_timeout_waits_its_debt_in_line_time() -> None:
     wire = Wire(baud=115200, turnaround=0.0002, timeout=timeout, retries=0)
     wire.silent.add(2)
     keep_deep(wire, 1, 4, 1)  # one master polling a live slave, four reads in flight
-    wire.run_until(0.2)
+    wire.run(0.2)
     wire.submit("probe", read(0, 10), slave=2)  # no answer: the line held for the timeout
-    wire.run_until(0.2 + timeout + 0.01)
+    wire.run(0.2 + timeout + 0.01)
     assert wire.waits["probe"] == [pytest.approx(timeout, abs=0.01)]
     wire.submit("probe", read(0, 10))
-    wire.run_until(0.2 + 4 * timeout)
+    wire.run(0.2 + 4 * timeout)
     waited = wire.waits["probe"][1]
     # The debt is the timeout; the other master earns it back in about as much line time.
     assert waited <= 1.25 * timeout, waited
@@ -280,7 +250,7 @@ def test_masters_that_poll_as_fast_as_they_are_answered_wait_one_round_at_most(
     for index in range(masters):
         send(f"m{index}")
     wire._pump()
-    wire.run_until(20.0)
+    wire.run(20.0)
 
     waits = [wait for values in wire.waits.values() for wait in values]
     per = 20.0 / len(waits)  # the mean transaction time, the line being always busy
@@ -318,7 +288,7 @@ def test_a_hundred_masters_on_a_fast_line_are_served_alike() -> None:
     for index in range(100):
         send(f"m{index}")
     wire._pump()
-    wire.run_until(3.0)
+    wire.run(3.0)
     waits = [wait for values in wire.waits.values() for wait in values]
     assert max(waits) <= 0.1, sorted(waits)[-5:]
     assert min(served.values()) >= 0.9 * max(served.values()), served
@@ -356,7 +326,7 @@ def test_a_scan_of_absent_addresses_costs_its_own_master_not_a_periodic_one() ->
         if scan:
             for _ in range(4):
                 wire.at(0.0, probe)
-        wire.run_until(21.0)
+        wire.run(21.0)
         return wire.waits["periodic"]
 
     quiet = periodic_waits(scan=False)
