@@ -83,8 +83,10 @@ def ensure_file_descriptors(needed: int) -> None:
     if target < needed:
         log.warning(
             "open-file limit %d is below the %d that server.max_connections needs; "
-            "raise it (systemd: LimitNOFILE=, docker: --ulimit nofile=)", target, needed,
-        )  # fmt: skip
+            "raise it (systemd: LimitNOFILE=, docker: --ulimit nofile=)",
+            target,
+            needed,
+        )
 
 
 def bind_error(error: OSError, key: str, host: str, port: int) -> OSError:
@@ -247,9 +249,13 @@ class Gateway:
             built = tls.get(listener.name)
             kind = rtu_over_tcp_server if listener.protocol == "rtu-over-tcp" else ModbusTcpServer
             server = kind(
-                self.config.server, router, self.metrics, listener,
-                listener_policy(self.config, listener), built.context if built else None,
-            )  # fmt: skip
+                self.config.server,
+                router,
+                self.metrics,
+                listener,
+                listener_policy(self.config, listener),
+                built.context if built else None,
+            )
             server.tracer, server.audit = self.trace, self.audit
             self.servers.append(server)
         self.server = self.servers[0]
@@ -258,8 +264,9 @@ class Gateway:
         """Open each ``serial-slave`` listener's line (or keep trying in the background)."""
         for listener in self.config.listeners:
             if listener.serial is not None:
-                slave = SerialSlave(listener, router, self.metrics,
-                                    listener_policy(self.config, listener), loop)  # fmt: skip
+                slave = SerialSlave(
+                    listener, router, self.metrics, listener_policy(self.config, listener), loop
+                )
                 slave.tracer, slave.audit = self.trace, self.audit
                 self.serial_slaves.append(slave)
                 slave.start()
@@ -287,8 +294,13 @@ class Gateway:
     async def _start_http(self) -> HttpEndpoint:
         routes = dict(self.live.routes) if self.live is not None else {}
         routes["/role"] = (role_route(self._role), Access.STATUS)
-        return await start_http(self.config.metrics, self.metrics.exposition_registry(),
-                                self.is_ready, routes, self.metrics.http_refusals)  # fmt: skip
+        return await start_http(
+            self.config.metrics,
+            self.metrics.exposition_registry(),
+            self.is_ready,
+            routes,
+            self.metrics.http_refusals,
+        )
 
     def pair_status(self) -> PairStatus | None:
         """This gateway's role in its pair, ``None`` without one (``GatewayView``)."""
@@ -368,8 +380,11 @@ class Gateway:
         router = self._build_router()
         self._apply_listeners(config, router, tls)
         self.metrics.describe_lines([line.name for line in config.lines])
-        log.info("reload: configuration from %s applied: %s", config.source,
-                 summarize(running, wanted, config, LINE_PORT_SETTINGS))  # fmt: skip
+        log.info(
+            "reload: configuration from %s applied: %s",
+            config.source,
+            summarize(running, wanted, config, LINE_PORT_SETTINGS),
+        )
 
     async def _apply_lines(
         self, config: GatewayConfig, line_tls: dict[str, ssl.SSLContext]
@@ -419,14 +434,21 @@ class Gateway:
         """``config`` with the running values of the settings a reload cannot change (warned)."""
         running = self.config
         if (config.server.host, config.server.port) != (running.server.host, running.server.port):
-            log.warning("reload: server.listen changes need a restart; keeping %s:%d",
-                        running.server.host, running.server.port)  # fmt: skip
+            log.warning(
+                "reload: server.listen changes need a restart; keeping %s:%d",
+                running.server.host,
+                running.server.port,
+            )
             server = replace(config.server, host=running.server.host, port=running.server.port)
             config = replace(config, server=server)
-        bound = {s.name: (s.listener.protocol, s.listener.host, s.listener.port)
-                 for s in self.servers}  # fmt: skip
-        wanted = {lst.name: (lst.protocol, lst.host, lst.port) for lst in config.listeners
-                  if lst.serial is None}  # fmt: skip
+        bound = {
+            s.name: (s.listener.protocol, s.listener.host, s.listener.port) for s in self.servers
+        }
+        wanted = {
+            lst.name: (lst.protocol, lst.host, lst.port)
+            for lst in config.listeners
+            if lst.serial is None
+        }
         if config.listeners and wanted != bound:
             log.warning(
                 "reload: adding, removing or moving listeners needs a restart; the listeners "
@@ -451,8 +473,9 @@ class Gateway:
             listener = by_name.get(server.name)
             if listener is None or listener.protocol != server.listener.protocol:
                 continue
-            server.listener = replace(listener, host=server.listener.host,
-                                      port=server.listener.port)  # fmt: skip
+            server.listener = replace(
+                listener, host=server.listener.host, port=server.listener.port
+            )
             server.policy = listener_policy(config, server.listener)
             server.screen.allow_lists = tuple(
                 tuple(nets) for nets in (config.server.allow, listener.allow) if nets
@@ -467,9 +490,11 @@ class Gateway:
             if listener is not None and listener.serial == slave.listener.serial:
                 slave.policy = listener_policy(config, listener)
             else:
-                log.warning("reload: serial-slave listener %s: changes to its serial line "
-                            "(device, format, framing, echo) need a restart",
-                            slave.name)  # fmt: skip
+                log.warning(
+                    "reload: serial-slave listener %s: changes to its serial line "
+                    "(device, format, framing, echo) need a restart",
+                    slave.name,
+                )
 
     # -- helpers -----------------------------------------------------------------------
 
@@ -543,12 +568,21 @@ def log_listening(
             protocol = "RTU over TCP"
         else:
             protocol = "Modbus TCP"
-        log.info("listening on %s:%d (%s), listener %s, %d line(s)",
-                 host, port, protocol, listener.name, lines)  # fmt: skip
+        log.info(
+            "listening on %s:%d (%s), listener %s, %d line(s)",
+            host,
+            port,
+            protocol,
+            listener.name,
+            lines,
+        )
     if metrics_address is not None:
         mhost, mport = metrics_address
-        log.info("metrics on %s, status page on %s",
-                 http_url(mhost, mport, "/metrics"), http_url(mhost, mport))  # fmt: skip
+        log.info(
+            "metrics on %s, status page on %s",
+            http_url(mhost, mport, "/metrics"),
+            http_url(mhost, mport),
+        )
 
 
 def readiness(buses: Mapping[str, Bus], pair: Pair | None) -> tuple[bool, str]:

@@ -108,32 +108,54 @@ def build_parser(log_errors: bool = False) -> argparse.ArgumentParser:
 
 def _add_source_flags(parser: argparse.ArgumentParser) -> None:
     """Flags that add a line or a listener rather than set one key."""
-    parser.add_argument("--serial", metavar="DEVICE_OR_URL",
-                        help="serial device or pyserial URL; without --config every unit "
-                        "1..247 is routed to it")  # fmt: skip
-    parser.add_argument("--rtu-over-tcp", metavar="HOST:PORT", type=_host_port,
-                        help="RTU over TCP to a serial device server (raw socket mode) "
-                        "instead of --serial; without --config every unit 1..247 is "
-                        "routed to it")  # fmt: skip
-    parser.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port,
-                        help="a Modbus TCP slave (or another gateway) instead of --serial; "
-                        "without --config every unit 1..247 is routed to it")  # fmt: skip
-    parser.add_argument("--modbus-tls", metavar="HOST[:PORT]",
-                        help="a Modbus/TCP Security slave (port 802 unless given) instead of "
-                        "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
-                        "without --config every unit 1..247 is routed to it")  # fmt: skip
-    parser.add_argument("--rtu-over-tcp-listen", metavar="HOST:PORT", type=_host_port,
-                        help="also accept masters sending RTU frames over TCP here, listener "
-                        "'rtu-over-tcp'")  # fmt: skip
-    parser.add_argument("--serial-slave", metavar="DEVICE",
-                        help="also answer RTU masters on this serial device as the routed "
-                        "slaves (reverse mode), listener 'serial-slave'; the line format "
-                        "of --baudrate/--data-bits/--parity/--stopbits applies to it "
-                        "too")  # fmt: skip
-    parser.add_argument("--serial-slave-framing", choices=["rtu", "ascii"],
-                        help="what the masters on the --serial-slave line speak: rtu "
-                        "(default; that of --framing when given) or ascii (7E1 unless "
-                        "--data-bits/--parity)")  # fmt: skip
+    parser.add_argument(
+        "--serial",
+        metavar="DEVICE_OR_URL",
+        help="serial device or pyserial URL; without --config every unit 1..247 is routed to it",
+    )
+    parser.add_argument(
+        "--rtu-over-tcp",
+        metavar="HOST:PORT",
+        type=_host_port,
+        help="RTU over TCP to a serial device server (raw socket mode) "
+        "instead of --serial; without --config every unit 1..247 is "
+        "routed to it",
+    )
+    parser.add_argument(
+        "--modbus-tcp",
+        metavar="HOST:PORT",
+        type=_host_port,
+        help="a Modbus TCP slave (or another gateway) instead of --serial; "
+        "without --config every unit 1..247 is routed to it",
+    )
+    parser.add_argument(
+        "--modbus-tls",
+        metavar="HOST[:PORT]",
+        help="a Modbus/TCP Security slave (port 802 unless given) instead of "
+        "--serial; needs --modbus-tls-cert, --modbus-tls-key, --modbus-tls-ca; "
+        "without --config every unit 1..247 is routed to it",
+    )
+    parser.add_argument(
+        "--rtu-over-tcp-listen",
+        metavar="HOST:PORT",
+        type=_host_port,
+        help="also accept masters sending RTU frames over TCP here, listener 'rtu-over-tcp'",
+    )
+    parser.add_argument(
+        "--serial-slave",
+        metavar="DEVICE",
+        help="also answer RTU masters on this serial device as the routed "
+        "slaves (reverse mode), listener 'serial-slave'; the line format "
+        "of --baudrate/--data-bits/--parity/--stopbits applies to it "
+        "too",
+    )
+    parser.add_argument(
+        "--serial-slave-framing",
+        choices=["rtu", "ascii"],
+        help="what the masters on the --serial-slave line speak: rtu "
+        "(default; that of --framing when given) or ascii (7E1 unless "
+        "--data-bits/--parity)",
+    )
 
 
 #: The argparse type of a flag, by the type of the key it sets.
@@ -168,20 +190,38 @@ def _flag_arguments(key: Key) -> dict[str, Any]:
 
 def _add_run_flags(parser: argparse.ArgumentParser) -> None:
     """How this run behaves: the stop's grace, the demo, the trace."""
-    parser.add_argument("--grace", type=float, default=5.0, metavar="SECONDS",
-                        help="how long a stop waits for the transactions on the wire "
-                        "(default 5)")  # fmt: skip
-    parser.add_argument("--demo", action="store_true",
-                        help="serve built-in simulated RTU, ASCII and Modbus TCP slaves (no "
-                        "hardware needed)")  # fmt: skip
-    parser.add_argument("--trace", action="store_true",
-                        help="log every request and reply, decoded, on the gateway.trace "
-                        "logger")  # fmt: skip
-    parser.add_argument("--trace-unit", type=int, action="append", metavar="N",
-                        help="trace only unit N (repeatable; implies --trace)")  # fmt: skip
-    parser.add_argument("--trace-function", type=_function_code, action="append", metavar="FC",
-                        help="trace only function FC: 3, 0x10 or read_holding_registers "
-                        "(repeatable; implies --trace)")  # fmt: skip
+    parser.add_argument(
+        "--grace",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long a stop waits for the transactions on the wire (default 5)",
+    )
+    parser.add_argument(
+        "--demo",
+        action="store_true",
+        help="serve built-in simulated RTU, ASCII and Modbus TCP slaves (no hardware needed)",
+    )
+    parser.add_argument(
+        "--trace",
+        action="store_true",
+        help="log every request and reply, decoded, on the gateway.trace logger",
+    )
+    parser.add_argument(
+        "--trace-unit",
+        type=int,
+        action="append",
+        metavar="N",
+        help="trace only unit N (repeatable; implies --trace)",
+    )
+    parser.add_argument(
+        "--trace-function",
+        type=_function_code,
+        action="append",
+        metavar="FC",
+        help="trace only function FC: 3, 0x10 or read_holding_registers "
+        "(repeatable; implies --trace)",
+    )
     parser.add_argument("--no-uvloop", action="store_true", help=argparse.SUPPRESS)
 
 
@@ -229,9 +269,12 @@ def _apply_listener_flags(raw: dict[str, Any], args: argparse.Namespace) -> None
     if args.serial_slave:
         serial: dict[str, Any] = {"device": args.serial_slave}
         formats = {
-            "baudrate": args.baudrate, "data_bits": args.data_bits, "parity": args.parity,
-            "stop_bits": args.stopbits, "framing": args.serial_slave_framing or args.framing,
-        }  # fmt: skip
+            "baudrate": args.baudrate,
+            "data_bits": args.data_bits,
+            "parity": args.parity,
+            "stop_bits": args.stopbits,
+            "framing": args.serial_slave_framing or args.framing,
+        }
         serial.update({key: value for key, value in formats.items() if value is not None})
         _set_listener(raw, "serial-slave", serial)
 
@@ -256,8 +299,9 @@ def _apply_line_sources(lines: dict[str, Any], args: argparse.Namespace) -> None
         _apply_network_line(lines, "tcp", args.modbus_tcp, "--modbus-tcp", args)
     if args.modbus_tls:
         if args.rtu_over_tcp or args.modbus_tcp:
-            raise ConfigError("--modbus-tls", ["give one of --rtu-over-tcp, --modbus-tcp and "
-                                               "--modbus-tls"])  # fmt: skip
+            raise ConfigError(
+                "--modbus-tls", ["give one of --rtu-over-tcp, --modbus-tcp and --modbus-tls"]
+            )
         _apply_network_line(lines, "tls", args.modbus_tls, "--modbus-tls", args)
 
 
@@ -390,8 +434,12 @@ def _audit(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="modbus-gateway audit", description=_audit.__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     verify = commands.add_parser("verify", help="check the hash chain of audit log files")
-    verify.add_argument("files", nargs="+", metavar="FILE",
-                        help="audit log files, oldest first (rotated files in order)")  # fmt: skip
+    verify.add_argument(
+        "files",
+        nargs="+",
+        metavar="FILE",
+        help="audit log files, oldest first (rotated files in order)",
+    )
     args = parser.parse_args(argv)
     from .io.audit import verify_files
 

@@ -457,13 +457,17 @@ class _Checker:
                     continue
                 value = entry.pop(alias)
                 if declared.name in entry:
-                    self.fail(f"{prefix}{alias}", f"is the former name of {declared.name}; "
-                              f"keep only {declared.name}")  # fmt: skip
+                    self.fail(
+                        f"{prefix}{alias}",
+                        f"is the former name of {declared.name}; keep only {declared.name}",
+                    )
                     continue
                 entry[declared.name] = value
                 self.written_as[f"{prefix}{declared.name}"] = f"{prefix}{alias}"
-                self.renamed.append(f"{prefix}{alias}: the former name of {declared.name}, "
-                                    f"still accepted; rename it to {declared.name}")  # fmt: skip
+                self.renamed.append(
+                    f"{prefix}{alias}: the former name of {declared.name}, "
+                    f"still accepted; rename it to {declared.name}"
+                )
         return entry
 
     def read(self, key: Key, table: Mapping[str, Any], prefix: str, default: Any = None) -> Any:
@@ -584,10 +588,24 @@ class _Checker:
 #: Keys only a ``kind = "tls"`` line takes.
 _TLS_LINE_KEYS = tuple(k.name for k in _LINE_KEYS_BY_NAME.values() if k.only == 'kind = "tls"')
 #: Line keys with a parser of their own (the rest are read as the schema declares them).
-_LINE_SPECIAL = frozenset({"kind", "device", "address", "baudrate", "data_bits", "parity",
-                           "stop_bits",
-                           "timeout", "units", "slave_timeouts", "names", "cache", "max_in_flight",
-                           *_TLS_LINE_KEYS})  # fmt: skip
+_LINE_SPECIAL = frozenset(
+    {
+        "kind",
+        "device",
+        "address",
+        "baudrate",
+        "data_bits",
+        "parity",
+        "stop_bits",
+        "timeout",
+        "units",
+        "slave_timeouts",
+        "names",
+        "cache",
+        "max_in_flight",
+        *_TLS_LINE_KEYS,
+    }
+)
 #: Line keys stored in a field of another name.
 _LINE_FIELDS = {"silence": "silence_setting"}
 #: ``LineConfig`` fields whose change makes a reload reopen the line (the schema's
@@ -623,8 +641,9 @@ def _function_codes(
     if not isinstance(raw, list) or not all(
         isinstance(code, int) and not isinstance(code, bool) and low <= code <= high for code in raw
     ):
-        check.fail(f"{prefix}{key.name}",
-                   f"write a list of function codes {low}..{high}, like [8, 17]")  # fmt: skip
+        check.fail(
+            f"{prefix}{key.name}", f"write a list of function codes {low}..{high}, like [8, 17]"
+        )
         return frozenset()
     return frozenset(raw)
 
@@ -640,9 +659,10 @@ def _build_server(check: _Checker, raw: Mapping[str, Any]) -> ServerConfig:
         refuse_functions=_function_codes(check, table, keys["refuse_functions"], prefix),
         allow=_networks(check, table, "allow", prefix),
         policy=_policy_name(check, table, prefix),
-        **_scalars(check, Table.SERVER, table, prefix,
-                   ("listen", "refuse_functions", "allow", "policy")),
-    )  # fmt: skip
+        **_scalars(
+            check, Table.SERVER, table, prefix, ("listen", "refuse_functions", "allow", "policy")
+        ),
+    )
 
 
 def _line_kind(check: _Checker, table: Mapping[str, Any], prefix: str) -> tuple[str, str, str, int]:
@@ -653,8 +673,11 @@ def _line_kind(check: _Checker, table: Mapping[str, Any], prefix: str) -> tuple[
     if kind in NETWORK_LINE_KINDS:
         host, port, device = _network_address(check, table, prefix, kind)
     elif "address" in table:
-        check.fail(f"{prefix}address", 'only a network line takes it (kind = "rtu-over-tcp", '
-                   f'"tcp" or "tls"); a {kind} line names its serial port with device')  # fmt: skip
+        check.fail(
+            f"{prefix}address",
+            'only a network line takes it (kind = "rtu-over-tcp", '
+            f'"tcp" or "tls"); a {kind} line names its serial port with device',
+        )
     if kind not in NETWORK_LINE_KINDS and (not isinstance(device, str) or not device):
         check.fail(
             f"{prefix}device",
@@ -750,8 +773,10 @@ def _tls_line(
     if kind != "tls":
         for key in _TLS_LINE_KEYS:
             if key in table:
-                check.fail(f"{prefix}{key}", f'only a kind = "tls" line takes it; remove it '
-                           f"from this {kind} line")  # fmt: skip
+                check.fail(
+                    f"{prefix}{key}",
+                    f'only a kind = "tls" line takes it; remove it from this {kind} line',
+                )
         return {}
     what = {
         "cert": "the gateway's client certificate chain (PEM, leaf first)",
@@ -763,19 +788,27 @@ def _tls_line(
         value = table.get(key)
         if not isinstance(value, str) or not value:
             fix = "write a file path as a string" if key in table else "missing"
-            check.fail(f"{prefix}{key}", f"{fix}; a tls line needs {description}"
-                       f" (or --modbus-tls-{key} FILE)")  # fmt: skip
+            check.fail(
+                f"{prefix}{key}",
+                f"{fix}; a tls line needs {description} (or --modbus-tls-{key} FILE)",
+            )
             value = None
         files[key] = value
     server_name = table.get("server_name", host)
     if not isinstance(server_name, str) or not server_name:
-        check.fail(f"{prefix}server_name", "write the name the slave's certificate carries, "
-                   'like "plc-7.plant.example" (default: the address\'s host)')  # fmt: skip
+        check.fail(
+            f"{prefix}server_name",
+            "write the name the slave's certificate carries, "
+            'like "plc-7.plant.example" (default: the address\'s host)',
+        )
         server_name = host
     elif not _usable_server_name(server_name):
-        check.fail(f"{prefix}server_name", f"{server_name!r} is not a host name or address; "
-                   "write the name the slave's certificate carries, like "
-                   '"plc-7.plant.example"')  # fmt: skip
+        check.fail(
+            f"{prefix}server_name",
+            f"{server_name!r} is not a host name or address; "
+            "write the name the slave's certificate carries, like "
+            '"plc-7.plant.example"',
+        )
         server_name = host
     return {
         **files,
@@ -806,14 +839,19 @@ def _network_address(
 ) -> tuple[str, int, str]:
     """``address = "HOST:PORT"`` of a network line: host, port and the text shown as its device."""
     if "device" in table:
-        check.fail(f"{prefix}device", f'a {kind} line is reached at address = "HOST:PORT", '
-                   "not a device; rename the key to address")  # fmt: skip
+        check.fail(
+            f"{prefix}device",
+            f'a {kind} line is reached at address = "HOST:PORT", '
+            "not a device; rename the key to address",
+        )
     value = table.get("address")
     if kind == "tls" and isinstance(value, str) and value and not _has_port(value):
         value = f"{value}:{DEFAULT_TLS_PORT}"  # Modbus/TCP Security's own port
     if not isinstance(value, str) or not value:
-        check.fail(f"{prefix}address", f'missing; a {kind} line needs the device server\'s '
-                   'address, like "10.0.0.5:4001"')  # fmt: skip
+        check.fail(
+            f"{prefix}address",
+            f'missing; a {kind} line needs the device server\'s address, like "10.0.0.5:4001"',
+        )
         return "", 0, ""
     try:
         host, port = parse_host_port(value)
@@ -821,8 +859,11 @@ def _network_address(
         check.fail(f"{prefix}address", str(error))
         return "", 0, ""
     if port == 0 or host in ("0.0.0.0", "::"):
-        check.fail(f"{prefix}address", f"{value!r} is not a place to connect to; "
-                   'write the device server\'s address, like "10.0.0.5:4001"')  # fmt: skip
+        check.fail(
+            f"{prefix}address",
+            f"{value!r} is not a place to connect to; "
+            'write the device server\'s address, like "10.0.0.5:4001"',
+        )
         return "", 0, ""
     shown = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
     return host, port, shown
@@ -888,8 +929,10 @@ def _slave_names(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict
         if not slave_text.isdigit() or not 1 <= int(slave_text) <= 247:
             check.fail(f"{key}.{slave_text}", "the key must be a slave address 1..247, quoted")
         elif not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_LENGTH:
-            check.fail(f"{key}.{slave_text}", f"{name!r} is not a name of 1..{MAX_NAME_LENGTH} "
-                       "characters in quotes")  # fmt: skip
+            check.fail(
+                f"{key}.{slave_text}",
+                f"{name!r} is not a name of 1..{MAX_NAME_LENGTH} characters in quotes",
+            )
         else:
             names[int(slave_text)] = name.strip()
     return names
@@ -949,8 +992,10 @@ def _build_routes(
         if route is None:
             continue
         if route.unit in routes:
-            check.fail(f"routes[{index}].unit", f"unit {route.unit} is already routed to line "
-                       f"{routes[route.unit].line!r}")  # fmt: skip
+            check.fail(
+                f"routes[{index}].unit",
+                f"unit {route.unit} is already routed to line {routes[route.unit].line!r}",
+            )
             continue
         routes[route.unit] = route
     return routes
@@ -1266,9 +1311,8 @@ def _ranges(value: Any, low: int, high: int) -> list[tuple[int, int]]:
 
 
 def _rule_numbers(
-    check: _Checker, entry: Mapping[str, Any], key: str, prefix: str, low: int, high: int,
-    what: str,
-) -> frozenset[int] | None:  # fmt: skip
+    check: _Checker, entry: Mapping[str, Any], key: str, prefix: str, low: int, high: int, what: str
+) -> frozenset[int] | None:
     """A rule's ``units`` or ``slave``: numbers and ranges; ``None`` when not written."""
     if key not in entry:
         return None
@@ -1294,8 +1338,10 @@ def _rule_lines(check: _Checker, entry: Mapping[str, Any], prefix: str) -> froze
 
 def _build_rule(check: _Checker, entry: Any, key: str) -> Rule | None:
     if not isinstance(entry, dict):
-        check.fail(key, "must be a table with role, source, units, line, slave, functions, "
-                   "addresses, access")  # fmt: skip
+        check.fail(
+            key,
+            "must be a table with role, source, units, line, slave, functions, addresses, access",
+        )
         return None
     prefix = f"{key}."
     check.unknown_keys(entry, _RULE_KEYS, prefix)
@@ -1374,8 +1420,11 @@ def _serial_slave_line(
     """The serial line of a ``serial-slave`` listener, and the units it answers for."""
     device = entry.get("device")
     if not isinstance(device, str) or not device:
-        check.fail(f"{prefix}device", 'missing; a serial-slave listener answers on a serial '
-                   'device, like "/dev/ttyUSB1" (or --serial-slave DEVICE)')  # fmt: skip
+        check.fail(
+            f"{prefix}device",
+            "missing; a serial-slave listener answers on a serial "
+            'device, like "/dev/ttyUSB1" (or --serial-slave DEVICE)',
+        )
         device = ""
     if "listen" in entry:
         check.fail(f"{prefix}listen", "a serial-slave listener has a device, not an address")
@@ -1396,8 +1445,10 @@ def _serial_slave_line(
         **_serial_format(check, Table.LISTENERS, entry, prefix, ascii_line),
     )
     if "inter_char_timeout" in entry and not ascii_line:
-        check.fail(f"{prefix}inter_char_timeout", 'only an ASCII line has one (framing = '
-                   '"ascii"); an RTU frame ends on t3.5 of silence')  # fmt: skip
+        check.fail(
+            f"{prefix}inter_char_timeout",
+            'only an ASCII line has one (framing = "ascii"); an RTU frame ends on t3.5 of silence',
+        )
     return line, units
 
 
@@ -1412,8 +1463,16 @@ def _shorthand_listener(
     ]
     if "listen" not in check.table(raw, "server") and networked:
         return []
-    return [ListenerConfig(name="tcp", protocol="tcp", host=server.host, port=server.port,
-                           read_only=server.read_only, policy=server.policy)]  # fmt: skip
+    return [
+        ListenerConfig(
+            name="tcp",
+            protocol="tcp",
+            host=server.host,
+            port=server.port,
+            read_only=server.read_only,
+            policy=server.policy,
+        )
+    ]
 
 
 def _listener_files(
@@ -1427,8 +1486,10 @@ def _listener_files(
             check.fail(f"{prefix}{file_key}", "write a file path as a string")
             value = None
         if protocol == "tls" and value is None:
-            check.fail(f"{prefix}{file_key}", f"missing; a tls listener needs {what}"
-                       f" (or --tls-{file_key} FILE)")  # fmt: skip
+            check.fail(
+                f"{prefix}{file_key}",
+                f"missing; a tls listener needs {what} (or --tls-{file_key} FILE)",
+            )
         if protocol != "tls" and value is not None:
             check.fail(f"{prefix}{file_key}", 'only a protocol = "tls" listener takes it')
         files[file_key] = value
@@ -1449,16 +1510,19 @@ def _listener(check: _Checker, raw: Any, index: int, server: ServerConfig) -> Li
         check.fail(f"{prefix}name", f"{name!r}: write a short name of letters, digits, - or _")
         name = f"listener{index}"
     common: dict[str, Any] = {
-        "name": name, "protocol": protocol, "key_prefix": prefix,
+        "name": name,
+        "protocol": protocol,
+        "key_prefix": prefix,
         "read_only": check.read(_LISTENER_TABLE["read_only"], entry, prefix) or server.read_only,
         "policy": _policy_name(check, entry, prefix),
-    }  # fmt: skip
+    }
     if protocol == "serial-slave":
         serial, units = _serial_slave_line(check, entry, prefix, name)
         for other in ("cert", "key", "ca", "crl", "allow"):
             if other in entry:
-                check.fail(f"{prefix}{other}", "a serial-slave listener has no network "
-                           "peers: remove it")  # fmt: skip
+                check.fail(
+                    f"{prefix}{other}", "a serial-slave listener has no network peers: remove it"
+                )
         return ListenerConfig(host="", port=0, serial=serial, units=units, **common)
     for serial_key in sorted(_SERIAL_SLAVE_KEYS & set(entry)):
         check.fail(f"{prefix}{serial_key}", 'only a protocol = "serial-slave" listener takes it')
@@ -1467,11 +1531,14 @@ def _listener(check: _Checker, raw: Any, index: int, server: ServerConfig) -> Li
     if address is None:
         check.fail(f"{prefix}listen", 'a listener needs an address; write it like "0.0.0.0:802"')
         address = ("0.0.0.0", default_port)
-    return ListenerConfig(host=address[0], port=address[1],
-                          allow=_networks(check, entry, "allow", prefix),
-                          **_listener_files(check, entry, prefix, protocol),
-                          **_listener_tls(check, entry, prefix, protocol),
-                          **common)  # fmt: skip
+    return ListenerConfig(
+        host=address[0],
+        port=address[1],
+        allow=_networks(check, entry, "allow", prefix),
+        **_listener_files(check, entry, prefix, protocol),
+        **_listener_tls(check, entry, prefix, protocol),
+        **common,
+    )
 
 
 def _listener_tls(
@@ -1488,8 +1555,10 @@ def _listener_tls(
     if crl is not None and (not isinstance(crl, str) or not crl):
         check.fail(f"{prefix}crl", "write a file path as a string")
         crl = None
-    return {"crl": crl, **{name: check.read(_LISTENER_TABLE[name], entry, prefix)
-                           for name in names[1:]}}  # fmt: skip
+    return {
+        "crl": crl,
+        **{name: check.read(_LISTENER_TABLE[name], entry, prefix) for name in names[1:]},
+    }
 
 
 def _check_listeners(
@@ -1499,18 +1568,23 @@ def _check_listeners(
     seen: dict[str, ListenerConfig] = {}
     for listener in listeners:
         if listener.name in seen:
-            check.fail(f"{listener.key_prefix}name", f"{listener.name!r} is used by another "
-                       "listener; give each listener its own name")  # fmt: skip
+            check.fail(
+                f"{listener.key_prefix}name",
+                f"{listener.name!r} is used by another listener; give each listener its own name",
+            )
         seen[listener.name] = listener
         if listener.policy is not None and listener.policy not in policies:
             known = ", ".join(sorted(policies)) or "(none defined)"
-            check.fail(f"{listener.key_prefix}policy", f"{listener.policy!r} is not a "
-                       f"[policies.NAME] table; policies are: {known}")  # fmt: skip
+            check.fail(
+                f"{listener.key_prefix}policy",
+                f"{listener.policy!r} is not a [policies.NAME] table; policies are: {known}",
+            )
     addresses = [(lst.host, lst.port) for lst in listeners if lst.port != 0]
     for address in set(addresses):
         if addresses.count(address) > 1:
-            check.fail("listeners", f"two listeners on {address[0]}:{address[1]}; "
-                       "give each its own port")  # fmt: skip
+            check.fail(
+                "listeners", f"two listeners on {address[0]}:{address[1]}; give each its own port"
+            )
 
 
 def _build_listeners(
@@ -1536,9 +1610,7 @@ def _build_listeners(
 #: What a token may hold: it travels unencoded in a header, a cookie and a link.
 _TOKEN_CHARACTERS = frozenset(string.ascii_letters + string.digits + "-._~")
 #: The ``[metrics]`` keys that hold text: host names, tokens, file paths.
-_METRICS_TEXT = (
-    "allowed_hosts", "status_token", "trace_token", "tls_cert", "tls_key", "tls_ca",
-)  # fmt: skip
+_METRICS_TEXT = ("allowed_hosts", "status_token", "trace_token", "tls_cert", "tls_key", "tls_ca")
 
 
 def _metrics_text(check: _Checker, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
@@ -1558,11 +1630,17 @@ def _metrics_text(check: _Checker, table: Mapping[str, Any], prefix: str) -> dic
     for name in ("status_token", "trace_token"):
         token = values[name]
         if token is not None and not all(c in _TOKEN_CHARACTERS for c in token):
-            check.fail(f"{prefix}{name}", "use letters, digits and - . _ ~ only (it travels "
-                       "in a header, a cookie and a link unencoded)")  # fmt: skip
+            check.fail(
+                f"{prefix}{name}",
+                "use letters, digits and - . _ ~ only (it travels "
+                "in a header, a cookie and a link unencoded)",
+            )
         elif token is not None and len(token) < 16:
-            check.fail(f"{prefix}{name}", "too short to resist guessing; use 16 characters "
-                       "or more, like the output of: openssl rand -hex 16")  # fmt: skip
+            check.fail(
+                f"{prefix}{name}",
+                "too short to resist guessing; use 16 characters "
+                "or more, like the output of: openssl rand -hex 16",
+            )
     if (values["tls_cert"] is None) != (values["tls_key"] is None):
         check.fail(f"{prefix}tls_cert", "HTTPS needs both tls_cert and tls_key")
     if values["tls_ca"] is not None and values["tls_cert"] is None:
@@ -1610,15 +1688,23 @@ def _build_redundancy(check: _Checker, raw: Mapping[str, Any]) -> RedundancyConf
     keepalive = _keepalive(check, table.get("keepalive", "auto"), prefix)
     config = RedundancyConfig(**values, keepalive=keepalive)
     if config.peer is not None and config.peer_modbus is None:
-        check.fail(f"{prefix}peer_modbus", "set the peer's Modbus TCP listener, HOST:PORT, "
-                   "where a standby forwards its masters' requests")  # fmt: skip
+        check.fail(
+            f"{prefix}peer_modbus",
+            "set the peer's Modbus TCP listener, HOST:PORT, "
+            "where a standby forwards its masters' requests",
+        )
     if config.peer is None and config.peer_modbus is not None:
-        check.fail(f"{prefix}peer", "set the peer's HTTP endpoint, HOST:PORT, or remove "
-                   "peer_modbus: a pair needs both")  # fmt: skip
+        check.fail(
+            f"{prefix}peer",
+            "set the peer's HTTP endpoint, HOST:PORT, or remove peer_modbus: a pair needs both",
+        )
     if config.takeover_after <= config.lease + PAIR_HEARING_DELAY_S:
-        check.fail(f"{prefix}takeover_after", f"must be longer than the lease plus "
-                   f"{PAIR_HEARING_DELAY_S:g} s ({config.lease + PAIR_HEARING_DELAY_S:g} s): "
-                   "the active's frames must reach the standby before its wait ends")  # fmt: skip
+        check.fail(
+            f"{prefix}takeover_after",
+            f"must be longer than the lease plus "
+            f"{PAIR_HEARING_DELAY_S:g} s ({config.lease + PAIR_HEARING_DELAY_S:g} s): "
+            "the active's frames must reach the standby before its wait ends",
+        )
     return config
 
 
@@ -1633,8 +1719,11 @@ def _keepalive(check: _Checker, value: object, prefix: str) -> tuple[int, int] |
         digits = slave.isdigit() and register.isdigit()
         if digits and 1 <= int(slave) <= 247 and 0 <= int(register) <= 65535:
             return int(slave), int(register)
-    check.fail(f"{prefix}keepalive", 'write "auto", "off", or "SLAVE:REGISTER" with a slave '
-               'address 1..247 and a holding register 0..65535, like "1:0"')  # fmt: skip
+    check.fail(
+        f"{prefix}keepalive",
+        'write "auto", "off", or "SLAVE:REGISTER" with a slave '
+        'address 1..247 and a holding register 0..65535, like "1:0"',
+    )
     return (0, 0)
 
 
@@ -1648,8 +1737,11 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     audit = _build_audit(check, raw)
     redundancy = _build_redundancy(check, raw)
     if redundancy.paired and not metrics.enabled:
-        check.fail("metrics.listen", "a redundancy pair polls each other's HTTP endpoint "
-                   "(GET /role): set it to an address the peer reaches, not off")  # fmt: skip
+        check.fail(
+            "metrics.listen",
+            "a redundancy pair polls each other's HTTP endpoint "
+            "(GET /role): set it to an address the peer reaches, not off",
+        )
     lines_table = check.table(raw, "lines")
     lines = tuple(
         line
@@ -1669,8 +1761,19 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
     _check_serial_slave_devices(check, lines, listeners)
     if check.problems:
         raise ConfigError(source, check.problems)
-    return GatewayConfig(server, metrics, log, lines, routes, source, listeners, policies,
-                         tuple(check.renamed), audit, redundancy)  # fmt: skip
+    return GatewayConfig(
+        server,
+        metrics,
+        log,
+        lines,
+        routes,
+        source,
+        listeners,
+        policies,
+        tuple(check.renamed),
+        audit,
+        redundancy,
+    )
 
 
 def policy_warnings(config: GatewayConfig) -> list[str]:
@@ -1679,8 +1782,10 @@ def policy_warnings(config: GatewayConfig) -> list[str]:
     used = {listener.policy for listener in config.listeners}
     for name in config.policies:
         if name not in used:
-            warnings.append(f"policies.{name}: no listener uses it; set policy = {name!r} on "
-                            "a listener ([server] or [[listeners]]) or remove it")  # fmt: skip
+            warnings.append(
+                f"policies.{name}: no listener uses it; set policy = {name!r} on "
+                "a listener ([server] or [[listeners]]) or remove it"
+            )
     for listener in config.listeners:
         if listener.policy is None:
             if listener.tls:
@@ -1691,8 +1796,10 @@ def policy_warnings(config: GatewayConfig) -> list[str]:
             continue
         rules = config.policies.get(listener.policy, ())
         if not rules:
-            warnings.append(f"policies.{listener.policy}: no rules, so listener "
-                            f"{listener.name!r} refuses every request")  # fmt: skip
+            warnings.append(
+                f"policies.{listener.policy}: no rules, so listener "
+                f"{listener.name!r} refuses every request"
+            )
         warnings += lint(
             rules,
             listener=listener.name,

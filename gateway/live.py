@@ -219,9 +219,14 @@ class TraceFilter:
             raise ValueError(f"outcome={','.join(sorted(unknown))}: expected one of {known}")
         outcomes = {Outcome(value) for value in wanted}
         masters = values("master")
-        return cls(frozenset(values("line")), frozenset(units), frozenset(functions),
-                   frozenset(outcomes), frozenset(masters),
-                   frozenset(m.strip("[]") for m in masters))  # fmt: skip
+        return cls(
+            frozenset(values("line")),
+            frozenset(units),
+            frozenset(functions),
+            frozenset(outcomes),
+            frozenset(masters),
+            frozenset(m.strip("[]") for m in masters),
+        )
 
     def matches(self, event: TraceEvent) -> bool:
         """True when ``event`` passes every filter (an outcome filter passes replies only)."""
@@ -363,9 +368,21 @@ class TraceHub:
         pending[(peer, transaction_id, unit)] = (self._clock(), line, slave, pdu)
         if self.streams:
             function = pdu[0] if pdu else 0
-            self._publish(TraceEvent(time.time(), "request", peer, transaction_id, unit,
-                                     function, pdu, line, slave, listener=listener,
-                                     role=role))  # fmt: skip
+            self._publish(
+                TraceEvent(
+                    time.time(),
+                    "request",
+                    peer,
+                    transaction_id,
+                    unit,
+                    function,
+                    pdu,
+                    line,
+                    slave,
+                    listener=listener,
+                    role=role,
+                )
+            )
 
     def reply(
         self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
@@ -383,18 +400,43 @@ class TraceHub:
             samples.append((now, latency))
         if self.streams:
             function = pdu[0] & 0x7F if pdu else 0
-            self._publish(TraceEvent(time.time(), "reply", peer, transaction_id, unit, function,
-                                     pdu, line, slave, outcome,
-                                     None if latency is None else latency * 1000.0,
-                                     request=asked))  # fmt: skip
+            self._publish(
+                TraceEvent(
+                    time.time(),
+                    "reply",
+                    peer,
+                    transaction_id,
+                    unit,
+                    function,
+                    pdu,
+                    line,
+                    slave,
+                    outcome,
+                    None if latency is None else latency * 1000.0,
+                    request=asked,
+                )
+            )
 
     def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
         """The answer came after its master had left."""
         arrived, line, slave, _asked = self._pending.pop((peer, transaction_id, unit), _UNKNOWN)
         if self.streams:
             latency = None if arrived is None else (self._clock() - arrived) * 1000.0
-            self._publish(TraceEvent(time.time(), "dropped", peer, transaction_id, unit, function,
-                                     b"", line, slave, Outcome.DROPPED, latency))  # fmt: skip
+            self._publish(
+                TraceEvent(
+                    time.time(),
+                    "dropped",
+                    peer,
+                    transaction_id,
+                    unit,
+                    function,
+                    b"",
+                    line,
+                    slave,
+                    Outcome.DROPPED,
+                    latency,
+                )
+            )
 
     def _publish(self, event: TraceEvent) -> None:
         for stream in self.streams:
@@ -708,8 +750,7 @@ class LiveView:
             await _pump(stream, writer, sse)
         except TimeoutError:  # the client read nothing for STALL_S: its slot is freed
             self.hub.remove(stream, StreamEnd.STALLED)
-            log.info("trace stream to %s closed: it read nothing for %g s",
-                     _peer(writer), STALL_S)  # fmt: skip
+            log.info("trace stream to %s closed: it read nothing for %g s", _peer(writer), STALL_S)
             writer.transport.abort()  # close() would wait for a buffer nobody reads
         except (ConnectionError, OSError):
             pass

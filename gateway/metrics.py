@@ -62,9 +62,14 @@ _FUNCTION_LABELS = tuple(function_name(code) for code in range(256))
 #: The outcomes a ``requests_total`` row can take, by where the request was answered: its
 #: series are created at 0 together, with the row's first request (see ``count_request``).
 LINE_OUTCOMES = (
-    Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.NO_ROUTE, Outcome.TARGET_FAILED, Outcome.BUSY,
-    Outcome.DROPPED, Outcome.CACHED,
-)  # fmt: skip
+    Outcome.OK,
+    Outcome.SLAVE_EXCEPTION,
+    Outcome.NO_ROUTE,
+    Outcome.TARGET_FAILED,
+    Outcome.BUSY,
+    Outcome.DROPPED,
+    Outcome.CACHED,
+)
 #: Answered by the gateway without a line (``line="none"``).
 LOCAL_OUTCOMES = (Outcome.NO_ROUTE, Outcome.REJECTED, Outcome.DENIED)
 #: Broadcasts (``line="broadcast"``).
@@ -95,9 +100,7 @@ DISCARD_REASONS = tuple(reason.value for reason in DiscardReason)
 UNIT_LABELS = tuple(str(unit) for unit in range(256))
 
 # 1 ms (a short answer at 115200 baud) to 5 s (the longest sensible timeout with retries).
-_LATENCY_BUCKETS = (
-    0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
-)  # fmt: skip
+_LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 # The same, with a 0 bucket: most requests find the line free and do not wait at all.
 _WAIT_BUCKETS = (0.0, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
@@ -116,17 +119,37 @@ class _LineCountersCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         p = "modbus_gateway_"
         families = (
-            (CounterMetricFamily, p + "rtu_frames_sent", "RTU frames written to the line.",
-             "frames_sent"),
-            (CounterMetricFamily, p + "rtu_frames_received",
-             "RTU frames received that answered a request.", "frames_received"),
-            (CounterMetricFamily, p + "serial_written_bytes", "Bytes written to the serial line.",
-             "bytes_written"),
-            (CounterMetricFamily, p + "serial_read_bytes", "Bytes read from the serial line.",
-             "bytes_read"),
-            (GaugeMetricFamily, p + "queue_depth", "Requests waiting for the serial line.",
-             "queue_depth"),
-        )  # fmt: skip
+            (
+                CounterMetricFamily,
+                p + "rtu_frames_sent",
+                "RTU frames written to the line.",
+                "frames_sent",
+            ),
+            (
+                CounterMetricFamily,
+                p + "rtu_frames_received",
+                "RTU frames received that answered a request.",
+                "frames_received",
+            ),
+            (
+                CounterMetricFamily,
+                p + "serial_written_bytes",
+                "Bytes written to the serial line.",
+                "bytes_written",
+            ),
+            (
+                CounterMetricFamily,
+                p + "serial_read_bytes",
+                "Bytes read from the serial line.",
+                "bytes_read",
+            ),
+            (
+                GaugeMetricFamily,
+                p + "queue_depth",
+                "Requests waiting for the serial line.",
+                "queue_depth",
+            ),
+        )
         for family_type, name, documentation, field in families:
             family = family_type(name, documentation, labels=["line"])
             for line, counters in sorted(self._lines.items()):
@@ -411,9 +434,10 @@ class GatewayMetrics:
     def _request_families(self) -> None:
         r, p = self.registry, "modbus_gateway_"
         self.requests = LoopCounter(
-            p + "requests", "Requests from TCP masters by outcome.",
+            p + "requests",
+            "Requests from TCP masters by outcome.",
             ("line", "unit", "function", "outcome"),
-        )  # fmt: skip
+        )
         self.request_duration = LineHistogram(
             p + "request_duration_seconds",
             "Time from a request's arrival to its reply, as the master sees it.",
@@ -438,59 +462,72 @@ class GatewayMetrics:
         self.discarded_frames = Counter(
             p + "discarded_frames",
             "Answers or bytes thrown away: late, incomplete, from another unit or function.",
-            ["line", "reason"], registry=r,
-        )  # fmt: skip
+            ["line", "reason"],
+            registry=r,
+        )
         self.line_lost = Counter(
             p + "line_lost",
             "Times the serial port went away (unplugged, I/O error), however briefly.",
-            ["line"], registry=r,
-        )  # fmt: skip
-        self.line_info = Gauge(
-            p + "line_info", "1 for each line, labelled with its kind (rtu, ascii, ...).",
-            ["line", "kind"], registry=r,
-        )  # fmt: skip
-        self.line_up = Gauge(
-            p + "line_up", "1 when the serial line is open, 0 when it is down.", ["line"],
+            ["line"],
             registry=r,
-        )  # fmt: skip
+        )
+        self.line_info = Gauge(
+            p + "line_info",
+            "1 for each line, labelled with its kind (rtu, ascii, ...).",
+            ["line", "kind"],
+            registry=r,
+        )
+        self.line_up = Gauge(
+            p + "line_up",
+            "1 when the serial line is open, 0 when it is down.",
+            ["line"],
+            registry=r,
+        )
         self.line_noisy = Gauge(
             p + "line_noisy",
             "1 while the line has had no usable gap for too long (requests answered 0x0B).",
-            ["line"], registry=r,
-        )  # fmt: skip
+            ["line"],
+            registry=r,
+        )
         self.line_noisy_total = Counter(
             p + "line_noisy_episodes",
             "Times the line was declared noisy (no usable gap within noisy_after).",
-            ["line"], registry=r,
-        )  # fmt: skip
+            ["line"],
+            registry=r,
+        )
         self.late_windows = Counter(
             p + "late_answer_windows",
             "Late-answer windows opened: an attempt failed and its answer may still arrive.",
-            ["line"], registry=r,
-        )  # fmt: skip
+            ["line"],
+            registry=r,
+        )
         self.line_reconnects = Counter(
             p + "line_reconnects",
             "Times a network line's connection was closed and opened again by the line's "
             "decision, by reason (out_of_step: a header no Modbus TCP slave sends; silent: "
             "answers missed in a row with nothing heard on it).",
-            ["line", "reason"], registry=r,
-        )  # fmt: skip
+            ["line", "reason"],
+            registry=r,
+        )
         self.proof_reads = Counter(
             p + "proof_reads",
             "Reads the gateway sent of its own to prove that a slave's lost answer can no "
             "longer arrive (a request like the lost one waited for that proof).",
-            ["line", "unit"], registry=r,
-        )  # fmt: skip
+            ["line", "unit"],
+            registry=r,
+        )
         self.coalesced = Counter(
             p + "coalesced_requests",
             "Read requests served by another master's identical transaction.",
-            ["line"], registry=r,
-        )  # fmt: skip
+            ["line"],
+            registry=r,
+        )
         self.foreign_master_frames = Counter(
             p + "foreign_master_frames",
             "Request frames heard on the line that this gateway did not send (another master).",
-            ["line"], registry=r,
-        )  # fmt: skip
+            ["line"],
+            registry=r,
+        )
 
     def _slave_families(self) -> None:
         r, p = self.registry, "modbus_gateway_"
@@ -506,46 +543,54 @@ class GatewayMetrics:
         for family in (self.crc_errors, self.timeouts, self.retries):
             r.register(family)
         self.slave_up = Gauge(
-            p + "slave_up", "1 when the slave answers, 0 while it is isolated as dead.",
-            ["line", "unit"], registry=r,
-        )  # fmt: skip
+            p + "slave_up",
+            "1 when the slave answers, 0 while it is isolated as dead.",
+            ["line", "unit"],
+            registry=r,
+        )
         self.slave_suspect = Gauge(
             p + "slave_suspect",
             "1 while the slave is suspect (missed its last answer): its requests wait behind "
             "the healthy slaves', one at a time.",
-            ["line", "unit"], registry=r,
-        )  # fmt: skip
+            ["line", "unit"],
+            registry=r,
+        )
         self.slaves_isolated = Gauge(
             p + "slaves_isolated",
             "Slaves of the line that are suspect or down now, heard from or not (slave_up and "
             "slave_suspect name only slaves that have answered).",
-            ["line", "state"], registry=r,
-        )  # fmt: skip
+            ["line", "state"],
+            registry=r,
+        )
 
     def _connection_families(self) -> None:
         r, p = self.registry, "modbus_gateway_"
         self.connections_open = Gauge(
-            p + "connections_open", "TCP connections from masters open now, by listener.",
-            ["listener"], registry=r,
-        )  # fmt: skip
+            p + "connections_open",
+            "TCP connections from masters open now, by listener.",
+            ["listener"],
+            registry=r,
+        )
         self.connections_accepted = Counter(
             p + "connections_accepted", "TCP connections accepted.", registry=r
         )
         self.connections_rejected = Counter(
-            p + "connections_rejected", "TCP connections refused at accept, by reason.",
-            ["reason"], registry=r,
-        )  # fmt: skip
+            p + "connections_rejected",
+            "TCP connections refused at accept, by reason.",
+            ["reason"],
+            registry=r,
+        )
         self.connections_closed = Counter(
             p + "connections_closed", "TCP connections closed, by reason.", ["reason"], registry=r
         )
         self.protocol_errors = Counter(
-            p + "protocol_errors", "Malformed input from masters, by kind.", ["kind"],
-            registry=r,
-        )  # fmt: skip
+            p + "protocol_errors", "Malformed input from masters, by kind.", ["kind"], registry=r
+        )
         self.trace_dropped = LoopCounter(
             p + "trace_dropped_events",
-            "Live trace events not sent because the client read too slowly.", (),
-        )  # fmt: skip
+            "Live trace events not sent because the client read too slowly.",
+            (),
+        )
         r.register(self.trace_dropped)
         self.trace_streams = Gauge(
             p + "trace_streams", "Live trace streams open now (GET /trace).", registry=r
@@ -554,14 +599,16 @@ class GatewayMetrics:
             p + "trace_streams_closed",
             "Live trace streams the gateway ended, by reason: stalled (the client read "
             "nothing for several seconds) or stopping (the gateway stops).",
-            ["reason"], registry=r,
-        )  # fmt: skip
+            ["reason"],
+            registry=r,
+        )
         self.http_refusals = Counter(
             p + "http_refusals",
             "HTTP connections closed at accept and requests refused, by reason: "
             "max_connections, max_per_source, host (421), no_token (401), wrong_token (403).",
-            ["reason"], registry=r,
-        )  # fmt: skip
+            ["reason"],
+            registry=r,
+        )
         for close in CloseReason:
             self.connections_closed.labels(close)
         for reject in RejectReason:
@@ -576,45 +623,50 @@ class GatewayMetrics:
             p + "denied_requests",
             "Requests refused by a listener's policy (answered 0x01), by listener, role and "
             "function; role is one the rules name, none (NULL role or plain TCP) or other.",
-            ["listener", "role", "function"], registry=r,
-        )  # fmt: skip
+            ["listener", "role", "function"],
+            registry=r,
+        )
         self.redundancy_role = Gauge(
             p + "redundancy_role",
             "1 while this gateway is the active one of its pair (it transmits), 0 while it "
             "stands by; 1 for a gateway without a pair.",
             registry=r,
-        )  # fmt: skip
+        )
         self.redundancy_role.set(1)
         self.redundancy_takeovers = Counter(
             p + "redundancy_takeovers",
             "Times this gateway became the active one of its pair.",
             registry=r,
-        )  # fmt: skip
+        )
         self.redundancy_refused_frames = Counter(
             p + "redundancy_refused_frames",
             "Frames not written because this gateway held no valid lease at that instant.",
             registry=r,
-        )  # fmt: skip
+        )
         self.audit_records_dropped = Counter(
             p + "audit_records_dropped",
             "Audit records lost: the audit queue was full (a slow file) or a write failed.",
             registry=r,
-        )  # fmt: skip
+        )
         self.connections_denied = Counter(
             p + "connections_denied",
             "Connections closed at accept: the source is outside the listener's allow list.",
-            ["listener"], registry=r,
-        )  # fmt: skip
+            ["listener"],
+            registry=r,
+        )
         self.tls_handshake_failures = Counter(
-            p + "tls_handshake_failures", "Failed TLS handshakes on tls listeners, by reason.",
-            ["listener", "reason"], registry=r,
-        )  # fmt: skip
+            p + "tls_handshake_failures",
+            "Failed TLS handshakes on tls listeners, by reason.",
+            ["listener", "reason"],
+            registry=r,
+        )
         self.line_tls_failures = Counter(
             p + "line_tls_failures",
             "Failed TLS set-ups with the slave of a tls line (handshake, or the slave's refusal "
             "of the gateway's certificate), by reason.",
-            ["line", "reason"], registry=r,
-        )  # fmt: skip
+            ["line", "reason"],
+            registry=r,
+        )
         self._denial_children: dict[tuple[str, str, int], Counter] = {}
 
     def _exported_state(self) -> None:
@@ -627,9 +679,10 @@ class GatewayMetrics:
         self._crls: list[CrlNextUpdate] = []
         r.register(_CrlNextUpdateCollector(self._crls))
         self.info = Info(
-            "modbus_gateway_build", "Version, build (compiled or interpreted) and lines.",
+            "modbus_gateway_build",
+            "Version, build (compiled or interpreted) and lines.",
             registry=r,
-        )  # fmt: skip
+        )
         self.describe_lines([])
         self._line_counters: dict[str, LineCounters] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info

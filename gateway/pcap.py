@@ -87,18 +87,44 @@ def parse_peer(peer: str) -> tuple[IpAddress, int]:
 
 
 def ip_tcp_segment(
-    source: IpAddress, source_port: int, destination: IpAddress, destination_port: int,
-    seq: int, ack: int, payload: bytes,
-) -> bytes:  # fmt: skip
+    source: IpAddress,
+    source_port: int,
+    destination: IpAddress,
+    destination_port: int,
+    seq: int,
+    ack: int,
+    payload: bytes,
+) -> bytes:
     """An IPv4 or IPv6 packet carrying one TCP segment (PSH, ACK) with correct checksums."""
-    tcp = struct.pack("!HHIIBBHHH", source_port, destination_port, seq & 0xFFFFFFFF,
-                      ack & 0xFFFFFFFF, 5 << 4, _TCP_PSH_ACK, 65535, 0, 0)  # fmt: skip
+    tcp = struct.pack(
+        "!HHIIBBHHH",
+        source_port,
+        destination_port,
+        seq & 0xFFFFFFFF,
+        ack & 0xFFFFFFFF,
+        5 << 4,
+        _TCP_PSH_ACK,
+        65535,
+        0,
+        0,
+    )
     length = len(tcp) + len(payload)
     if isinstance(source, ipaddress.IPv4Address) and isinstance(destination, ipaddress.IPv4Address):
         pseudo = source.packed + destination.packed + struct.pack("!BBH", 0, 6, length)
         tcp = tcp[:16] + struct.pack("!H", _checksum(pseudo + tcp + payload)) + tcp[18:]
-        header = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + length, 0, 0x4000, 64, 6, 0,
-                             source.packed, destination.packed)  # fmt: skip
+        header = struct.pack(
+            "!BBHHHBBH4s4s",
+            0x45,
+            0,
+            20 + length,
+            0,
+            0x4000,
+            64,
+            6,
+            0,
+            source.packed,
+            destination.packed,
+        )
         header = header[:10] + struct.pack("!H", _checksum(header)) + header[12:]
         return header + tcp + payload
     src6 = _as_v6(source)
@@ -124,8 +150,9 @@ class PcapngWriter:
         self._interfaces: dict[str, int] = {}
         self._seq: dict[tuple[str, bool], int] = {}  # (master, from_master) → next sequence
         self.packets = 0
-        self._write(_block(_BT_SHB, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1)
-                           + _option(_OPT_END, b"")))  # fmt: skip
+        self._write(
+            _block(_BT_SHB, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(_OPT_END, b""))
+        )
 
     def _write(self, data: bytes) -> None:
         self._out.write(data)
@@ -145,13 +172,24 @@ class PcapngWriter:
 
     def _packet(self, interface: int, timestamp: float, data: bytes) -> None:
         micros = round(timestamp * 1_000_000)
-        body = struct.pack("<IIIII", interface, micros >> 32, micros & 0xFFFFFFFF,
-                           len(data), len(data)) + data  # fmt: skip
+        body = (
+            struct.pack(
+                "<IIIII", interface, micros >> 32, micros & 0xFFFFFFFF, len(data), len(data)
+            )
+            + data
+        )
         self._write(_block(_BT_EPB, body))
         self.packets += 1
 
-    def tcp(self, timestamp: float, master: str, from_master: bool,
-            transaction_id: int, unit: int, pdu: bytes) -> None:  # fmt: skip
+    def tcp(
+        self,
+        timestamp: float,
+        master: str,
+        from_master: bool,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+    ) -> None:
         """One Modbus/TCP ADU between ``master`` (``host:port``) and the gateway."""
         try:
             address, port = parse_peer(master)

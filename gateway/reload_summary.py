@@ -78,8 +78,9 @@ def summarize(
     effects = [f"line {name} reopened" for name in sorted(reopened)]
     effects += [f"line {name} retuned in place" for name in sorted(retuned - reopened)]
     if listeners:
-        effects.append("listeners changed (rules, allow lists, certificates; open connections "
-                       "checked again)")  # fmt: skip
+        effects.append(
+            "listeners changed (rules, allow lists, certificates; open connections checked again)"
+        )
     if kept:
         effects.append("needs a restart, kept at its running value: " + "; ".join(kept))
     if not changes and not kept:

@@ -120,8 +120,9 @@ class Progress:
             return
         width = 30
         filled = width * done // max(total, 1)
-        self.stream.write(f"\r{settings} [{'#' * filled}{'.' * (width - filled)}] "
-                          f"{done}/{total}, {found} found ")  # fmt: skip
+        self.stream.write(
+            f"\r{settings} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}, {found} found "
+        )
         self.stream.flush()
 
     def note(self, text: str) -> None:
@@ -228,8 +229,7 @@ class Port:
         self.wire = open_wire(line)
         self._char = 0.0
         if not line.networked:  # the request's own transmission time counts on a serial line
-            self._char = character_time(line.baudrate, line.data_bits, line.parity,
-                                        line.stop_bits)  # fmt: skip
+            self._char = character_time(line.baudrate, line.data_bits, line.parity, line.stop_bits)
         self._gap = line.gap
         self._silence = line.silence
 
@@ -304,8 +304,9 @@ def identify(port: Port, slave: Slave) -> None:
 
 
 def _line_with(line: LineConfig, settings: Settings) -> LineConfig:
-    return replace(line, baudrate=settings.baudrate, parity=settings.parity,
-                   stop_bits=settings.stop_bits)  # fmt: skip
+    return replace(
+        line, baudrate=settings.baudrate, parity=settings.parity, stop_bits=settings.stop_bits
+    )
 
 
 def scan(
@@ -355,9 +356,12 @@ def scan(
 
 
 def _probe(
-    line: LineConfig, settings: Settings, addresses: Sequence[int], timeout: float,
+    line: LineConfig,
+    settings: Settings,
+    addresses: Sequence[int],
+    timeout: float,
     progress: Progress,
-) -> tuple[str, dict[int, tuple[Answer, bytes]]]:  # fmt: skip
+) -> tuple[str, dict[int, tuple[Answer, bytes]]]:
     """Try one format until an address answers; the answers so far are kept for the scan."""
     try:
         port = Port(_line_with(line, settings), timeout)
@@ -393,11 +397,14 @@ def format_table(result: ScanResult) -> str:
         rows.append((str(slave.address), slave.detail, ident or "-", slave.server_id or "-"))
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
     for row in rows:
-        out.append("  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True))
-                   .rstrip())  # fmt: skip
+        out.append(
+            "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip()
+        )
     if result.garbled:
-        out.append("garbled answers (noise, or two slaves at one address) from: "
-                   + ", ".join(map(str, result.garbled)))  # fmt: skip
+        out.append(
+            "garbled answers (noise, or two slaves at one address) from: "
+            + ", ".join(map(str, result.garbled))
+        )
     if result.tried:
         out.append("formats tried (--baudrate auto):")
         out.extend(f"  {tried.settings}: {tried.result}" for tried in result.tried)
@@ -439,17 +446,33 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--serial", metavar="DEVICE_OR_URL", help="the serial device to scan")
     where.add_argument("--config", metavar="FILE", help="take the line from this file (--line)")
     parser.add_argument("--line", metavar="NAME", help="the line of --config to scan")
-    parser.add_argument("--baudrate", type=_baudrate, default=argparse.SUPPRESS,
-                        metavar="N|auto", help="baud rate, or 'auto' to try the common ones "
-                        "(default: the line's, 9600 with --serial)")  # fmt: skip
+    parser.add_argument(
+        "--baudrate",
+        type=_baudrate,
+        default=argparse.SUPPRESS,
+        metavar="N|auto",
+        help="baud rate, or 'auto' to try the common ones "
+        "(default: the line's, 9600 with --serial)",
+    )
     parser.add_argument("--parity", choices=["N", "E", "O"], help="parity (default: the line's)")
     parser.add_argument("--stopbits", type=int, choices=[1, 2], help="stop bits")
-    parser.add_argument("--range", type=_addresses, default=list(range(1, 248)), metavar="1-247",
-                        help="addresses to try, e.g. 1-20,100 (default 1-247)")  # fmt: skip
-    parser.add_argument("--timeout", type=float, default=0.1, metavar="SECONDS",
-                        help="wait per address (default 0.1)")  # fmt: skip
-    parser.add_argument("--no-identify", action="store_true",
-                        help="skip FC 43/14 and FC 17 for the slaves found")  # fmt: skip
+    parser.add_argument(
+        "--range",
+        type=_addresses,
+        default=list(range(1, 248)),
+        metavar="1-247",
+        help="addresses to try, e.g. 1-20,100 (default 1-247)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=0.1,
+        metavar="SECONDS",
+        help="wait per address (default 0.1)",
+    )
+    parser.add_argument(
+        "--no-identify", action="store_true", help="skip FC 43/14 and FC 17 for the slaves found"
+    )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     return parser
 
@@ -492,8 +515,9 @@ def main(argv: Sequence[str], stderr: TextIO | None = None) -> int:
         print(f"modbus-gateway scan: {error}", file=errors)
         return 2
     progress = Progress(errors)
-    progress.note(f"scanning {line.device}: addresses {_ranges(args.range)}, "
-                  f"{args.timeout:g} s each")  # fmt: skip
+    progress.note(
+        f"scanning {line.device}: addresses {_ranges(args.range)}, {args.timeout:g} s each"
+    )
     result = _scan_reporting_errors(line, args, candidates, progress)
     if result is None:
         return 1
@@ -510,21 +534,28 @@ def _candidates(args: argparse.Namespace, line: LineConfig) -> list[Settings] | 
         where = "the device server's serial side" if line.kind == "rtu-over-tcp" else "nothing"
         raise ConfigError(
             "--baudrate auto",
-            [f"line {line.name!r} is a {line.kind} line, whose baud rate is set on {where}: "
-             "scan it without --baudrate"],
-        )  # fmt: skip
-    formats = [(p, s) for p, s in AUTO_FORMATS
-               if (args.parity is None or p == args.parity)
-               and (args.stopbits is None or s == args.stopbits)]  # fmt: skip
+            [
+                f"line {line.name!r} is a {line.kind} line, whose baud rate is set on {where}: "
+                "scan it without --baudrate"
+            ],
+        )
+    formats = [
+        (p, s)
+        for p, s in AUTO_FORMATS
+        if (args.parity is None or p == args.parity)
+        and (args.stopbits is None or s == args.stopbits)
+    ]
     if not formats:
         formats = [(args.parity or "N", args.stopbits or 1)]
     return [Settings(b, p, s) for b in AUTO_BAUDRATES for p, s in formats]
 
 
 def _scan_reporting_errors(
-    line: LineConfig, args: argparse.Namespace, candidates: list[Settings] | None,
+    line: LineConfig,
+    args: argparse.Namespace,
+    candidates: list[Settings] | None,
     progress: Progress,
-) -> ScanResult | None:  # fmt: skip
+) -> ScanResult | None:
     """The scan's result, or None once its failure is told as a sentence with the fix."""
     try:
         return scan(line, args.range, args.timeout, candidates, progress, not args.no_identify)

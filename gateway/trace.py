@@ -196,11 +196,25 @@ class Tracer:
             where = f" via {listener}" if role is None else f" via {listener} role={role}"
         self._log.info(
             "-> %s tid=%d unit=%d %s(%d) %s%s",
-            peer, transaction_id, unit, name, function, detail, where,
-            extra={"direction": "request", "peer": peer, "transaction_id": transaction_id,
-                   "unit": unit, "function": name, "function_code": function,
-                   "detail": detail, "listener": listener, "role": role},
-        )  # fmt: skip
+            peer,
+            transaction_id,
+            unit,
+            name,
+            function,
+            detail,
+            where,
+            extra={
+                "direction": "request",
+                "peer": peer,
+                "transaction_id": transaction_id,
+                "unit": unit,
+                "function": name,
+                "function_code": function,
+                "detail": detail,
+                "listener": listener,
+                "role": role,
+            },
+        )
 
     def reply(
         self, peer: str, transaction_id: int, unit: int, pdu: bytes, outcome: Outcome | None = None
@@ -220,11 +234,26 @@ class Tracer:
         latency = "" if latency_ms is None else f" {latency_ms:.2f} ms"
         self._log.info(
             "<- %s tid=%d unit=%d %s(%d) %s %s%s",
-            peer, transaction_id, unit, name, function, detail, outcome, latency,
-            extra={"direction": "reply", "peer": peer, "transaction_id": transaction_id,
-                   "unit": unit, "function": name, "function_code": function,
-                   "detail": detail, "outcome": outcome, "latency_ms": latency_ms},
-        )  # fmt: skip
+            peer,
+            transaction_id,
+            unit,
+            name,
+            function,
+            detail,
+            outcome,
+            latency,
+            extra={
+                "direction": "reply",
+                "peer": peer,
+                "transaction_id": transaction_id,
+                "unit": unit,
+                "function": name,
+                "function_code": function,
+                "detail": detail,
+                "outcome": outcome,
+                "latency_ms": latency_ms,
+            },
+        )
 
     def dropped(self, peer: str, transaction_id: int, unit: int, function: int) -> None:
         """The answer to a request came after its master had left: nothing goes out."""
@@ -234,11 +263,22 @@ class Tracer:
         name = fc.function_name(function)
         self._log.info(
             "x  %s tid=%d unit=%d %s(%d) dropped: the master left",
-            peer, transaction_id, unit, name, function,
-            extra={"direction": "none", "peer": peer, "transaction_id": transaction_id,
-                   "unit": unit, "function": name, "function_code": function,
-                   "outcome": Outcome.DROPPED, "latency_ms": latency_ms},
-        )  # fmt: skip
+            peer,
+            transaction_id,
+            unit,
+            name,
+            function,
+            extra={
+                "direction": "none",
+                "peer": peer,
+                "transaction_id": transaction_id,
+                "unit": unit,
+                "function": name,
+                "function_code": function,
+                "outcome": Outcome.DROPPED,
+                "latency_ms": latency_ms,
+            },
+        )
 
     def _latency_ms(self, peer: str, transaction_id: int, unit: int) -> float | None:
         """Milliseconds since the request arrived (``None`` if it was not traced)."""

@@ -45,30 +45,57 @@ def build_parser() -> argparse.ArgumentParser:
         description="Attach to a running gateway's live trace (its HTTP endpoint). Without "
         "--url, 'trace' runs a gateway with the trace logged instead (see modbus-gateway -h).",
     )
-    parser.add_argument("--url", required=True, metavar="http://HOST:PORT",
-                        help="the gateway's HTTP endpoint ([metrics] listen; https:// when it "
-                        "has tls_cert); its trace_token, if any, in "
-                        "MODBUS_GATEWAY_TRACE_TOKEN")  # fmt: skip
-    parser.add_argument("--cacert", metavar="FILE",
-                        help="CA certificates an https:// endpoint's certificate chains "
-                        "to")  # fmt: skip
+    parser.add_argument(
+        "--url",
+        required=True,
+        metavar="http://HOST:PORT",
+        help="the gateway's HTTP endpoint ([metrics] listen; https:// when it "
+        "has tls_cert); its trace_token, if any, in "
+        "MODBUS_GATEWAY_TRACE_TOKEN",
+    )
+    parser.add_argument(
+        "--cacert",
+        metavar="FILE",
+        help="CA certificates an https:// endpoint's certificate chains to",
+    )
     parser.add_argument("--line", action="append", default=[], help="only this line (repeatable)")
-    parser.add_argument("--unit", action="append", type=int, default=[], metavar="N",
-                        help="only TCP unit id N (repeatable)")  # fmt: skip
-    parser.add_argument("--function", action="append", type=_function_code, default=[],
-                        metavar="FC", help="only function FC: 3, 0x10 or read_holding_registers "
-                        "(repeatable)")  # fmt: skip
-    parser.add_argument("--outcome", action="append", default=[],
-                        help="only replies with this outcome: ok, target_failed, no_route, ... "
-                        "(repeatable)")  # fmt: skip
-    parser.add_argument("--master", action="append", default=[], metavar="HOST[:PORT]",
-                        help="only this master (repeatable)")  # fmt: skip
-    parser.add_argument("--pcap", metavar="FILE",
-                        help="also write a pcapng capture (Modbus/TCP and Modbus RTU)")  # fmt: skip
+    parser.add_argument(
+        "--unit",
+        action="append",
+        type=int,
+        default=[],
+        metavar="N",
+        help="only TCP unit id N (repeatable)",
+    )
+    parser.add_argument(
+        "--function",
+        action="append",
+        type=_function_code,
+        default=[],
+        metavar="FC",
+        help="only function FC: 3, 0x10 or read_holding_registers (repeatable)",
+    )
+    parser.add_argument(
+        "--outcome",
+        action="append",
+        default=[],
+        help="only replies with this outcome: ok, target_failed, no_route, ... (repeatable)",
+    )
+    parser.add_argument(
+        "--master",
+        action="append",
+        default=[],
+        metavar="HOST[:PORT]",
+        help="only this master (repeatable)",
+    )
+    parser.add_argument(
+        "--pcap", metavar="FILE", help="also write a pcapng capture (Modbus/TCP and Modbus RTU)"
+    )
     parser.add_argument("--json", action="store_true", help="print the events as JSON lines")
     parser.add_argument("--count", type=int, metavar="N", help="stop after N events")
-    parser.add_argument("--connect-timeout", type=float, default=5.0, metavar="SECONDS",
-                        help=argparse.SUPPRESS)  # fmt: skip
+    parser.add_argument(
+        "--connect-timeout", type=float, default=5.0, metavar="SECONDS", help=argparse.SUPPRESS
+    )
     return parser
 
 
@@ -163,8 +190,9 @@ def _connection(
     """An HTTP or HTTPS connection to the endpoint (not opened yet)."""
     if scheme == "https":
         context = ssl.create_default_context(cafile=args.cacert)
-        return http.client.HTTPSConnection(host, port or 443, timeout=args.connect_timeout,
-                                           context=context)  # fmt: skip
+        return http.client.HTTPSConnection(
+            host, port or 443, timeout=args.connect_timeout, context=context
+        )
     return http.client.HTTPConnection(host, port or 80, timeout=args.connect_timeout)
 
 
@@ -188,8 +216,9 @@ def _on_signal(_signum: int, _frame: FrameType | None) -> None:
     raise _StopRequestedError
 
 
-def _follow(response: http.client.HTTPResponse, args: argparse.Namespace,
-            capture: TraceCapture | None) -> int:  # fmt: skip
+def _follow(
+    response: http.client.HTTPResponse, args: argparse.Namespace, capture: TraceCapture | None
+) -> int:
     """Print (and capture) events until ``--count`` is reached (0) or the stream ends (1)."""
     seen = 0
     while args.count is None or seen < args.count:
@@ -217,8 +246,10 @@ def main(argv: Sequence[str]) -> int:
     args = build_parser().parse_args(argv)
     url = urlsplit(args.url)
     if url.scheme not in ("http", "https") or not url.hostname:
-        print(f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT or https://HOST:PORT",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"modbus-gateway trace: --url {args.url!r}: expected http://HOST:PORT or https://HOST:PORT",
+            file=sys.stderr,
+        )
         return 2
     path = _trace_path(url.path, args)
     signal.signal(signal.SIGTERM, _on_signal)
@@ -230,14 +261,18 @@ def main(argv: Sequence[str]) -> int:
             connection.request("GET", path, headers=_headers())
             response = connection.getresponse()
         except OSError as error:
-            print(f"modbus-gateway trace: cannot reach {args.url}: {error}; is the gateway "
-                  "running with its HTTP endpoint ([metrics] listen) there?",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"modbus-gateway trace: cannot reach {args.url}: {error}; is the gateway "
+                "running with its HTTP endpoint ([metrics] listen) there?",
+                file=sys.stderr,
+            )
             return 1
         if response.status != 200:
             body = response.read().decode(errors="replace").strip()
-            print(f"modbus-gateway trace: {args.url} answered {response.status}: {body}",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"modbus-gateway trace: {args.url} answered {response.status}: {body}",
+                file=sys.stderr,
+            )
             return 2
         if connection.sock is not None:
             connection.sock.settimeout(None)  # a quiet line may send nothing for hours
@@ -255,6 +290,8 @@ def main(argv: Sequence[str]) -> int:
         connection.close()
         if pcap_file is not None:
             pcap_file.close()
-            print(f"wrote {args.pcap}: open it with wireshark or 'tshark -r {args.pcap}'",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"wrote {args.pcap}: open it with wireshark or 'tshark -r {args.pcap}'",
+                file=sys.stderr,
+            )
     return 0

@@ -191,9 +191,14 @@ def values_of(pdu: bytes) -> Record:
 
 
 def config_record(
-    now: float, action: str, path: str, digest: str | None, changed: Iterable[str] | None,
-    accepted: bool, error: str | None = None,
-) -> Record:  # fmt: skip
+    now: float,
+    action: str,
+    path: str,
+    digest: str | None,
+    changed: Iterable[str] | None,
+    accepted: bool,
+    error: str | None = None,
+) -> Record:
     """A configuration load (``action`` "load") or reload, accepted or rejected."""
     record: Record = {
         "event": AuditEvent.CONFIG.value,
@@ -211,9 +216,15 @@ def config_record(
 
 
 def refused_record(
-    now: float, listener: str, source: str, reason: str, at: RefusedAt = RefusedAt.ACCEPT,
-    peer: str | None = None, role: str | None = None, subject: str | None = None,
-) -> Record:  # fmt: skip
+    now: float,
+    listener: str,
+    source: str,
+    reason: str,
+    at: RefusedAt = RefusedAt.ACCEPT,
+    peer: str | None = None,
+    role: str | None = None,
+    subject: str | None = None,
+) -> Record:
     """A connection the listener's door closed: at accept (an allow list), or at a reload
     that no longer admits it (``reason``: ``core.connection_admission.NotAdmitted``).
     ``peer``, TLS ``role`` and certificate ``subject`` appear when known."""
@@ -235,8 +246,12 @@ def opened_record(now: float, prev: str, reason: str) -> Record:
     """The first record the gateway writes to a file it opened (``reason``: start, reopen);
     ``Chain.seal`` sets its ``prev`` to the head it really follows, and the writer adds
     ``starts_file`` and ``records_before`` (what the file held when it was written)."""
-    return {"event": AuditEvent.OPENED.value, "time": timestamp(now), "prev": prev,
-            "reason": reason}  # fmt: skip
+    return {
+        "event": AuditEvent.OPENED.value,
+        "time": timestamp(now),
+        "prev": prev,
+        "reason": reason,
+    }
 
 
 def dropped_record(now: float, count: int) -> Record:
@@ -277,8 +292,9 @@ def changed_keys(old: Mapping[str, str], new: Mapping[str, str]) -> list[str]:
 
 def canonical(record: Mapping[str, Any]) -> str:
     """The one JSON text of ``record`` the hash covers."""
-    return json.dumps(record, sort_keys=True, separators=(",", ":"), ensure_ascii=False,
-                      allow_nan=False)  # fmt: skip
+    return json.dumps(
+        record, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+    )
 
 
 def link(previous: str, body: str) -> str:

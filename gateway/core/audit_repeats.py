@@ -102,9 +102,12 @@ class _Tally:
             if name == "function":
                 record.pop("function_name", None)
         record.update(
-            source=source, repeats=self.repeats, first=timestamp(self.first),
-            last=timestamp(self.last), time=timestamp(self.last),
-        )  # fmt: skip
+            source=source,
+            repeats=self.repeats,
+            first=timestamp(self.first),
+            last=timestamp(self.last),
+            time=timestamp(self.last),
+        )
         return record
 
 

@@ -398,8 +398,13 @@ def _function_access(key: FunctionKey) -> Access:
     function, sub = key
     if sub is None and function in (fc.DIAGNOSTICS, fc.ENCAPSULATED_INTERFACE):
         return Access.READ_WRITE  # some subfunctions read, others write
-    pdu = bytes([function]) + (sub.to_bytes(2, "big") if function == 8 and sub is not None else
-                               bytes([sub]) if sub is not None else b"")  # fmt: skip
+    pdu = bytes([function]) + (
+        sub.to_bytes(2, "big")
+        if function == 8 and sub is not None
+        else bytes([sub])
+        if sub is not None
+        else b""
+    )
     return classify(pdu).access
 
 
@@ -479,8 +484,9 @@ def _reach_warnings(rule: Rule, targets: Mapping[int, Target]) -> list[str]:
     reach = Reach(rule, targets)
     if rule.by_target:
         if not reach.targets:
-            return ["no route reaches its line and slave; fix line/slave (and units) or add "
-                    "a route"]  # fmt: skip
+            return [
+                "no route reaches its line and slave; fix line/slave (and units) or add a route"
+            ]
     elif rule.units is not None and not rule.units & (frozenset(targets) | {0}):
         return ["none of its units is routed to a line; fix units or add a route"]
     if rule.units is None:

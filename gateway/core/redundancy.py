@@ -167,9 +167,13 @@ class PeerView:
         self.lease_expiry = NEVER
 
     def answered(
-        self, now: float, role: Role, lease_remaining: float, priority: int,
+        self,
+        now: float,
+        role: Role,
+        lease_remaining: float,
+        priority: int,
         acked_until: float = NEVER,
-    ) -> None:  # fmt: skip
+    ) -> None:
         """Note a fresh answer."""
         self.acked_until = acked_until
         self.role = role
@@ -264,9 +268,14 @@ class RoleMachine:
     # -- inputs ------------------------------------------------------------------------
 
     def peer_report(
-        self, now: float, role: Role, lease_remaining: float, priority: int,
-        peer_lease_remaining: float = 0.0, asked_at: float | None = None,
-    ) -> None:  # fmt: skip
+        self,
+        now: float,
+        role: Role,
+        lease_remaining: float,
+        priority: int,
+        peer_lease_remaining: float = 0.0,
+        asked_at: float | None = None,
+    ) -> None:
         """A fresh answer of the peer's ``/role``, asked at ``asked_at`` (default ``now``)."""
         self._advance(now)
         asked = now if asked_at is None else min(asked_at, now)

@@ -91,22 +91,31 @@ class SourceScreen:
         is no longer admitted."""
         peer = connection.peer
         log.warning(
-            "listener %s: master %s closed: no longer admitted (%s)%s", self.listener, peer,
-            reason.value, _REASON_TEXT.get(reason, ""),
-        )  # fmt: skip
+            "listener %s: master %s closed: no longer admitted (%s)%s",
+            self.listener,
+            peer,
+            reason.value,
+            _REASON_TEXT.get(reason, ""),
+        )
         if audit is not None:
             source = connection.principal.source
             audit.refused(
-                self.listener, str(source if source is not None else peer), reason.value,
-                RefusedAt.RELOAD, peer, connection.role_text, leaf_subject(connection.chain),
-            )  # fmt: skip
+                self.listener,
+                str(source if source is not None else peer),
+                reason.value,
+                RefusedAt.RELOAD,
+                peer,
+                connection.role_text,
+                leaf_subject(connection.chain),
+            )
 
     def refuse(self, source: IPAddress | None, audit: AuditLog | None = None) -> None:
         """Count, log (and audit, when configured) a connection closed at accept."""
         self._metrics.connections_denied.labels(self.listener).inc()
         if audit is not None:
-            audit.refused(self.listener, str(source), NotAdmitted.SOURCE_NOT_ALLOWED.value,
-                          RefusedAt.ACCEPT)  # fmt: skip
+            audit.refused(
+                self.listener, str(source), NotAdmitted.SOURCE_NOT_ALLOWED.value, RefusedAt.ACCEPT
+            )
         if self._log is not None:
             self._log.note(
                 f"listener {self.listener}",

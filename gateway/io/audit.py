@@ -129,9 +129,12 @@ class AuditLog:
     """The audit log of one gateway: ``open`` it at start, ``close`` it at stop."""
 
     def __init__(
-        self, path: str, on_drop: Callable[[int], None] | None = None,
-        limit: int = QUEUE_LIMIT, clock: Callable[[], float] = time.time,
-    ) -> None:  # fmt: skip
+        self,
+        path: str,
+        on_drop: Callable[[int], None] | None = None,
+        limit: int = QUEUE_LIMIT,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
         self.path = path
         self._on_drop = on_drop
         self._limit = limit
@@ -171,9 +174,8 @@ class AuditLog:
                 self._wake.set()
 
     def admitted(
-        self, listener: str, peer: str, role: str | None, unit: int, pdu: bytes,
-        result: Admission,
-    ) -> AuditTicket | None:  # fmt: skip
+        self, listener: str, peer: str, role: str | None, unit: int, pdu: bytes, result: Admission
+    ) -> AuditTicket | None:
         """Note an admitted request: a denial is recorded now; a request going to a line
         gets a ticket to settle with its answer. Reads and local refusals: nothing."""
         if not is_audited(pdu):
@@ -192,26 +194,42 @@ class AuditLog:
         return AuditTicket(self, pending)
 
     def _denied(
-        self, listener: str, peer: str, role: str | None, unit: int, pdu: bytes,
+        self,
+        listener: str,
+        peer: str,
+        role: str | None,
+        unit: int,
+        pdu: bytes,
         result: AnswerLocally,
-    ) -> None:  # fmt: skip
+    ) -> None:
         """A denied write: one record, or counted among its repeats from its source."""
         reason = None if result.denied is None else result.denied.value
         code = result.code.value
         pending = Pending(self._clock(), listener, peer, role, unit, pdu, None, None)
         kind = (
-            ("listener", listener), ("role", role), ("outcome", AuditOutcome.DENIED.value),
-            ("reason", reason), ("code", code), ("unit", unit), ("function", pdu[0]),
-        )  # fmt: skip
+            ("listener", listener),
+            ("role", role),
+            ("outcome", AuditOutcome.DENIED.value),
+            ("reason", reason),
+            ("code", code),
+            ("unit", unit),
+            ("function", pdu[0]),
+        )
         occurrence = Occurrence(
             source_of(peer), AuditEvent.REQUEST.value, kind, (peer, pdu), pending.time
         )
         self._counted(occurrence, lambda: pending.record(AuditOutcome.DENIED, code, reason))
 
     def refused(
-        self, listener: str, source: str, reason: str, at: RefusedAt = RefusedAt.ACCEPT,
-        peer: str | None = None, role: str | None = None, subject: str | None = None,
-    ) -> None:  # fmt: skip
+        self,
+        listener: str,
+        source: str,
+        reason: str,
+        at: RefusedAt = RefusedAt.ACCEPT,
+        peer: str | None = None,
+        role: str | None = None,
+        subject: str | None = None,
+    ) -> None:
         """A connection closed by the listener's door: at accept (repeats from one source
         counted), or at a reload (once per open connection: always written)."""
         now = self._clock()
@@ -238,8 +256,9 @@ class AuditLog:
             flat = flatten(config)
             changed = changed_keys(self._config, flat) if self._config is not None else None
             self._config = flat
-        self.put(config_record(self._clock(), action, path, digest, changed,
-                               config is not None, error))  # fmt: skip
+        self.put(
+            config_record(self._clock(), action, path, digest, changed, config is not None, error)
+        )
 
     def reopen(self) -> None:
         """Close and open the path again at the writer's next turn (logrotate, SIGHUP)."""
@@ -310,8 +329,11 @@ class AuditLog:
         in_file = self._in_file or 0
         for index, record in enumerate(records):
             if record.get("event") == AuditEvent.OPENED:  # says what came before it
-                records[index] = {**record, "starts_file": in_file + index == 0,
-                                  "records_before": in_file + index}  # fmt: skip
+                records[index] = {
+                    **record,
+                    "starts_file": in_file + index == 0,
+                    "records_before": in_file + index,
+                }
         data = "".join(self._chain.seal(record) for record in records).encode()
         try:
             _write_all(self._fd, data)
@@ -413,9 +435,12 @@ def start_audit(path: str | None, on_drop: Callable[[int], None]) -> AuditLog | 
 
 
 def note_config(
-    audit: AuditLog | None, action: str, source: str, config: object | None,
+    audit: AuditLog | None,
+    action: str,
+    source: str,
+    config: object | None,
     error: str | None = None,
-) -> None:  # fmt: skip
+) -> None:
     """Record a configuration load or reload when an audit log is configured."""
     if audit is not None:
         audit.configured(action, source, config, None if config is not None else error)

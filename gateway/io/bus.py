@@ -532,14 +532,16 @@ def _slave_status(bus: Bus, slave: int, state: SlaveState, learned: float | None
     if tally is None:
         return SlaveStatus(bus.name, slave, state, name=name, learned_timeout=learned_timeout)
     return SlaveStatus(
-        bus.name, slave, state,
+        bus.name,
+        slave,
+        state,
         name=name,
         learned_timeout=learned_timeout,
         heard=tally.last_seen is not None,
         requests=tally.requests,
         exceptions=dict(tally.exceptions),
         last_seen=wall_clock(tally.last_seen),
-    )  # fmt: skip
+    )
 
 
 def line_settings(config: LineConfig) -> str:

@@ -467,16 +467,24 @@ class HttpEndpoint:
         """Register a new connection, making room at the cap; ``None`` when it is refused."""
         cap = self.limits.max_per_source
         if cap and self._per_source.get(source, 0) >= cap:
-            self._note("source limit", f"{source} holds {cap} connections "
-                       "(metrics.max_connections_per_source); refusing more")  # fmt: skip
+            self._note(
+                "source limit",
+                f"{source} holds {cap} connections "
+                "(metrics.max_connections_per_source); refusing more",
+            )
             self._refuse(transport, HttpRefusal.MAX_PER_SOURCE)
             return None
         if len(self._open) >= self.max_connections:
             waiting = next((c for c in self._open if c.reading_head), None)
-            self._note("connection limit",
-                       f"{self.max_connections} connections open (metrics.max_connections); "
-                       + ("closing the oldest still sending its request"
-                          if waiting is not None else "refusing new ones"))  # fmt: skip
+            self._note(
+                "connection limit",
+                f"{self.max_connections} connections open (metrics.max_connections); "
+                + (
+                    "closing the oldest still sending its request"
+                    if waiting is not None
+                    else "refusing new ones"
+                ),
+            )
             if waiting is None:
                 self._refuse(transport, HttpRefusal.MAX_CONNECTIONS)
                 return None
@@ -595,8 +603,9 @@ class HttpEndpoint:
         verdict = self.guard.judge(access, target, headers, str(local[0]) if local else "")
         if verdict.refusal is not None:
             self._refused(verdict.refusal)
-            await respond(writer, verdict.status, "text/plain", verdict.message, method,
-                          verdict.challenge)  # fmt: skip
+            await respond(
+                writer, verdict.status, "text/plain", verdict.message, method, verdict.challenge
+            )
             return
         _EXTRA_HEADERS.set("".join(f"Set-Cookie: {c}\r\n" for c in verdict.set_cookies))
         with contextlib.suppress(ConnectionError):
@@ -605,29 +614,45 @@ class HttpEndpoint:
     # -- routes ------------------------------------------------------------------------
 
     async def _metrics(
-        self, method: str, _target: str, headers: Mapping[str, str],
-        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-    ) -> None:  # fmt: skip
+        self,
+        method: str,
+        _target: str,
+        headers: Mapping[str, str],
+        _reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
         body, content_type = await self.renderer.render(headers.get("accept", ""))
         await respond(writer, 200, content_type, body, method)
 
     async def _healthz(
-        self, method: str, _target: str, _headers: Mapping[str, str],
-        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-    ) -> None:  # fmt: skip
+        self,
+        method: str,
+        _target: str,
+        _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
         await respond(writer, 200, "text/plain", b"ok\n", method)
 
     async def _readyz(
-        self, method: str, _target: str, _headers: Mapping[str, str],
-        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-    ) -> None:  # fmt: skip
+        self,
+        method: str,
+        _target: str,
+        _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
         ready, why = self._readiness()
         await respond(writer, 200 if ready else 503, "text/plain", (why + "\n").encode(), method)
 
     async def _index(
-        self, method: str, _target: str, _headers: Mapping[str, str],
-        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-    ) -> None:  # fmt: skip
+        self,
+        method: str,
+        _target: str,
+        _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
         await respond(writer, 200, "text/plain", _INDEX, method)
 
 
@@ -635,9 +660,12 @@ def role_route(answer: Callable[[], tuple[int, bytes]]) -> Route:
     """``GET /role`` (``io.pair.channel``): ``answer()`` gives its status and JSON body."""
 
     async def role(
-        method: str, _target: str, _headers: Mapping[str, str],
-        _reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-    ) -> None:  # fmt: skip
+        method: str,
+        _target: str,
+        _headers: Mapping[str, str],
+        _reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
         status, body = answer()
         await respond(writer, status, "application/json", body, method)
 

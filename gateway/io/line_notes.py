@@ -113,9 +113,12 @@ class LineNotes:
             )
         elif event is LineEvent.SHARED_ANSWER:
             self.fault_log.note(
-                subject, "answer not delivered", note.detail,
-                level=logging.INFO, plural="answers not delivered",
-            )  # fmt: skip
+                subject,
+                "answer not delivered",
+                note.detail,
+                level=logging.INFO,
+                plural="answers not delivered",
+            )
         else:
             log.info("line %s: no other master heard for %g s", self._bus.name, SHARED_FOR_S)
 
@@ -137,8 +140,11 @@ class LineNotes:
             log.warning(
                 "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
                 "probing every %.1f s or more",
-                self._bus.name, note.slave, note.amount, self._bus.config.probe_interval,
-            )  # fmt: skip
+                self._bus.name,
+                note.slave,
+                note.amount,
+                self._bus.config.probe_interval,
+            )
         elif state is SlaveState.SUSPECT:
             self.fault_log.note(
                 f"unit {unit} on line {self._bus.name}",

@@ -137,8 +137,11 @@ class LinePort:
 
     def _tls_confirmed(self) -> None:
         self.open_error = ""
-        log.info("line %s: TLS session with %s accepted, back up", self._bus.name,
-                 self._bus.config.device)  # fmt: skip
+        log.info(
+            "line %s: TLS session with %s accepted, back up",
+            self._bus.name,
+            self._bus.config.device,
+        )
 
     def schedule_reopen(self, first_delay: float = REOPEN_FIRST_DELAY) -> None:
         if self._reopener is None or self._reopener.done():

@@ -93,6 +93,12 @@ def rtu_over_tcp_server(
 ) -> ModbusTcpServer:
     """A listener for RTU-over-TCP masters: one request in flight each, no broadcast replies."""
     return ModbusTcpServer(
-        config, router, metrics, listener, policy, ssl_context,
-        connection_class=RtuMasterConnection, one_at_a_time=True,
-    )  # fmt: skip
+        config,
+        router,
+        metrics,
+        listener,
+        policy,
+        ssl_context,
+        connection_class=RtuMasterConnection,
+        one_at_a_time=True,
+    )

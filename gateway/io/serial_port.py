@@ -201,9 +201,11 @@ def _apply(line: LineConfig, port: Any, setting: str, value: Any, shown: object 
         shown = value if shown is None else shown
         key = _CONFIG_KEY.get(setting, setting)
         raise DeviceUnusableError(
-            line.name, key, f"{line.device} cannot set {key} = {shown!r} ({_reason(error)})",
+            line.name,
+            key,
+            f"{line.device} cannot set {key} = {shown!r} ({_reason(error)})",
             "choose a value the adapter supports with {setting}" + _HINTS.get(key, ""),
-        ) from error  # fmt: skip
+        ) from error
 
 
 _HINTS = {
@@ -345,20 +347,24 @@ def _exists_but_not_a_terminal(path: str) -> bool:
 
 def _not_a_terminal(line: LineConfig) -> DeviceUnusableError:
     return DeviceUnusableError(
-        line.name, "device", f"{line.device} is not a serial device (not a terminal)",
+        line.name,
+        "device",
+        f"{line.device} is not a serial device (not a terminal)",
         "set {setting} to the adapter's device, such as /dev/ttyUSB0 or a name under "
         "/dev/serial/by-id/",
-    )  # fmt: skip
+    )
 
 
 def _denied(line: LineConfig, waited: float = 0.0) -> DeviceUnusableError:
     after = f" (still after {waited:g} s)" if waited else ""
     return DeviceUnusableError(
-        line.name, "device", f"permission denied opening {line.device}{after}",
+        line.name,
+        "device",
+        f"permission denied opening {line.device}{after}",
         "add the gateway's user to the device's group (usermod -aG dialout USER, then log in "
         "again; the systemd unit has it already), or set {setting} to a device that user may "
         "open",
-    )  # fmt: skip
+    )
 
 
 def check_device_usable(
@@ -433,8 +439,13 @@ def _open_when_permitted(
                 raise _denied(line, settle) from None
         if not told:
             told = True
-            log.info("line %s: permission denied opening %s; trying again for %g s (udev may "
-                     "still be setting its mode)", line.name, line.device, settle)  # fmt: skip
+            log.info(
+                "line %s: permission denied opening %s; trying again for %g s (udev may "
+                "still be setting its mode)",
+                line.name,
+                line.device,
+                settle,
+            )
         wait(_PERMISSION_POLL_S)
 
 

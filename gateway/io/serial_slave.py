@@ -147,8 +147,11 @@ class SerialSlave:
             return []
         listener = f"{self.name} {self._serial.device} ({self.framing})"
         in_flight = 1 if self._pending is not None else 0
-        return [MasterStatus(self._serial.device, listener, in_flight, self.requests,
-                             denied=self.denied)]  # fmt: skip
+        return [
+            MasterStatus(
+                self._serial.device, listener, in_flight, self.requests, denied=self.denied
+            )
+        ]
 
     def start(self) -> None:
         """Open the port, or keep trying in the background."""
@@ -182,8 +185,13 @@ class SerialSlave:
             return False
         self._open_error = ""
         self._link = SerialLink(port, self._loop, self._on_data, self._on_lost)
-        log.info("listener %s: answering as a slave on %s at %d baud (%s)", self.name,
-                 self._serial.device, self._serial.baudrate, self.framing.upper())  # fmt: skip
+        log.info(
+            "listener %s: answering as a slave on %s at %d baud (%s)",
+            self.name,
+            self._serial.device,
+            self._serial.baudrate,
+            self.framing.upper(),
+        )
         return True
 
     def _on_lost(self, error: OSError) -> None:

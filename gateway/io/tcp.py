@@ -171,9 +171,13 @@ class Router:
 
 
 def count_local_answer(
-    metrics: GatewayMetrics, listener: str, policy: Policy, role: str | None, function: int,
+    metrics: GatewayMetrics,
+    listener: str,
+    policy: Policy,
+    role: str | None,
+    function: int,
     answer: AnswerLocally,
-) -> None:  # fmt: skip
+) -> None:
     """Count a request the gateway answered itself, as every listener does."""
     if answer.outcome is Outcome.DENIED:
         metrics.count_denial(listener, policy.role_label(role), function)
@@ -419,8 +423,16 @@ class MasterConnection(asyncio.BufferedProtocol):
         else:
             self._answer_locally(transaction_id, unit, pdu, result)
 
-    def _submit(self, transaction_id: int, unit: int, pdu: bytes, bus: Bus, slave: int,
-                arrived: float, ticket: AuditTicket | None = None) -> None:  # fmt: skip
+    def _submit(
+        self,
+        transaction_id: int,
+        unit: int,
+        pdu: bytes,
+        bus: Bus,
+        slave: int,
+        arrived: float,
+        ticket: AuditTicket | None = None,
+    ) -> None:
         """Queue the request on ``bus``; the reply goes out under its own transaction id."""
         server = self._server
         function = pdu[0]
@@ -458,9 +470,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         """Answer the exception admission chose; nothing reaches a line."""
         server = self._server
         function = pdu[0] if pdu else 0
-        self._send(
-            transaction_id, unit, fc.exception_pdu(function, answer.code), answer.outcome
-        )  # fmt: skip
+        self._send(transaction_id, unit, fc.exception_pdu(function, answer.code), answer.outcome)
         if answer.outcome is Outcome.DENIED:
             self.denied += 1
         elif answer.outcome is Outcome.NO_ROUTE:
@@ -469,11 +479,17 @@ class MasterConnection(asyncio.BufferedProtocol):
             server.metrics, server.name, server.policy, self.principal.role, function, answer
         )
         if answer.denied is not None and log.isEnabledFor(logging.DEBUG):
-            log.debug("master %s on %s: %s denied (%s)", self.peer, server.name,
-                      fc.function_name(function), answer.denied)  # fmt: skip
+            log.debug(
+                "master %s on %s: %s denied (%s)",
+                self.peer,
+                server.name,
+                fc.function_name(function),
+                answer.denied,
+            )
 
-    def _broadcast(self, transaction_id: int, pdu: bytes, lines: list[Bus],
-                   ticket: AuditTicket | None) -> None:  # fmt: skip
+    def _broadcast(
+        self, transaction_id: int, pdu: bytes, lines: list[Bus], ticket: AuditTicket | None
+    ) -> None:
         """Send a write to every line that takes broadcasts and is up; 0x0A when none is."""
         server = self._server
         buses = [bus for bus in lines if bus.up]
@@ -735,9 +751,10 @@ class ModbusTcpServer:
                     sock.bind(address)
                 except OSError as error:
                     raise OSError(
-                        error.errno, f"error while attempting to bind on address {address!r}: "
+                        error.errno,
+                        f"error while attempting to bind on address {address!r}: "
                         f"{(error.strerror or str(error)).lower()}",
-                    ) from None  # fmt: skip
+                    ) from None
                 sock.listen(self.config.backlog)
                 sock.setblocking(False)
         except BaseException:
@@ -762,9 +779,11 @@ class ModbusTcpServer:
 
     def _pause_accepting(self, listener: socket.socket, error: OSError) -> None:
         self.faults.note(
-            "server", "accept failed", f"{error.strerror}; accepting again in {ACCEPT_RETRY_S} s "
+            "server",
+            "accept failed",
+            f"{error.strerror}; accepting again in {ACCEPT_RETRY_S} s "
             "(raise the open-file limit, or lower server.max_connections)",
-        )  # fmt: skip
+        )
         self._loop.remove_reader(listener.fileno())
 
         def again() -> None:
@@ -800,9 +819,11 @@ class ModbusTcpServer:
             setup = self._loop.connect_accepted_socket(lambda: connection, sock)
         else:  # the handshake completes before the connection is made
             setup = self._loop.connect_accepted_socket(
-                lambda: connection, sock, ssl=self.ssl_context,
+                lambda: connection,
+                sock,
+                ssl=self.ssl_context,
                 ssl_handshake_timeout=self.config.tls_handshake_timeout,
-            )  # fmt: skip
+            )
         note = HandshakeNote()  # what the handshake shows, for the log line of a failure
         task = self._loop.create_task(setup, context=observed(note))
         self._starting[connection] = task
@@ -911,19 +932,21 @@ class ModbusTcpServer:
         config = self.config
         if reason == Refusal.MAX_PER_SOURCE:
             self.faults.note(
-                f"master {source}", "connection limit of its address",
+                f"master {source}",
+                "connection limit of its address",
                 f"{config.max_connections_per_source} connections open "
                 "(server.max_connections_per_source); refusing more from it",
                 plural="connections refused, limit of its address",
-            )  # fmt: skip
+            )
             return
         why = _refusal_why(config, source)
         self.faults.note(
-            "server", "connection limit",
+            "server",
+            "connection limit",
             f"{len(self._connections)} masters connected (server.max_connections); {why}; "
             "refusing it",
             plural="connections refused at the limit",
-        )  # fmt: skip
+        )
 
     def forget(self, connection: MasterConnection, reason: CloseReason) -> None:
         """Drop a closed connection from the books (once); abandon its setup if under way."""

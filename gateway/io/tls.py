@@ -109,8 +109,13 @@ def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
         return HandshakeFailure.UNTRUSTED_CERTIFICATE
     if isinstance(error, ssl.SSLError):
         reason = (error.reason or "").upper()
-        if reason in ("WRONG_VERSION_NUMBER", "HTTP_REQUEST", "HTTPS_PROXY_REQUEST",
-                      "PACKET_LENGTH_TOO_LONG", "RECORD_LAYER_FAILURE"):  # fmt: skip
+        if reason in (
+            "WRONG_VERSION_NUMBER",
+            "HTTP_REQUEST",
+            "HTTPS_PROXY_REQUEST",
+            "PACKET_LENGTH_TOO_LONG",
+            "RECORD_LAYER_FAILURE",
+        ):
             return HandshakeFailure.NOT_TLS
         if "VERSION" in reason or "UNSUPPORTED_PROTOCOL" in reason:
             return HandshakeFailure.PROTOCOL_VERSION
@@ -246,8 +251,11 @@ def read_crl(path: str, key: str, now: datetime) -> tuple[x509.CertificateRevoca
             log.warning(
                 "%s = %r: the CRL of %r expires on %s UTC (its nextUpdate): once it has, every "
                 "client certificate is refused; fetch the next one and reload (SIGHUP)",
-                key, path, _issuer_name(crl), f"{_next_update(crl):%Y-%m-%d %H:%M:%S}",
-            )  # fmt: skip
+                key,
+                path,
+                _issuer_name(crl),
+                f"{_next_update(crl):%Y-%m-%d %H:%M:%S}",
+            )
     return crls
 
 
@@ -322,10 +330,14 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
     moment = now or datetime.now(UTC)
     chain = check_chain(listener.cert, f"{prefix}cert", moment)
     infos = [
-        CertificateInfo(listener.name, "server" if index == 0 else "chain", _subject(certificate),
-                        certificate.not_valid_after_utc)
+        CertificateInfo(
+            listener.name,
+            "server" if index == 0 else "chain",
+            _subject(certificate),
+            certificate.not_valid_after_utc,
+        )
         for index, certificate in enumerate(chain)
-    ]  # fmt: skip
+    ]
     authorities = _read_pem_certificates(listener.ca, f"{prefix}ca")
     for authority in authorities:
         info = CertificateInfo(
@@ -335,9 +347,11 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
             log.warning(
                 "listener %s: CA certificate %r in %s expired on %s: no client certificate "
                 "chaining to it is accepted any more",
-                listener.name, info.subject, listener.ca,
+                listener.name,
+                info.subject,
+                listener.ca,
                 f"{authority.not_valid_after_utc:%Y-%m-%d}",
-            )  # fmt: skip
+            )
         infos.append(info)
     revocations = read_crl(listener.crl, f"{prefix}crl", moment) if listener.crl else ()
     context = _context(listener, ListenerContext)
@@ -378,8 +392,9 @@ def _context(listener: ListenerConfig, kind: type[_C]) -> _C:
         if not session_cache_off(context):
             log.warning(
                 "listener %s: this Python cannot turn off OpenSSL's session cache: TLS 1.2 "
-                "masters may resume sessions by id for up to 7,200 s", listener.name,
-            )  # fmt: skip
+                "masters may resume sessions by id for up to 7,200 s",
+                listener.name,
+            )
     return context
 
 
@@ -569,9 +584,9 @@ def _der_of(certificate: Any) -> bytes:
     return bytes(certificate.public_bytes(_ENCODING_DER))
 
 
-def _anchor(certificate: x509.Certificate, authorities: Sequence[x509.Certificate]) -> (
-    x509.Certificate | None
-):  # fmt: skip
+def _anchor(
+    certificate: x509.Certificate, authorities: Sequence[x509.Certificate]
+) -> x509.Certificate | None:
     """The CA among ``authorities`` that is ``certificate`` or signed it, if any."""
     from cryptography.exceptions import InvalidSignature
 
@@ -717,32 +732,48 @@ def line_failure_message(line: LineConfig, reason: LineTlsFailure, error: BaseEx
     detail = getattr(error, "verify_message", None) or getattr(error, "reason", None) or error
     where = f"line {line.name!r}: TLS with {line.device}"
     if reason is LineTlsFailure.UNTRUSTED_CERTIFICATE:
-        return (f"{where}: the slave's certificate does not chain to {prefix}ca = {line.ca!r} "
-                f"({detail}); give the CA that issued the slave's certificate")  # fmt: skip
+        return (
+            f"{where}: the slave's certificate does not chain to {prefix}ca = {line.ca!r} "
+            f"({detail}); give the CA that issued the slave's certificate"
+        )
     if reason is LineTlsFailure.EXPIRED_CERTIFICATE:
-        return (f"{where}: the slave's certificate is expired or not yet valid ({detail}); "
-                "renew the slave's certificate, or check the gateway's clock")  # fmt: skip
+        return (
+            f"{where}: the slave's certificate is expired or not yet valid ({detail}); "
+            "renew the slave's certificate, or check the gateway's clock"
+        )
     if reason is LineTlsFailure.NAME_MISMATCH:
-        return (f"{where}: the slave's certificate is not for {line.server_name!r} ({detail}); "
-                f"set {prefix}server_name to a name its certificate carries")  # fmt: skip
+        return (
+            f"{where}: the slave's certificate is not for {line.server_name!r} ({detail}); "
+            f"set {prefix}server_name to a name its certificate carries"
+        )
     if reason is LineTlsFailure.CERTIFICATE_REFUSED:
-        return (f"{where}: the slave refused the gateway's certificate {prefix}cert = "
-                f"{line.cert!r} ({detail}); the slave must trust its CA, and it must be "
-                "valid now")  # fmt: skip
+        return (
+            f"{where}: the slave refused the gateway's certificate {prefix}cert = "
+            f"{line.cert!r} ({detail}); the slave must trust its CA, and it must be "
+            "valid now"
+        )
     if reason is LineTlsFailure.PROTOCOL_VERSION:
-        return (f"{where}: no TLS version in common ({detail}); Modbus/TCP Security needs "
-                "TLS 1.2 or newer on the slave")  # fmt: skip
+        return (
+            f"{where}: no TLS version in common ({detail}); Modbus/TCP Security needs "
+            "TLS 1.2 or newer on the slave"
+        )
     if reason is LineTlsFailure.NOT_TLS:
-        return (f"{where}: the slave did not answer in TLS ({detail}); is this its Modbus/TCP "
-                'Security port (802)? A plain Modbus TCP slave is kind = "tcp"')  # fmt: skip
+        return (
+            f"{where}: the slave did not answer in TLS ({detail}); is this its Modbus/TCP "
+            'Security port (802)? A plain Modbus TCP slave is kind = "tcp"'
+        )
     if reason is LineTlsFailure.TIMEOUT:
-        return (f"{where}: no complete handshake within {line.tls_handshake_timeout:g} s "
-                f"({prefix}tls_handshake_timeout)")  # fmt: skip
+        return (
+            f"{where}: no complete handshake within {line.tls_handshake_timeout:g} s "
+            f"({prefix}tls_handshake_timeout)"
+        )
     if reason is LineTlsFailure.CLOSED:
-        return (f"{where}: the slave closed the connection during the handshake, or after it "
-                f"before answering anything ({detail}); it may refuse the gateway's certificate "
-                f"{prefix}cert = {line.cert!r} or address, or not speak TLS on this port (a "
-                "plain Modbus TCP port closes on the TLS hello)")  # fmt: skip
+        return (
+            f"{where}: the slave closed the connection during the handshake, or after it "
+            f"before answering anything ({detail}); it may refuse the gateway's certificate "
+            f"{prefix}cert = {line.cert!r} or address, or not speak TLS on this port (a "
+            "plain Modbus TCP port closes on the TLS hello)"
+        )
     return f"{where}: handshake failed: {detail}"
 
 
@@ -799,8 +830,9 @@ def client_context(line: LineConfig, now: datetime | None = None) -> ClientTls:
             "(leaf) entry, unencrypted PEM"
         ) from None
     except OSError as error:
-        raise TlsSetupError(f"{prefix}key = {line.key!r}: cannot read: {error.strerror or error}"
-                            ) from None  # fmt: skip
+        raise TlsSetupError(
+            f"{prefix}key = {line.key!r}: cannot read: {error.strerror or error}"
+        ) from None
     try:
         context.load_verify_locations(cafile=line.ca)
     except (ssl.SSLError, OSError) as error:

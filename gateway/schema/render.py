@@ -32,12 +32,19 @@ _EXAMPLE_TABLES = (
     (Table.METRICS, "[metrics]", ""),
     (Table.LOGGING, "[logging]", ""),
     (Table.AUDIT, "[audit]", ""),
-    (Table.REDUNDANCY, "[redundancy]", "An active/standby pair on one bus (docs/redundancy.md); "
-     "without peer, the gateway runs alone."),
-    (Table.LINES, "[lines.a]", 'One table per line. The name ("a") is used in logs, metrics '
-     "and routes."),
+    (
+        Table.REDUNDANCY,
+        "[redundancy]",
+        "An active/standby pair on one bus (docs/redundancy.md); "
+        "without peer, the gateway runs alone.",
+    ),
+    (
+        Table.LINES,
+        "[lines.a]",
+        'One table per line. The name ("a") is used in logs, metrics and routes.',
+    ),
     (Table.ROUTES, "", ""),
-)  # fmt: skip
+)
 
 
 def toml_value(value: object) -> str:
@@ -56,8 +63,13 @@ def toml_value(value: object) -> str:
 
 
 def _comment(text: str, indent: str = "# ") -> list[str]:
-    return textwrap.wrap(text, WIDTH - len(indent), initial_indent=indent,
-                         subsequent_indent=indent, break_on_hyphens=False)  # fmt: skip
+    return textwrap.wrap(
+        text,
+        WIDTH - len(indent),
+        initial_indent=indent,
+        subsequent_indent=indent,
+        break_on_hyphens=False,
+    )
 
 
 def _key_help(key: Key) -> str:
@@ -173,8 +185,14 @@ def _reference_table(table: Table) -> list[str]:
     out += ["| key | type | default | allowed | on reload | flag |", "| --- " * 6 + "|"]
     for key in keys:
         flag = f"`{key.flag.name}`" if key.flag else ""
-        cells = (f"`{key.name}`", key.type.value, _default_cell(key), _allowed_cell(key),
-                 key.reload.value, flag)  # fmt: skip
+        cells = (
+            f"`{key.name}`",
+            key.type.value,
+            _default_cell(key),
+            _allowed_cell(key),
+            key.reload.value,
+            flag,
+        )
         out.append("| " + " | ".join(_cell(cell) for cell in cells) + " |")
     out.append("")
     for key in keys:
@@ -188,23 +206,34 @@ def _reference_table(table: Table) -> list[str]:
 
 
 def _flags_section() -> list[str]:
-    out = ["## Command-line flags", "",
-           "Each of these flags sets a key for this run (the file is not changed):", "",
-           "| flag | sets | on |", "| --- | --- | --- |"]  # fmt: skip
+    out = [
+        "## Command-line flags",
+        "",
+        "Each of these flags sets a key for this run (the file is not changed):",
+        "",
+        "| flag | sets | on |",
+        "| --- | --- | --- |",
+    ]
     for key in KEYS:
         if key.flag is None:
             continue
         out.append(f"| `{key.flag.name}` | `{key.path}` | {_cell(key.flag.scope.value)} |")
-    out += ["", "The other flags (`--serial`, `--rtu-over-tcp`, `--modbus-tcp`, `--modbus-tls`, "
-            "`--rtu-over-tcp-listen`, `--serial-slave`, ...) add a line or a listener: "
-            "`modbus-gateway --help` lists them."]  # fmt: skip
+    out += [
+        "",
+        "The other flags (`--serial`, `--rtu-over-tcp`, `--modbus-tcp`, `--modbus-tls`, "
+        "`--rtu-over-tcp-listen`, `--serial-slave`, ...) add a line or a listener: "
+        "`modbus-gateway --help` lists them.",
+    ]
     return [*out, ""]
 
 
 def _aliases_section() -> list[str]:
-    out = ["## Former names", "",
-           "Still accepted, with a warning naming the new key (`check-config --strict` "
-           "refuses them):", ""]  # fmt: skip
+    out = [
+        "## Former names",
+        "",
+        "Still accepted, with a warning naming the new key (`check-config --strict` refuses them):",
+        "",
+    ]
     for key in KEYS:
         out += [f"- `{key.table.prefix}{alias}`: now `{key.name}`" for alias in key.aliases]
     return [*out, ""]

@@ -86,10 +86,16 @@ def _pem(*certificates: x509.Certificate) -> bytes:
 
 
 _CA_USAGE = x509.KeyUsage(
-    digital_signature=True, content_commitment=False, key_encipherment=False,
-    data_encipherment=False, key_agreement=False, key_cert_sign=True,
-    crl_sign=True, encipher_only=False, decipher_only=False,
-)  # fmt: skip
+    digital_signature=True,
+    content_commitment=False,
+    key_encipherment=False,
+    data_encipherment=False,
+    key_agreement=False,
+    key_cert_sign=True,
+    crl_sign=True,
+    encipher_only=False,
+    decipher_only=False,
+)
 
 
 @dataclass
@@ -275,9 +281,13 @@ class Pki:
         """Another server chain and key, with the given validity (expired, not yet valid)."""
         key = _key(self.algorithm)
         certificate = _leaf_builder(
-            "modbus-gateway", self.intermediate, key, not_before, not_after,
+            "modbus-gateway",
+            self.intermediate,
+            key,
+            not_before,
+            not_after,
             ExtendedKeyUsageOID.SERVER_AUTH,
-        ).sign(self.intermediate.key, hashes.SHA256())  # fmt: skip
+        ).sign(self.intermediate.key, hashes.SHA256())
         chain = self.directory / f"{name}.chain.pem"
         chain.write_bytes(_pem(certificate, self.intermediate.certificate))
         key_path = self.directory / f"{name}.key"
