@@ -435,3 +435,78 @@ def test_an_unreachable_peer_answers_0x0a_without_waiting() -> None:
             await shut(forwarder)
 
     run(scenario)
+
+
+class Connection(Master):
+    """A master connection as the listener gives it: with its source address."""
+
+    def __init__(self, name: str, source: str) -> None:
+        super().__init__(name)
+        self.source = source
+
+
+def test_the_masters_of_one_address_share_a_link_and_take_turns_on_it() -> None:
+    """Two connections of one host take one link to the peer, one request each per round
+    through its window; one that leaves has its requests dropped (an answer on its way is
+    dropped, not delivered) and the other keeps the link."""
+
+    async def scenario() -> None:
+        release = asyncio.Event()
+        order: list[int] = []
+
+        async def respond(tid: int, unit: int, pdu: bytes) -> list[bytes]:
+            order.append(struct.unpack(">H", pdu[1:3])[0])
+            await release.wait()
+            return [mbap(tid, unit, registers([5]))]
+
+        peer = FakePeer(respond)
+        forwarder = forwarder_to(await peer.start(), window=2)
+        busy, quiet = Connection("busy", "127.0.0.5"), Connection("quiet", "127.0.0.5")
+        try:
+            gone = [ask(forwarder, 1, struct.pack(">BHH", 3, n, 1), busy) for n in range(4)]
+            kept = ask(forwarder, 1, struct.pack(">BHH", 3, 9, 1), quiet)
+            await until(lambda: len(order) == 2, "the window's two requests")
+            assert forwarder.connections == 1 and peer.accepted == 1
+            assert order == [0, 9]  # one of each master in the window, not the busy one's two
+            forwarder.cancel(busy)
+            for asked in gone:
+                assert await asked.answer() == (b"", Outcome.DROPPED)
+            release.set()
+            assert await kept.answer() == (registers([5]), Outcome.OK)
+            # The answer to the departed master's request came first (the peer answers in
+            # order) and was dropped, neither counted late nor distrusted; its waiting
+            # requests never went.
+            assert order == [0, 9] and forwarder.connections == 1
+            assert (forwarder.stats.late, forwarder.stats.discarded) == (0, 0)
+            forwarder.cancel(quiet)  # the last master of the link: it closes
+            await until(lambda: peer.ended == 1, "the link to close")
+            assert forwarder.connections == 0
+        finally:
+            await shut(forwarder)
+            await peer.stop()
+
+    run(scenario)
+
+
+def test_turns_on_a_shared_link_go_round_the_masters() -> None:
+    async def scenario() -> None:
+        order: list[str] = []
+
+        async def respond(tid: int, unit: int, pdu: bytes) -> list[bytes]:
+            order.append("ab"[struct.unpack(">H", pdu[1:3])[0] // 100])
+            return [mbap(tid, unit, registers([5]))]
+
+        peer = FakePeer(respond)
+        forwarder = forwarder_to(await peer.start(), window=1)
+        a, b = Connection("a", "127.0.0.5"), Connection("b", "127.0.0.5")
+        try:
+            asked = [ask(forwarder, 1, struct.pack(">BHH", 3, n, 1), a) for n in range(6)]
+            asked += [ask(forwarder, 1, struct.pack(">BHH", 3, 100 + n, 1), b) for n in range(2)]
+            for request in asked:
+                assert (await request.answer())[1] is Outcome.OK
+            assert "".join(order) == "ababaaaa"  # one each per round, while both wait
+        finally:
+            await shut(forwarder)
+            await peer.stop()
+
+    run(scenario)

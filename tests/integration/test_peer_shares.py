@@ -1,0 +1,185 @@
+"""Forwarding between two real gateways over loopback: each master's share and record.
+
+The *active* is a gateway alone (it answers ``GET /role`` as active) in front of a
+simulated line; the *standby* is a paired gateway whose peer is that one, with a line of
+its own that it only listens to. Masters connect from their own loopback addresses
+(127.0.0.5, ...), since the standby answers 0x0A to anything from its peer's address.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, wait_until
+
+from gateway.sim import plc
+
+READ_1 = struct.pack(">BHH", 3, 0, 1)
+HOSTILE, HONEST, DIRECT = "127.0.0.5", "127.0.0.6", "127.0.0.7"
+
+
+def pair_of(
+    make_sim: SimFactory,
+    make_gateway: GatewayFactory,
+    server: dict[str, Any] | None = None,
+    line: dict[str, Any] | None = None,
+    audit: Path | None = None,
+) -> tuple[SimBus, RunningGateway, RunningGateway]:
+    """(the active's line, the active, the standby), the standby forwarding to the active."""
+    sim = make_sim({1: plc(1), 2: plc(2)})
+    quiet = make_sim({1: plc(1), 2: plc(2)})  # the standby's own line: it only listens
+    tables: dict[str, Any] = {"server": dict(server or {})}
+    audits: list[dict[str, Any]] = [{}, {}]
+    if audit is not None:
+        audits = [
+            {"audit": {"path": str(audit / "active.jsonl")}},
+            {"audit": {"path": str(audit / "standby.jsonl")}},
+        ]
+    active = make_gateway(
+        {**tables, **audits[0], "lines": {"a": sim.line_table([1, 2], **(line or {}))}}
+    )
+    endpoint = active.gateway.metrics_address
+    assert endpoint is not None
+    standby = make_gateway(
+        {
+            **tables,
+            **audits[1],
+            "lines": {"a": quiet.line_table([1, 2], **(line or {}))},
+            "redundancy": {
+                "peer": f"{endpoint[0]}:{endpoint[1]}",
+                "peer_modbus": f"{active.address[0]}:{active.port}",
+            },
+        }
+    )
+    pair = standby.gateway.pair
+    assert pair is not None
+    wait_until(lambda: standby.call(lambda: pair.forwarder.peer_active), "the peer seen active")
+    assert standby.call(lambda: pair.standing_by)
+    return sim, active, standby
+
+
+class Poller:
+    """One master connection from ``source``: a request, its answer, again."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.tid = 0
+
+    @classmethod
+    async def open(cls, address: tuple[str, int], source: str) -> Poller:
+        reader, writer = await asyncio.wait_for(
+            asyncio.open_connection(*address, local_addr=(source, 0)), DEADLINE_S
+        )
+        return cls(reader, writer)
+
+    async def ask(self, unit: int, pdu: bytes) -> bytes:
+        """The answer's PDU; b"" when the connection closed."""
+        self.tid = (self.tid + 1) & 0xFFFF
+        self.writer.write(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
+        try:
+            header = await asyncio.wait_for(self.reader.readexactly(7), DEADLINE_S)
+            tid, _protocol, length, _unit = struct.unpack(">HHHB", header)
+            answer = await asyncio.wait_for(self.reader.readexactly(length - 1), DEADLINE_S)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return b""
+        assert tid == self.tid
+        return answer
+
+    def close(self) -> None:
+        self.writer.transport.abort()
+
+
+async def flat_out(poller: Poller, stop: asyncio.Event) -> None:
+    """Poll as fast as answered until ``stop``; a closed connection ends it."""
+    while not stop.is_set():
+        if not await poller.ask(1, READ_1):
+            return
+
+
+def test_a_master_holding_most_of_the_standbys_connections_leaves_the_others_their_share(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    """A host holds 12 of the standby's 16 connections, each polling flat out, while four
+    masters of the active keep it busy (16 slots on each): an honest master of the
+    standby still gets at least 90 % of 40 polls answered. The active sees the host's 12
+    connections as one link: one slot and one share of its line."""
+    _sim, active, standby = pair_of(make_sim, make_gateway, server={"max_connections": 16})
+    pair = standby.gateway.pair
+    assert pair is not None
+    forwarder = pair.forwarder
+
+    async def scenario() -> tuple[list[bytes], int]:
+        stop = asyncio.Event()
+        direct = [await Poller.open(active.address, DIRECT) for _ in range(4)]
+        hostile = [await Poller.open(standby.address, HOSTILE) for _ in range(12)]
+        load = [asyncio.ensure_future(flat_out(p, stop)) for p in direct + hostile]
+        honest = await Poller.open(standby.address, HONEST)
+        answers: list[bytes] = []
+        try:
+            for _ in range(40):
+                answers.append(await honest.ask(1, READ_1))
+                await asyncio.sleep(0.01)  # the honest master's poll period, not a sync
+            links = standby.call(lambda: forwarder.connections)
+        finally:
+            stop.set()
+            await asyncio.wait(load, timeout=DEADLINE_S)
+            for poller in [*direct, *hostile, honest]:
+                poller.close()
+        return answers, links
+
+    answers, links = asyncio.run(scenario())
+    good = [answer for answer in answers if answer[:2] == bytes((3, 2))]  # one register
+    assert len(good) >= 36, [answer.hex() for answer in answers if answer not in good][:5]
+    assert links == 2  # the host's twelve connections share one link; the honest has its own
+
+
+def records(gateway: RunningGateway, path: Path) -> list[dict[str, Any]]:
+    audit = gateway.gateway.audit
+    assert audit is not None and audit.flush(DEADLINE_S)
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_a_forwarded_write_that_executed_but_got_0x0b_has_one_record_naming_its_master(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    """The slave stores the write, but every answer it sends is corrupted: the active
+    answers 0x0B. The standby's audit record names the master with outcome ``unknown``;
+    the active's names the standby only."""
+    sim, active, standby = pair_of(
+        make_sim, make_gateway, line={"timeout": 0.1, "retries": 0}, audit=tmp_path
+    )
+    sim.faults(2).crc_error_rate = 1.0
+    write = struct.pack(">BHH", 6, 100, 0x4321)
+
+    async def scenario() -> tuple[bytes, str]:
+        master = await Poller.open(standby.address, HONEST)
+        try:
+            answer = await master.ask(2, write)
+            host, port = master.writer.get_extra_info("sockname")[:2]
+            return answer, f"{host}:{port}"
+        finally:
+            master.close()
+
+    answer, peer = asyncio.run(scenario())
+    assert answer == bytes((0x86, 0x0B))
+    assert sim.device(2).holding[100] == 0x4321  # it executed
+
+    def naming(gateway: RunningGateway, path: Path) -> list[dict[str, Any]]:
+        """The request records that name the master anywhere (written before its answer)."""
+        return [
+            r for r in records(gateway, path) if r["event"] == "request" and peer in json.dumps(r)
+        ]
+
+    mine = naming(standby, tmp_path / "standby.jsonl")
+    assert len(mine) == 1, mine
+    assert mine[0]["peer"] == peer and mine[0]["outcome"] == "unknown"
+    assert mine[0]["function"] == 6 and mine[0]["slave"] == 2
+    # The active recorded the write under the standby's address, never the master's.
+    theirs = [r for r in records(active, tmp_path / "active.jsonl") if r["event"] == "request"]
+    assert [r["outcome"] for r in theirs] == ["unknown"]
+    assert not theirs[0]["peer"].startswith(HONEST)
+    assert naming(active, tmp_path / "active.jsonl") == []
