@@ -49,6 +49,7 @@ from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, 
 from .live import LiveView
 from .metrics import GatewayMetrics
 from .reload_summary import summarize
+from .restart_keys import keep_restart_settings
 from .status import LineStatus, MasterStatus, PairStatus
 from .trace import FrameTrace, Tracer
 
@@ -358,23 +359,24 @@ class Gateway:
                     "stopping" if self._stopping else "still starting",
                 )
                 return
-            await self._apply(config)
-            applied = config if self.config is config else None
-            note_config(self.audit, "reload", config.source, applied, "TLS files refused (see log)")
+            refused = await self._apply(config)
+            applied = self.config if refused is None else None
+            note_config(self.audit, "reload", config.source, applied, refused)
 
-    async def _apply(self, config: GatewayConfig) -> None:
-        """Certificates first (a bad one rejects the reload), then lines, then listeners."""
+    async def _apply(self, config: GatewayConfig) -> str | None:
+        """Certificates first (a bad one rejects the reload), then lines, then listeners;
+        why it was not applied, or ``None``."""
         assert self.server is not None
         try:
             tls = self._build_tls(config)  # certificates, keys and CAs are read again
             line_tls = self._build_line_tls(config)
         except TlsSetupError as error:
             log.error("reload rejected, the running configuration stays: %s", error)
-            return
+            return "TLS files refused (see log)"
         self._line_tls = line_tls  # a line's next handshake uses its renewed files
         running, wanted = self.config, config
         if not await self._apply_lines(config, line_tls):
-            return  # a stop came while a line was handed over
+            return "stopped while a line was reopened"
         config = self._keep_restart_settings(config)
         self.config = config
         router = self._build_router()
@@ -385,6 +387,7 @@ class Gateway:
             config.source,
             summarize(running, wanted, config, LINE_PORT_SETTINGS),
         )
+        return None
 
     async def _apply_lines(
         self, config: GatewayConfig, line_tls: dict[str, ssl.SSLContext]
@@ -431,16 +434,14 @@ class Gateway:
         return True
 
     def _keep_restart_settings(self, config: GatewayConfig) -> GatewayConfig:
-        """``config`` with the running values of the settings a reload cannot change (warned)."""
-        running = self.config
-        if (config.server.host, config.server.port) != (running.server.host, running.server.port):
+        """``config`` with the running value of every key a reload cannot change (warned)."""
+        config, kept = keep_restart_settings(self.config, config)
+        for owner in dict.fromkeys(k.owner for k in kept):
             log.warning(
-                "reload: server.listen changes need a restart; keeping %s:%d",
-                running.server.host,
-                running.server.port,
+                "reload: %s changes need a restart; keeping the running %s",
+                owner,
+                ", ".join(k.path for k in kept if k.owner == owner),
             )
-            server = replace(config.server, host=running.server.host, port=running.server.port)
-            config = replace(config, server=server)
         bound = {
             s.name: (s.listener.protocol, s.listener.host, s.listener.port) for s in self.servers
         }
@@ -451,15 +452,9 @@ class Gateway:
         }
         if config.listeners and wanted != bound:
             log.warning(
-                "reload: adding, removing or moving listeners needs a restart; the listeners "
-                "stay as they are (their policies and certificates reload)"
+                "reload: adding or removing listeners, or changing their protocol, needs a "
+                "restart; the listeners stay as they are (their policies and certificates reload)"
             )
-        if (config.metrics, config.logging) != (running.metrics, running.logging):
-            log.warning("reload: [metrics] and [logging] changes need a restart; keeping them")
-            config = replace(config, metrics=running.metrics, logging=running.logging)
-        if config.redundancy != running.redundancy:
-            log.warning("reload: [redundancy] changes need a restart; keeping them")
-            config = replace(config, redundancy=running.redundancy)
         return config
 
     def _apply_listeners(

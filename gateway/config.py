@@ -24,8 +24,11 @@ from typing import Any
 
 from . import schema
 from .core import pdu as fc
+from .core.ascii import MAX_ASCII_FRAME
 from .core.framing import is_mbap
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
+from .core.redundancy import HEARING_DELAY_S
+from .core.rtu import MAX_RTU_FRAME
 from .core.timing import character_time, t35, transmission_time
 from .schema import Key, Table, Type
 
@@ -160,10 +163,6 @@ class AuditConfig:
     """Where the audit log goes (``None``: no audit log; ``-``: standard error)."""
 
     path: str | None = None
-
-
-#: How long the active's frame may take to be heard by its standby (``io.pair``).
-PAIR_HEARING_DELAY_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -871,10 +870,6 @@ def _network_address(
 
 #: Time a slave is given to start its answer, on top of the longest answer's transmission.
 SLAVE_TURNAROUND_S = 0.1
-#: The longest RTU frame (Modbus over Serial Line 2.5.1): 256 bytes.
-MAX_RTU_FRAME = 256
-#: The longest ASCII frame (2.5.2.1): 513 characters.
-MAX_ASCII_FRAME = 513
 
 
 def auto_timeout(
@@ -1698,11 +1693,11 @@ def _build_redundancy(check: _Checker, raw: Mapping[str, Any]) -> RedundancyConf
             f"{prefix}peer",
             "set the peer's HTTP endpoint, HOST:PORT, or remove peer_modbus: a pair needs both",
         )
-    if config.takeover_after <= config.lease + PAIR_HEARING_DELAY_S:
+    if config.takeover_after <= config.lease + HEARING_DELAY_S:
         check.fail(
             f"{prefix}takeover_after",
             f"must be longer than the lease plus "
-            f"{PAIR_HEARING_DELAY_S:g} s ({config.lease + PAIR_HEARING_DELAY_S:g} s): "
+            f"{HEARING_DELAY_S:g} s ({config.lease + HEARING_DELAY_S:g} s): "
             "the active's frames must reach the standby before its wait ends",
         )
     return config

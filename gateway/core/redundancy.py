@@ -46,6 +46,10 @@ from enum import StrEnum
 from typing import Final
 
 NEVER: Final = float("-inf")
+#: From the lease check's yes to the peer noticing the bus busy: the bytes reach it a
+#: character later (any byte counts as traffic, not only a whole frame), plus the
+#: scheduling of two processes. ``takeover_after`` must exceed the lease plus this.
+HEARING_DELAY_S: Final = 0.3
 #: The bits of a priority (0..255), and of the random tie-break (``Contest``).
 _PRIORITY_BITS: Final = 8
 _TIEBREAK_BITS: Final = 32

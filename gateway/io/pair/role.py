@@ -27,11 +27,11 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
-from ...config import PAIR_HEARING_DELAY_S, MetricsConfig, RedundancyConfig
+from ...config import MetricsConfig, RedundancyConfig
 from ...core import pdu as fc
 from ...core.line import LineRequest
 from ...core.outcome import Outcome
-from ...core.redundancy import ChangeReason, Role, RoleMachine
+from ...core.redundancy import HEARING_DELAY_S, ChangeReason, Role, RoleMachine
 from ...core.routes import RouteTable
 from ...status import PairStatus
 from ..bus import Bus
@@ -43,11 +43,6 @@ if TYPE_CHECKING:
     from .forward import PeerForwarder
 
 log = logging.getLogger("gateway.pair")
-
-#: From the lease check's yes to the peer noticing the bus busy: the bytes reach it a
-#: character later (any byte counts as traffic, not only a whole frame), plus the
-#: scheduling of two processes. ``takeover_after`` must exceed the lease plus this.
-HEARING_DELAY_S = PAIR_HEARING_DELAY_S
 
 
 def boot_time() -> float:
