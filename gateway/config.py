@@ -18,7 +18,7 @@ import os
 import string
 import tomllib
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -203,6 +203,39 @@ class CacheRule:
 
 
 @dataclass(frozen=True)
+class PollBlock:
+    """One ``[[poll]]`` block, resolved through the routes to its line and slave address."""
+
+    unit: int
+    function: int
+    address: int
+    count: int
+    every: float
+    max_age: float
+    line: str = ""
+    slave: int = 0
+    #: Its place among the ``[[poll]]`` entries (the status unit's registers 2N and 2N+1).
+    index: int = 0
+
+    @property
+    def key_prefix(self) -> str:
+        return f"poll[{self.index}]."
+
+    @property
+    def label(self) -> str:
+        """How metrics and ``/status`` name the block: ``UNIT:FUNCTION:FIRST-LAST``."""
+        return f"{self.unit}:{self.function}:{self.address}-{self.address + self.count - 1}"
+
+
+@dataclass(frozen=True)
+class PollingConfig:
+    """``[polling]``: what agent mode's blocks share."""
+
+    status_unit: int = 0
+    max_blocks: int = 256
+
+
+@dataclass(frozen=True)
 class LineConfig:
     """One serial line (RS485 bus) and how to talk on it."""
 
@@ -246,6 +279,8 @@ class LineConfig:
     names: Mapping[int, str] = field(default_factory=dict)
     coalesce: bool = True
     cache: tuple[CacheRule, ...] = ()
+    #: Agent mode's blocks on this line (from the top-level ``[[poll]]`` entries).
+    polls: tuple[PollBlock, ...] = ()
     #: ``rtu``, ``ascii`` (serial devices) or ``rtu-over-tcp`` (``device`` is then ``HOST:PORT``).
     kind: str = "rtu"
     inter_char_timeout: float = 1.0  # ASCII: a frame whose characters stop this long is dropped
@@ -359,6 +394,9 @@ class GatewayConfig:
     renamed: tuple[str, ...] = ()
     audit: AuditConfig = field(default_factory=AuditConfig)
     redundancy: RedundancyConfig = field(default_factory=RedundancyConfig)
+    #: Agent mode: every ``[[poll]]`` block in the order written, and ``[polling]``.
+    polls: tuple[PollBlock, ...] = ()
+    polling: PollingConfig = field(default_factory=PollingConfig)
 
     def line(self, name: str) -> LineConfig:
         """The line called ``name``."""
@@ -959,6 +997,112 @@ def _cache_rules(check: _Checker, table: Mapping[str, Any], prefix: str) -> tupl
     return tuple(rules)
 
 
+#: The most items one read may ask for, by function (the application protocol's limits).
+_READ_LIMITS = {1: 2000, 2: 2000, 3: 125, 4: 125}
+
+
+def _build_polling(
+    check: _Checker, raw: Mapping[str, Any], routes: Mapping[int, Route]
+) -> PollingConfig:
+    prefix = "polling."
+    table = check.entry(Table.POLLING, check.table(raw, "polling"), prefix)
+    config = PollingConfig(**_scalars(check, Table.POLLING, table, prefix, ()))
+    if config.status_unit and config.status_unit in routes:
+        route = routes[config.status_unit]
+        check.fail(
+            f"{prefix}status_unit",
+            f"unit {config.status_unit} is routed to line "
+            f"{route.line!r}; choose an unrouted unit id (248-255 are never routed by "
+            "--serial) or 0 for off",
+        )
+    return config
+
+
+def _build_polls(
+    check: _Checker, raw: Mapping[str, Any], routes: Mapping[int, Route], polling: PollingConfig
+) -> tuple[PollBlock, ...]:
+    """The ``[[poll]]`` blocks, each resolved to its line and slave through the routes."""
+    entries = raw.get("poll", [])
+    if not isinstance(entries, list):
+        check.fail("poll", "write [[poll]] tables with unit, function, address, count, every")
+        return ()
+    if len(entries) > polling.max_blocks:
+        check.fail(
+            "poll",
+            f"{len(entries)} blocks, more than polling.max_blocks = "
+            f"{polling.max_blocks}; merge blocks or raise polling.max_blocks",
+        )
+    blocks: list[PollBlock] = []
+    for index, entry in enumerate(entries):
+        prefix = f"poll[{index}]."
+        if not isinstance(entry, dict):
+            check.fail(f"poll[{index}]", "must be a table with unit, function, address, count")
+            continue
+        entry = check.entry(Table.POLL, entry, prefix)
+        for required in ("unit", "count"):
+            if required not in entry:
+                check.fail(
+                    f"{prefix}{required}", "missing; " + schema.key(Table.POLL, required).help
+                )
+        if "unit" not in entry or "count" not in entry:
+            continue
+        values = _scalars(check, Table.POLL, entry, prefix, ())
+        function, address, count = values["function"], values["address"], values["count"]
+        if count is None or values["unit"] is None:
+            continue  # out of its range: said already
+        limit = _READ_LIMITS[function]
+        if count > limit:
+            items = "bits" if function in (1, 2) else "registers"
+            check.fail(
+                f"{prefix}count",
+                f"{count} is more than function {function} reads at "
+                f"once ({limit} {items}); split the block in two",
+            )
+            continue
+        if address + count > 65536:
+            check.fail(
+                f"{prefix}count",
+                f"address {address} + count {count} runs past 65535; lower count or address",
+            )
+            continue
+        every = values["every"]
+        max_age = values["max_age"] if values["max_age"] is not None else 3.0 * every
+        if max_age < every:
+            check.fail(
+                f"{prefix}max_age",
+                f"{max_age:g} s is shorter than every = {every:g} s: "
+                "the block would be stale between polls; set max_age >= every",
+            )
+            continue
+        route = routes.get(values["unit"])
+        if route is None:
+            check.fail(
+                f"{prefix}unit",
+                f"unit {values['unit']} is not routed; add it to a "
+                "line's units or a [[routes]] entry, or poll a routed unit",
+            )
+            continue
+        block = PollBlock(
+            values["unit"], function, address, count, every, max_age, route.line, route.slave, index
+        )
+        for other in blocks:
+            if (
+                (other.line, other.slave, other.function) == (block.line, block.slave, function)
+                and other.address < address + count
+                and address < other.address + other.count
+            ):
+                check.fail(
+                    f"{prefix}address",
+                    f"the block overlaps poll[{other.index}] "
+                    f"({other.label}) on the same slave and function; make them "
+                    "adjacent or merge them",
+                )
+                break
+        else:
+            blocks.append(block)
+    return tuple(blocks)
+
+
 def _build_routes(
     check: _Checker, raw: Mapping[str, Any], lines: tuple[LineConfig, ...]
 ) -> dict[int, Route]:
@@ -1126,7 +1270,43 @@ def config_warnings(config: GatewayConfig) -> list[str]:
             "one. A cap of 16 refuses SCADA and OPC servers that open one connection per "
             "device; delete the line unless you mean to cap each address"
         )
+    warnings += _poll_plan_warnings(config)
     return warnings + _endpoint_warnings(metrics) + _pair_warnings(config)
+
+
+def poll_plan_share(line: LineConfig) -> float:
+    """The share of ``line``'s wire time its poll plan needs: each block's request and
+    answer frames with the silences around them, times its polls a second. 0.0 on a Modbus
+    TCP or TLS line: its frames take no serial time."""
+    if is_mbap(line.kind):
+        return 0.0
+    form = (line.baudrate, line.data_bits, line.parity, line.stop_bits)
+    gap = line.frame_gap if line.frame_gap is not None else t35(*form)
+    share = 0.0
+    for block in line.polls:
+        answer_bytes = (block.count + 7) // 8 if block.function in (1, 2) else 2 * block.count
+        request, answer = 6, 3 + answer_bytes  # unit, PDU; unit, function, byte count, data
+        if line.kind == "ascii":  # ':', two hex digits a byte, the LRC's two, CR LF
+            request, answer = 1 + 2 * (request + 1) + 2, 1 + 2 * (answer + 1) + 2
+        else:
+            request, answer = request + 2, answer + 2  # the CRC
+        wire = transmission_time(request + answer, *form) + 2 * gap
+        share += wire / block.every
+    return share
+
+
+def _poll_plan_warnings(config: GatewayConfig) -> list[str]:
+    """A line whose poll plan needs more than half its wire time leaves masters little."""
+    warnings: list[str] = []
+    for line in config.lines:
+        share = poll_plan_share(line)
+        if share > 0.5:
+            warnings.append(
+                f"poll: the blocks on line {line.name!r} need {share:.0%} of its wire time at "
+                f"{line.baudrate} baud (more than half): masters' requests that memory cannot "
+                "answer wait behind the polls; raise every, merge blocks, or poll fewer"
+            )
+    return warnings
 
 
 def _endpoint_warnings(metrics: MetricsConfig) -> list[str]:
@@ -1750,6 +1930,12 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
             "(or run with --serial DEVICE, or --demo)",
         )
     routes = _build_routes(check, raw, lines)
+    polling = _build_polling(check, raw, routes)
+    polls = _build_polls(check, raw, routes, polling)
+    lines = tuple(
+        replace(line, polls=tuple(block for block in polls if block.line == line.name))
+        for line in lines
+    )
     policies = _build_policies(check, raw)
     listeners = _build_listeners(check, raw, server, policies)
     _check_shared_devices(check, lines)
@@ -1768,6 +1954,8 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
         tuple(check.renamed),
         audit,
         redundancy,
+        polls,
+        polling,
     )
 
 

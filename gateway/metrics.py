@@ -69,6 +69,7 @@ LINE_OUTCOMES = (
     Outcome.BUSY,
     Outcome.DROPPED,
     Outcome.CACHED,
+    Outcome.MEMORY,
 )
 #: Answered by the gateway without a line (``line="none"``).
 LOCAL_OUTCOMES = (Outcome.NO_ROUTE, Outcome.REJECTED, Outcome.DENIED)
@@ -79,12 +80,12 @@ NO_LINE = "none"
 BROADCAST_LINE = "broadcast"
 
 #: Outcomes that show a slave is present: its unit gets its own label in ``requests_total``.
-_HEARD_OUTCOMES = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.CACHED})
+_HEARD_OUTCOMES = frozenset({Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.CACHED, Outcome.MEMORY})
 #: Outcomes that show a row is in use (the slave answered that function normally, or a
 #: broadcast went out): only then is every outcome of its row created at 0. Any other
 #: outcome creates its own series alone: a master that sends every function to every
 #: unit adds one series per function and outcome it meets, not the row's whole set.
-_ROW_OUTCOMES = frozenset({Outcome.OK, Outcome.CACHED, Outcome.BROADCAST})
+_ROW_OUTCOMES = frozenset({Outcome.OK, Outcome.CACHED, Outcome.MEMORY, Outcome.BROADCAST})
 #: The ``unit`` label of requests to a slave never heard from, and of those without a line.
 OTHER_UNIT = "other"
 #: Unit labels that are always their own: no slave, and broadcast.

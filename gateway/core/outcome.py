@@ -27,6 +27,7 @@ class Outcome(StrEnum):
     BROADCAST = "broadcast"  # sent to unit 0, no answer expected
     DROPPED = "dropped"  # the master left before its answer was ready
     CACHED = "cached"  # answered from the read cache
+    MEMORY = "memory"  # answered from a poll block's memory (agent mode)
 
 
 class SlaveState(StrEnum):
@@ -35,6 +36,26 @@ class SlaveState(StrEnum):
     UP = "up"  # answers: served in the masters' fair order
     SUSPECT = "suspect"  # missed its last answer: behind the healthy slaves, one at a time
     DOWN = "down"  # missed several in a row: answered 0x0B at once, probed now and then
+
+
+class BlockState(StrEnum):
+    """A poll block's freshness (agent mode), as the status unit and ``/status`` show it."""
+
+    FRESH = "fresh"  # its data is younger than the block's ``max_age``
+    STALE = "stale"  # older than ``max_age``, or never polled
+    FAILING = "failing"  # its last poll got an exception, a timeout or a garbled answer
+
+    @property
+    def code(self) -> int:
+        """The status unit's register value: 0 fresh, 1 stale, 2 failing."""
+        return _BLOCK_STATE_CODES[self]
+
+
+_BLOCK_STATE_CODES: dict[BlockState, int] = {
+    BlockState.FRESH: 0,
+    BlockState.STALE: 1,
+    BlockState.FAILING: 2,
+}
 
 
 class LineEvent(StrEnum):

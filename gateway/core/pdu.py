@@ -132,6 +132,11 @@ def function_name(function: int) -> str:
     return FUNCTION_NAMES.get(function & 0x7F, "other")
 
 
+def read_request(function: int, address: int, count: int) -> bytes:
+    """The PDU of a read (function 1-4) of ``count`` items from ``address``."""
+    return bytes((function, address >> 8, address & 0xFF, count >> 8, count & 0xFF))
+
+
 def exception_pdu(function: int, code: int) -> bytes:
     """The exception response PDU for ``function``: function | 0x80, then the code."""
     return bytes(((function | EXCEPTION_FLAG) & 0xFF, code))

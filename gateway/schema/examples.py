@@ -168,4 +168,19 @@ slave = 1
 """,
         commented=False,
     ),
+    Example(
+        Table.POLLING,
+        "A poll block: the gateway reads 50 holding registers of unit 1 every second and "
+        "answers masters' reads inside them from memory, never with data older than max_age. "
+        "Writes go through and the block is read again before it serves reads again.",
+        """\
+[[poll]]
+unit = 1          # the unit id masters use (routed as any request)
+function = 3      # 1, 2, 3 or 4
+address = 0
+count = 50        # at most 125 registers, 2000 bits
+every = 1.0       # seconds between polls
+max_age = 3.0     # never answered from memory with older data; default 3 x every
+""",
+    ),
 )

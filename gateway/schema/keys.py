@@ -1103,11 +1103,12 @@ LINES = (
         type=Type.TABLES,
         default=[],
         show=Show.BLOCK,
-        help='Read cache ("agent" mode), off unless rules are given: [[lines.NAME.cache]] '
+        help="Read cache, off unless rules are given: [[lines.NAME.cache]] "
         "tables (below). Any write (or any other non-read request) to the slave through this "
         "gateway drops its cached responses. Safe only for values that nothing else changes "
         "faster than max_age: measurements polled by many masters, not set-points written by "
-        "another master on another gateway or by the device.",
+        "another master on another gateway or by the device. A read that a [[poll]] block "
+        "covers is served by the block (agent mode, docs/agent-mode.md).",
     ),
     Key(
         table=_L,
@@ -1332,6 +1333,99 @@ ROUTES = (
     ),
 )
 
+_POLL, _POLLING = Table.POLL, Table.POLLING
+
+POLL = (
+    Key(
+        table=_POLL,
+        name="unit",
+        type=Type.INTEGER,
+        low=1,
+        high=255,
+        show=Show.BLOCK,
+        help="The unit id masters use for the block's slave (required); routed as any "
+        "request, so the block lives on the unit's line and slave address.",
+    ),
+    Key(
+        table=_POLL,
+        name="function",
+        type=Type.INTEGER,
+        default=3,
+        low=1,
+        high=4,
+        show=Show.BLOCK,
+        help="The read function the gateway polls and answers from memory: 1, 2, 3 or 4.",
+    ),
+    Key(
+        table=_POLL,
+        name="address",
+        type=Type.INTEGER,
+        default=0,
+        low=0,
+        high=65535,
+        show=Show.BLOCK,
+        help="The block's first address.",
+    ),
+    Key(
+        table=_POLL,
+        name="count",
+        type=Type.INTEGER,
+        low=1,
+        high=2000,
+        show=Show.BLOCK,
+        help="How many registers (at most 125) or bits (at most 2000) the block holds "
+        "(required); the block must end inside the 65,536 addresses.",
+    ),
+    Key(
+        table=_POLL,
+        name="every",
+        type=Type.SECONDS,
+        default=1.0,
+        low=0.05,
+        high=3600.0,
+        show=Show.BLOCK,
+        help="Seconds between polls. A due poll goes before the masters' waiting requests, "
+        "never in the middle of a transaction.",
+    ),
+    Key(
+        table=_POLL,
+        name="max_age",
+        type=Type.SECONDS,
+        default="auto",
+        low=0.05,
+        high=86_400.0,
+        auto="3 x every",
+        show=Show.BLOCK,
+        help="A master is never answered from memory with data older than this (counted from "
+        "when the poll was sent); older, its read goes to the wire. At least every.",
+    ),
+)
+
+POLLING = (
+    Key(
+        table=_POLLING,
+        name="status_unit",
+        type=Type.INTEGER,
+        default=0,
+        low=0,
+        high=255,
+        help="0: off. Else a unit id the gateway answers itself, FC 3 and FC 4 only, with two "
+        "registers per [[poll]] block in configuration order: its data's age in tenths of a "
+        "second (65535: never polled) and its state (0 fresh, 1 stale, 2 failing). 248-255 "
+        "never collide with --serial's routes; a routed unit is an error.",
+    ),
+    Key(
+        table=_POLLING,
+        name="max_blocks",
+        type=Type.INTEGER,
+        default=256,
+        low=1,
+        high=10_000,
+        help="The most [[poll]] blocks the configuration may declare (each keeps at most "
+        "255 bytes of answer).",
+    ),
+)
+
 POLICIES = (
     Key(
         table=_P,
@@ -1432,6 +1526,8 @@ KEYS = (
     *LINES,
     *CACHE,
     *ROUTES,
+    *POLL,
+    *POLLING,
     *POLICIES,
     *RULES,
 )

@@ -18,6 +18,8 @@ class Table(enum.Enum):
     LINES = "lines"
     CACHE = "cache"
     ROUTES = "routes"
+    POLL = "poll"
+    POLLING = "polling"
     POLICIES = "policies"
     RULES = "rules"
 
@@ -42,6 +44,8 @@ _HEADINGS = {
     Table.LINES: "[lines.NAME]",
     Table.CACHE: "[[lines.NAME.cache]]",
     Table.ROUTES: "[[routes]]",
+    Table.POLL: "[[poll]]",
+    Table.POLLING: "[polling]",
     Table.POLICIES: "[policies.NAME]",
     Table.RULES: "[[policies.NAME.rules]]",
 }
@@ -55,6 +59,8 @@ _PREFIXES = {
     Table.LINES: "lines.NAME.",
     Table.CACHE: "lines.NAME.cache[N].",
     Table.ROUTES: "routes[N].",
+    Table.POLL: "poll[N].",
+    Table.POLLING: "polling.",
     Table.POLICIES: "policies.NAME.",
     Table.RULES: "policies.NAME.rules[N].",
 }
@@ -68,6 +74,8 @@ TOP_LEVEL = (
     "redundancy",
     "lines",
     "routes",
+    "poll",
+    "polling",
     "listeners",
     "policies",
 )

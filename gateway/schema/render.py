@@ -44,6 +44,12 @@ _EXAMPLE_TABLES = (
         'One table per line. The name ("a") is used in logs, metrics and routes.',
     ),
     (Table.ROUTES, "", ""),
+    (
+        Table.POLLING,
+        "[polling]",
+        "Agent mode (docs/agent-mode.md): the [[poll]] blocks below are polled by the gateway "
+        "and masters' reads inside them answered from memory.",
+    ),
 )
 
 
@@ -147,6 +153,10 @@ _REFERENCE_INTROS = {
     Table.LINES: "One table per line; the name is used in logs, metrics and routes.",
     Table.CACHE: "Read cache rules of a line (see `cache`).",
     Table.ROUTES: "Remapping: a TCP unit id to a slave address on a line.",
+    Table.POLL: "Agent mode's poll blocks (docs/agent-mode.md): the gateway reads each block "
+    "every `every` seconds and answers masters' reads wholly inside it from memory while its "
+    "data is younger than `max_age`. Reloadable: an unchanged block keeps its data.",
+    Table.POLLING: "What agent mode shares across its blocks.",
     Table.POLICIES: "Named rule lists, used by a listener's `policy`.",
     Table.RULES: "Rules only grant: a request is served when one rule matching the master "
     "(role, source) grants its unit, function, access and whole address range; everything "

@@ -54,6 +54,7 @@ from .foreign import ANSWERED_BY_ECHO, ForeignMasters, ForeignRequest, HeardKind
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import MAX_INCONCLUSIVE, PROOF_FUNCTIONS, LateWindows, proof_pdu
 from .order import OrderRules
+from .polling import POLLER, PollBlock, PollPlan
 from .records import (
     BAD_CHECK,
     FRAME_CACHE_SIZE,
@@ -107,6 +108,11 @@ class LineCore:
         self.late = LateWindows(self.new_decoder)
         self.sharing = ReadSharing()
         self.retries: deque[LineRequest] = deque()  # failed attempts due again, in order
+        self.plan = PollPlan(policy.polls, now)  # agent mode's blocks (``polling``)
+        self.polls: deque[LineRequest] = deque()  # the plan's polls that are due, in order
+        #: The last transaction was a poll that went before masters' waiting requests: the
+        #: next goes to a master (a plan that needs the whole line cannot take it).
+        self._poll_went_first = False
         self.wire: Wire = wire if wire is not None else SerialWire()
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
@@ -158,6 +164,10 @@ class LineCore:
         """Take new timeouts, retries and limits (the port settings are unchanged)."""
         caching = bool(self.policy.cache)
         self._apply_policy(policy)
+        self.plan.configure(policy.polls, now)
+        polled = {id(block.poll) for block in self.plan.blocks}
+        for poll in [poll for poll in self.polls if id(poll) not in polled]:
+            self.polls.remove(poll)  # its block left the plan
         if policy.cache and not caching:
             self.wire.uncacheable()
         if policy.dead_after <= 0:  # isolation off: every slave is served again
@@ -239,11 +249,30 @@ class LineCore:
                     when = min(when, self.late.earliest())
                 if self.foreign_pending:
                     when = min(when, self.foreign.earliest())
+        if self.polls or self.plan.next_due < when:
+            when = min(when, self._poll_time())
         if self._noisy:
             when = min(when, self.quiet_since + self._gap)
         if self.foreign.shared:
             when = min(when, self.foreign.shared_until)
         return None if when == INFINITY else when
+
+    def _poll_time(self) -> float:
+        """When the plan next needs ``service``: a due poll once the line may send (never
+        while it cannot: the timer would spin), a held one when its hold may end."""
+        wire = self.wire
+        if not self._up or self._paused or self.reconnecting or self._stopping or self._noisy:
+            return INFINITY
+        if wire.outstanding >= wire.capacity or (wire.outstanding and not wire.concurrent):
+            return INFINITY  # the attempt's end services the line
+        when = self.plan.next_due
+        if self.polls:
+            when = min(when, self._send_at)
+            if self.late.windows:
+                when = min(when, self.late.earliest())
+            if self.foreign_pending:
+                when = min(when, self.foreign.earliest())
+        return max(when, self.quiet_since + self._gap)
 
     # -- the masters' side ---------------------------------------------------------------
 
@@ -260,6 +289,15 @@ class LineCore:
         if self._stopping or not self._up:
             self._answer(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
             return
+        plan = self.plan
+        if plan.blocks:
+            if request.pdu[0] in fc.READ_FUNCTIONS and not request.broadcast:
+                answer = plan.serve(request.slave, request.pdu, now)
+                if answer is not None:
+                    self._deliver(request, answer, Outcome.MEMORY, -1.0)
+                    return
+            elif plan.change_submitted(request):
+                request.counted_change = True  # until it ends (``_deliver``)
         if self._noisy:
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return
@@ -430,12 +468,16 @@ class LineCore:
         hands on no late-answer windows: its lost answers went with the old connection."""
         windows = self.late.handover() if self.framing.transaction_ids is None else []
         kind = self.framing.kind
-        return Handover(self.quiet_since, tuple(windows), self.foreign.handover(), kind)
+        return Handover(
+            self.quiet_since, tuple(windows), self.foreign.handover(), kind, self.plan.handover()
+        )
 
     def take_over(self, handover: Handover, now: float) -> None:
         """Start where the line this one replaces left the wire: quiet no earlier than it
         was, its late-answer windows kept as if opened here."""
         self.quiet_since = max(self.quiet_since, handover.quiet_since)
+        if handover.blocks:
+            self.plan.take_over(handover.blocks)
         if handover.heard is not None:
             self.foreign.take_over(handover.heard, now)
         # Answers carry transaction ids on MBAP lines; and a lost answer in another framing
@@ -497,7 +539,7 @@ class LineCore:
         if (
             wire.outstanding >= wire.capacity
             or not self._up
-            or not self.queue.queued
+            or not (self.queue.queued or self.polls or self.plan.next_due <= now)
             or self._paused
             or self.reconnecting
         ):
@@ -516,7 +558,10 @@ class LineCore:
                 self._go_noisy()
             return
         self._wanting_since = None
-        while self.queue.queued and wire.outstanding < wire.capacity:
+        plan = self.plan
+        while (
+            self.queue.queued or self.polls or plan.next_due <= now
+        ) and wire.outstanding < wire.capacity:
             picked = self._pick(now)
             if picked is None:
                 return
@@ -549,6 +594,13 @@ class LineCore:
             proof = self._proof(now)
             if proof is not None:
                 return proof
+        if (self.polls or self.plan.next_due <= now) and not (
+            self._poll_went_first and self.queue.queued
+        ):
+            poll = self._due_poll(now)
+            if poll is not None:
+                self._poll_went_first = self.queue.queued > 0
+                return poll, None, False
         lane = self.lane
         if lane.requests and lane.credit_now(now) >= 0.0:
             request = self._lane_candidate(now)
@@ -556,6 +608,7 @@ class LineCore:
                 return request, None, True
         picked = self.queue.pop(now, self.wire.first_eligible)
         if picked is not None:
+            self._poll_went_first = False
             return picked[0], picked[1], False
         if self.late.wanted:  # the queue's requests were held: a proof lets them go
             waiting = self.queue.queued - len(self.lane.requests) - len(self.retries)
@@ -567,6 +620,41 @@ class LineCore:
             if request is not None:
                 return request, None, False
         return None
+
+    def _due_poll(self, now: float) -> LineRequest | None:
+        """The plan's next poll that may go now (``polling`` module doc): due polls go
+        before the masters' requests; an isolated slave's wait in the lane, at its pace."""
+        plan = self.plan
+        for block in plan.due(now):
+            self._make_poll(block, now)
+        wire = self.wire
+        order = self.order
+        for poll in self.polls:
+            if wire.may_go(poll, now) and not order.behind_broadcast(poll):
+                self.polls.remove(poll)
+                return poll
+        return None
+
+    def _make_poll(self, block: PollBlock, now: float) -> None:
+        spec = block.spec
+        slave = spec.slave
+        pdu = fc.read_request(spec.function, spec.address, spec.count)
+        poll = LineRequest(slave, pdu, POLLER, no_reply)
+        poll.poll = True
+        poll.enqueued_at = now
+        self._submitted += 1
+        poll.order = self._submitted
+        record = self.health.slaves.get(slave)
+        if record is None or record.state is SlaveState.UP:
+            self.plan.poll_made(block, poll, now)
+            self.polls.append(poll)
+            return
+        lane = self.lane
+        if slave in lane.requests or self.wire.on_wire_to(slave):
+            self.plan.skipped(block, now)  # its slave's one lane place is taken
+            return
+        self.plan.poll_made(block, poll, now)
+        self._lane_put(poll, now)
 
     def _lighter_master_polls(self, probe: LineRequest, now: float, hold: float) -> bool:
         """True when another master that used the line less than ``probe``'s was answered
@@ -667,6 +755,10 @@ class LineCore:
             request.sent = True  # reads join it, whatever an earlier line did with it
             self.sharing.close(request)
         frame = self.wire.start(request, master, now, credit)
+        if request.poll:
+            block = self.plan.block_of(request)
+            if block is not None:
+                self.plan.sent(block, now)
         if request.pdu[0] in ANSWERED_BY_ECHO and self.framing.transaction_ids is None:
             self.foreign.sent_echoed(request.slave, request.pdu, now)
         stats = self.stats
@@ -714,8 +806,12 @@ class LineCore:
         self._fail_all(ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
 
     def _fail_all(self, code: ExceptionCode, outcome: Outcome) -> None:
+        polls = list(self.polls)
+        self.polls.clear()
         for request in self.take_queued():
             self._answer(request, code, outcome)
+        for poll in polls:
+            self._answer(poll, code, outcome)
 
     def take_queued(self) -> list[LineRequest]:
         """Remove every waiting request unanswered (a reload moves them to a reopened line),
@@ -739,6 +835,9 @@ class LineCore:
         kept: list[LineRequest] = []
         for request in handed:
             if request.cancelled:
+                self._deliver(request, b"", Outcome.DROPPED, -1.0)
+                continue
+            if request.poll:  # the plan polls again; the line taking over has its own
                 self._deliver(request, b"", Outcome.DROPPED, -1.0)
                 continue
             request.attempts = 0
@@ -1214,6 +1313,13 @@ class LineCore:
         read's answer goes to nobody)."""
         if self.wire.orders_outstanding:
             self.wire.released(request)
+        if request.counted_change:
+            request.counted_change = False
+            self.plan.change_ended(request)
+        if request.poll:
+            block = self.plan.block_of(request)
+            if block is not None:
+                self.plan.ended(block, pdu, outcome)
         if request.proof:
             request.answered = True
             return

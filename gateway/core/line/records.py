@@ -64,6 +64,25 @@ class CacheRulePolicy(Protocol):
     def covers(self, unit: int, function: int, address: int, quantity: int) -> bool: ...
 
 
+class PollBlockPolicy(Protocol):
+    """One block of a line's poll plan, as the configuration gives it (``polling``)."""
+
+    @property
+    def unit(self) -> int: ...
+    @property
+    def slave(self) -> int: ...
+    @property
+    def function(self) -> int: ...
+    @property
+    def address(self) -> int: ...
+    @property
+    def count(self) -> int: ...
+    @property
+    def every(self) -> float: ...
+    @property
+    def max_age(self) -> float: ...
+
+
 class LinePolicy(Protocol):
     """The settings the core needs from one line's configuration (``config.LineConfig``)."""
 
@@ -103,6 +122,8 @@ class LinePolicy(Protocol):
     def coalesce(self) -> bool: ...
     @property
     def cache(self) -> Sequence[CacheRulePolicy]: ...
+    @property
+    def polls(self) -> Sequence[PollBlockPolicy]: ...
     @property
     def gap(self) -> float: ...
     @property
@@ -154,6 +175,8 @@ class LineRequest:
     order: int  # its place among the line's submissions (set by ``submit``)
     followers: list[LineRequest]
     proof: bool  # the line's own read, sent to prove a lost answer can no longer come
+    poll: bool  # the line's own read of a poll block (agent mode)
+    counted_change: bool  # counted against poll blocks it may change, until it ends
 
     def __init__(
         self,
@@ -181,6 +204,8 @@ class LineRequest:
         self.order = 0
         self.followers = []
         self.proof = False
+        self.poll = False
+        self.counted_change = False
 
     @property
     def wanted(self) -> bool:
@@ -253,6 +278,21 @@ class Handover(NamedTuple):
     windows: tuple[LateWindow, ...]
     heard: HeardBus | None = None  # other masters heard (``foreign``)
     framing: str = ""  # the framing its windows' answers would come in (``LineKind``)
+    blocks: tuple[KeptBlock, ...] = ()  # the poll blocks' memory (agent mode)
+
+
+class KeptBlock(NamedTuple):
+    """What a poll block knows that the line replacing this one keeps (``polling``)."""
+
+    key: tuple[int, int, int, int]  # slave, function, address, count
+    answer: bytes
+    polled_at: float
+    failing: bool
+    due: float
+    sent_at: float
+    period: float | None
+    outcomes: tuple[tuple[Outcome, int], ...]
+    served: int
 
 
 class Note(NamedTuple):
