@@ -28,6 +28,7 @@ from conftest import require_tool
 
 from bench.hostile import read_exactly
 from bench.pair_lab import PLC_10, READ_10, GatewayProc, PairLab, Poller
+from gateway.sim.device import DataBank, SimulatedDevice
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys and signals")
 
@@ -336,3 +337,50 @@ def test_after_a_reload_that_swaps_two_units_both_gateways_reach_the_configured_
         write = struct.pack(">BHH", 6, register, value)
         assert transact(gateway.modbus, 2, write) == write, gateway.name
         assert (holding[1][register], holding[2][register]) == (value, 0), gateway.name
+
+
+class ClampingDevice(SimulatedDevice):
+    """Stores an FC 6 value clamped to 0..255 and answers with what it stored, as some
+    slaves do: an intact 8-byte answer shaped like an FC 6 request, not the echo."""
+
+    def _write_single_register(self, pdu: bytes) -> bytes:
+        address, value = struct.unpack(">HH", pdu[1:5])
+        self.holding[address] = min(value, 0xFF)
+        return struct.pack(">BHH", 6, address, min(value, 0xFF))
+
+
+def test_a_slave_answering_a_write_with_the_value_it_stored_does_not_shake_the_pair(
+    lab: PairLab,
+) -> None:
+    """Writes to a clamping slave (unit 3, a node of its own), through the active and
+    through the standby: each costs only its own request (0x0B); the active never steps
+    down and a master polling another slave meanwhile gets no 0x0A."""
+    clamping = ClampingDevice(holding=DataBank(100))
+    lab.bus.attach_slaves({3: clamping}, name="clamp")
+    a, b = lab.gateway("a"), lab.gateway("b")
+    routes = {1: 1, 2: 2, 3: 3}
+    lab.configure(a, b, priority=200, routes=routes)
+    lab.configure(b, a, priority=100, routes=routes)
+    a.start()
+    b.start()
+    active, standby = active_and_standby(lab, a, b)
+    deadline = time.monotonic() + 10.0
+    while status(standby)["pair"]["peer_role"] != "active":  # it forwards from now on
+        assert time.monotonic() < deadline
+        time.sleep(0.05)  # polling an HTTP endpoint
+    marks = len(active.lines), len(standby.lines)
+    poller = Poller(active.modbus)  # slave 1, every 50 ms
+    lab.bus.wait_for(lambda s: len(s.frames_of(active.name)) >= 10, timeout=15.0)
+    answers = []
+    for register, gateway in ((10, active), (11, standby), (12, active)):
+        answers.append(transact(gateway.modbus, 3, struct.pack(">BHH", 6, register, 0x1234)))
+    tally = poller.stop()
+    assert answers == [bytes((0x86, 0x0B))] * 3
+    assert clamping.holding[10] == 0xFF  # the first write executed (and was answered clamped)
+    assert not tally.wrong and tally.good > 10, tally
+    assert 0x0A not in tally.exceptions, tally.exceptions
+    assert active.role() == "active" and standby.role() == "standby"
+    for gateway, start in zip((active, standby), marks, strict=True):
+        changes = [line for line in gateway.lines[start:] if "pair: now" in line]
+        assert changes == [], changes
+    assert lab.bus.stats().collisions == 0
