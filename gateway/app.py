@@ -36,13 +36,14 @@ from .core.line import Handover
 from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
-from .io.bus import Alone, Bus, Request
+from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, Request
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, role_route, start_http
 from .io.http_guard import Access
 from .io.rtu_listener import rtu_over_tcp_server
 from .io.serial_port import check_devices_usable
 from .io.serial_slave import SerialSlave
+from .io.status_unit import StatusUnit
 from .io.systemd import SystemdNotifier
 from .io.tcp import ModbusTcpServer, Router, Target
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
@@ -193,6 +194,16 @@ class Gateway:
         return [
             bus.status(sorted(routed.get(name, ()))) for name, bus in sorted(self.buses.items())
         ]
+
+    def poll_blocks(self) -> list[PlannedBlock]:
+        """Every line's poll blocks (agent mode), in configuration order."""
+        blocks = [planned for bus in self.buses.values() for planned in bus.poll_blocks()]
+        blocks.sort(key=lambda planned: planned.config.index)
+        return blocks
+
+    def _block_freshness(self) -> list[PollBlockView]:
+        """What the status unit reads: block N of the configuration at place N."""
+        return [planned.block for planned in self.poll_blocks()]
 
     def masters(self) -> tuple[MasterStatus, ...]:
         """The masters connected now: TCP listeners first, then serial-slave lines."""
@@ -537,7 +548,11 @@ class Gateway:
         }
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
         self.metrics.prepare_units((r.line, r.slave) for r in self.config.routes.values())
-        router = Router(routes, broadcast)
+        status_unit = self.config.polling.status_unit
+        own = {}
+        if status_unit:  # answered here, from the blocks of the lines running at each read
+            own[status_unit] = Target(StatusUnit(self._block_freshness, self.metrics), status_unit)
+        router = Router(routes, broadcast, own)
         if self.pair is not None:  # a standby forwards by the table the active admits by
             self.pair.reroute(router.admitter.table)
         return router

@@ -29,6 +29,7 @@ from .core.framing import is_mbap
 from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
 from .core.redundancy import HEARING_DELAY_S
 from .core.rtu import MAX_RTU_FRAME
+from .core.status_unit import STATUS_LINE
 from .core.timing import character_time, t35, transmission_time
 from .schema import Key, Table, Type
 
@@ -1002,7 +1003,10 @@ _READ_LIMITS = {1: 2000, 2: 2000, 3: 125, 4: 125}
 
 
 def _build_polling(
-    check: _Checker, raw: Mapping[str, Any], routes: Mapping[int, Route]
+    check: _Checker,
+    raw: Mapping[str, Any],
+    routes: Mapping[int, Route],
+    lines: tuple[LineConfig, ...],
 ) -> PollingConfig:
     prefix = "polling."
     table = check.entry(Table.POLLING, check.table(raw, "polling"), prefix)
@@ -1014,6 +1018,12 @@ def _build_polling(
             f"unit {config.status_unit} is routed to line "
             f"{route.line!r}; choose an unrouted unit id (248-255 are never routed by "
             "--serial) or 0 for off",
+        )
+    if config.status_unit and any(line.name == STATUS_LINE for line in lines):
+        check.fail(
+            f"lines.{STATUS_LINE}",
+            f"the status unit's answers are counted as line {STATUS_LINE!r}; rename the "
+            "line, or set polling.status_unit = 0",
         )
     return config
 
@@ -1930,7 +1940,7 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
             "(or run with --serial DEVICE, or --demo)",
         )
     routes = _build_routes(check, raw, lines)
-    polling = _build_polling(check, raw, routes)
+    polling = _build_polling(check, raw, routes, lines)
     polls = _build_polls(check, raw, routes, polling)
     lines = tuple(
         replace(line, polls=tuple(block for block in polls if block.line == line.name))
@@ -1962,6 +1972,8 @@ def build_config(raw: Mapping[str, Any], source: str = "<command line>") -> Gate
 def policy_warnings(config: GatewayConfig) -> list[str]:
     """Rules that can never grant anything, unused policies, tls listeners without a policy."""
     warnings: list[str] = []
+    status_unit = config.polling.status_unit
+    own_units = frozenset({status_unit}) if status_unit else frozenset()
     used = {listener.policy for listener in config.listeners}
     for name in config.policies:
         if name not in used:
@@ -1990,6 +2002,7 @@ def policy_warnings(config: GatewayConfig) -> list[str]:
             read_only=listener.read_only or config.server.read_only,
             allow=listener.allow or config.server.allow,
             routes=config.routes,
+            own_units=own_units,
         )
     return warnings
 

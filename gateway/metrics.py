@@ -11,7 +11,8 @@ so a request costs dictionary look-ups, not label resolution.
 ``requests_total`` joins ``timeouts_total`` on ``(line, unit)``; with the usual
 one-to-one routes it is also the unit id the master sent. Requests answered
 without a line (no route, rejected locally) carry ``line="none", unit="other"``,
-broadcasts ``line="broadcast", unit="0"``. docs/metrics.md lists every metric.
+broadcasts ``line="broadcast", unit="0"``, the status unit's answers (agent mode)
+``line="status"`` and its unit id. docs/metrics.md lists every metric.
 
 A remote client chooses the unit and function of its requests, so
 ``requests_total`` names a unit only once that slave has answered on its line
@@ -48,6 +49,7 @@ from .core.line import LineStats
 from .core.outcome import DiscardReason, Outcome, ReconnectReason, SlaveState
 from .core.pdu import function_name
 from .core.reasons import CloseReason, MasterFault, RejectReason
+from .core.status_unit import STATUS_LINE
 
 __all__ = [  # CloseReason and RejectReason live in core; importing them from here still works
     "CloseReason",
@@ -75,6 +77,8 @@ LINE_OUTCOMES = (
 LOCAL_OUTCOMES = (Outcome.NO_ROUTE, Outcome.REJECTED, Outcome.DENIED)
 #: Broadcasts (``line="broadcast"``).
 BROADCAST_OUTCOMES = (Outcome.BROADCAST, Outcome.NO_ROUTE)
+#: Answered by the status unit (``line="status"``): its registers, or its exceptions.
+STATUS_OUTCOMES = (Outcome.OK, Outcome.SLAVE_EXCEPTION)
 #: ``line`` label of the requests answered without a line, and of broadcasts.
 NO_LINE = "none"
 BROADCAST_LINE = "broadcast"
@@ -827,6 +831,8 @@ class GatewayMetrics:
             outcomes: tuple[Outcome, ...] = LOCAL_OUTCOMES
         elif line == BROADCAST_LINE:
             outcomes = BROADCAST_OUTCOMES
+        elif line == STATUS_LINE:
+            outcomes = STATUS_OUTCOMES
         else:
             outcomes = LINE_OUTCOMES
         for outcome in outcomes:

@@ -15,7 +15,10 @@ taken in this order, and the first step that answers wins:
    a denied request gets 0x01 whether or not its unit is routed, and a master
    learns nothing about a request it may not send: not whether the unit
    exists, not whether the request was malformed. FC 8/4 (Force Listen Only
-   Mode) is refused here unless a rule names ``8:4``.
+   Mode) is refused here unless a rule names ``8:4``. A unit the gateway
+   answers itself (``own``: the status unit) is routed to its own line, but
+   the policy sees it as unrouted: only a rule that lists its unit id (or
+   names no units) grants it; a rule naming a line or slave never does.
 3. **The gateway's own refusals** (0x01 ``REJECTED``): a function in
    ``refuse_functions``; a broadcast of anything but a write.
 4. **Validate** (``pdu.validate_request``, 0x01/0x02/0x03 ``REJECTED``).
@@ -83,18 +86,29 @@ _NOT_BROADCAST = "only writes can be broadcast"
 class Admitter:
     """The routing table, with each route's ``Submit`` made once (the hot path allocates none)."""
 
-    __slots__ = ("_broadcast", "_submits", "table")
+    __slots__ = ("_broadcast", "_own", "_submits", "table")
 
-    def __init__(self, table: RouteTable) -> None:
+    def __init__(self, table: RouteTable, own: Mapping[int, RouteLike] | None = None) -> None:
         self.table = table
         self._submits = {unit: Submit(target) for unit, target in table.routes.items()}
+        #: Units the gateway answers itself (the status unit), beside the routes: not in
+        #: ``table``, which a pair's forwarding reads, and unrouted to the policy.
+        self._own = frozenset(own or ())
+        for unit, route in (own or {}).items():
+            self._submits[unit] = Submit(Target(route.line, route.slave))
         lines = table.broadcast_lines
         self._broadcast = Broadcast(lines) if lines else None
 
     @classmethod
-    def of(cls, routes: Mapping[int, RouteLike], broadcast_lines: Iterable[str] = ()) -> Admitter:
-        """An admitter for ``routes`` (any mapping of unit ids to line and slave)."""
-        return cls(RouteTable(routes, broadcast_lines))
+    def of(
+        cls,
+        routes: Mapping[int, RouteLike],
+        broadcast_lines: Iterable[str] = (),
+        own: Mapping[int, RouteLike] | None = None,
+    ) -> Admitter:
+        """An admitter for ``routes`` (any mapping of unit ids to line and slave), and for
+        ``own``, the units the gateway answers itself on lines of its own."""
+        return cls(RouteTable(routes, broadcast_lines), own)
 
     def admit(
         self,
@@ -109,7 +123,7 @@ class Admitter:
         submit = self._submits.get(unit) if serves is None or unit in serves else None
         routed = submit is not None or unit == 0
         if not policy.open or function == fc.DIAGNOSTICS:
-            target = None if submit is None else submit.target
+            target = None if submit is None or unit in self._own else submit.target
             decision = policy.decide(principal, unit, pdu, target)
             if decision.denied is not None:
                 reason = f"denied by policy ({decision.denied})"

@@ -420,9 +420,11 @@ def lint(
     read_only: bool,
     allow: Sequence[IPNetwork],
     routes: Mapping[int, RouteLike],
+    own_units: frozenset[int] = frozenset(),
 ) -> list[str]:
     """Warnings about rules that can never grant anything on ``listener`` (empty when sound),
-    or that reach a slave under more unit ids than they name (aliases)."""
+    or that reach a slave under more unit ids than they name (aliases). ``own_units`` are
+    the units the gateway answers itself (the status unit): a rule may name them alone."""
     targets = targets_of(routes)
     reaches = {id(rule): Reach(rule, targets).keys(targets) for rule in rules}
 
@@ -433,7 +435,7 @@ def lint(
     for index, rule in enumerate(rules):
         where = f"{rule.key} (listener {listener!r})"
         warnings += [f"{where}: {text}" for text in _rule_warnings(rule, tls, read_only, allow)]
-        warnings += [f"{where}: {text}" for text in _reach_warnings(rule, targets)]
+        warnings += [f"{where}: {text}" for text in _reach_warnings(rule, targets, own_units)]
         for earlier in rules[:index]:
             if _covers(earlier, rule, reach):
                 warnings.append(f"{where}: adds nothing to {earlier.key}, which grants all of it")
@@ -479,7 +481,9 @@ def _rule_warnings(rule: Rule, tls: bool, read_only: bool, allow: Sequence[IPNet
     return warnings
 
 
-def _reach_warnings(rule: Rule, targets: Mapping[int, Target]) -> list[str]:
+def _reach_warnings(
+    rule: Rule, targets: Mapping[int, Target], own_units: frozenset[int] = frozenset()
+) -> list[str]:
     """Rules whose units or line/slave no route serves, and rules that name an alias."""
     reach = Reach(rule, targets)
     if rule.by_target:
@@ -487,7 +491,7 @@ def _reach_warnings(rule: Rule, targets: Mapping[int, Target]) -> list[str]:
             return [
                 "no route reaches its line and slave; fix line/slave (and units) or add a route"
             ]
-    elif rule.units is not None and not rule.units & (frozenset(targets) | {0}):
+    elif rule.units is not None and not rule.units & (frozenset(targets) | {0} | own_units):
         return ["none of its units is routed to a line; fix units or add a route"]
     if rule.units is None:
         return []

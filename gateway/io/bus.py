@@ -31,15 +31,15 @@ import asyncio
 import logging
 import ssl
 import time
-from collections.abc import Callable, Hashable, Iterable
-from typing import Protocol
+from collections.abc import Callable, Hashable, Iterable, Mapping
+from typing import NamedTuple, Protocol
 
-from ..config import LineConfig
+from ..config import LineConfig, PollBlock
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
 from ..core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
-from ..core.outcome import Outcome, SlaveState
+from ..core.outcome import BlockState, Outcome, SlaveState
 from ..metrics import GatewayMetrics
 from ..status import LineState, LineStatus, SlaveStatus
 from .clock import PreciseClock, wait_until
@@ -81,6 +81,39 @@ class LineRole(Protocol):
     def cancel(self, master: Hashable) -> None:
         """``master`` left: what was forwarded for it (``Bus.stand_by``) is dropped too."""
         ...
+
+
+class PollBlockView(Protocol):
+    """What the io side reads of one block of a line's poll plan (agent mode's
+    ``core.line.polling.PollBlock``), and never writes: its freshness and counters."""
+
+    @property
+    def period(self) -> float | None:
+        """The achieved period between polls (a moving mean), ``None`` before two."""
+        ...
+
+    @property
+    def served(self) -> int:
+        """Reads answered from the block's memory."""
+        ...
+
+    @property
+    def outcomes(self) -> Mapping[Outcome, int]:
+        """The block's polls by outcome."""
+        ...
+
+    def age(self, now: float) -> float | None: ...
+
+    def state(self, now: float) -> BlockState: ...
+
+    def status_registers(self, now: float) -> tuple[int, int]: ...
+
+
+class PlannedBlock(NamedTuple):
+    """One poll block of a running line: its ``[[poll]]`` entry and its live state."""
+
+    config: PollBlock
+    block: PollBlockView
 
 
 class Alone:
@@ -191,6 +224,15 @@ class Bus:
     def slave_states(self) -> dict[int, SlaveState]:
         """The isolation state of every slave the line has an opinion on."""
         return self._core.slave_states()
+
+    def poll_blocks(self) -> tuple[PlannedBlock, ...]:
+        """The line's poll blocks (agent mode), in configuration order, to read: the status
+        unit, ``/status`` and the metrics show them."""
+        return tuple(
+            PlannedBlock(block.spec, block)
+            for block in self._core.plan.blocks
+            if isinstance(block.spec, PollBlock)  # the plan keeps the entry it was given
+        )
 
     def learned_timeouts(self, slaves: Iterable[int]) -> dict[int, float]:
         """The response timeouts learned for ``slaves`` (those with one)."""

@@ -57,7 +57,7 @@ import logging
 import socket
 import ssl
 import time
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Final, Protocol, cast
 
@@ -81,7 +81,7 @@ from ..core.outcome import Outcome
 from ..core.policy import IPAddress, Policy, Principal
 from ..core.routes import Target as CoreTarget
 from ..logs import EventSummary, RateLimitedLogger
-from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, RejectReason
+from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, LoopHistogram, RejectReason
 from ..status import MasterStatus
 from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
@@ -133,11 +133,39 @@ class ReadPause:
     BATCH: Final = 4  #: this turn's batch is used up; the rest waits for the next turn
 
 
+class LineService(Protocol):
+    """What a listener needs of a line it submits to: a ``Bus``, or a line the gateway
+    answers itself (``status_unit.StatusUnit``). Listeners know lines by this alone."""
+
+    @property
+    def name(self) -> str:
+        """The line's name: its ``line`` label in the metrics."""
+        ...
+
+    @property
+    def up(self) -> bool:
+        """True while it takes requests (a broadcast goes only to lines that are up)."""
+        ...
+
+    @property
+    def request_duration(self) -> LoopHistogram:
+        """The latency series the listener observes each answer in."""
+        ...
+
+    def submit(self, request: Request) -> bool:
+        """Take ``request``; its answer comes through ``request.reply`` (perhaps at once)."""
+        ...
+
+    def cancel(self, master: Hashable) -> None:
+        """``master`` left: drop what of it still waits."""
+        ...
+
+
 @dataclass(frozen=True, slots=True)
 class Target:
-    """Where a TCP unit id goes on the running lines: the line's ``Bus`` and the slave."""
+    """Where a TCP unit id goes on the running lines: the line and the slave address."""
 
-    bus: Bus
+    bus: LineService
     slave: int
 
 
@@ -146,26 +174,39 @@ class Router:
 
     Built from the lines' buses (``Gateway._build_router``) and replaced as a whole on
     reload; admission reads only the pure table, the listeners execute on the buses.
+    ``own`` routes the units the gateway answers itself (the status unit) to lines of
+    their own: admitted as any unit, but unrouted to the policy (``Admitter``).
     """
 
-    def __init__(self, routes: Mapping[int, Target], broadcast_buses: list[Bus]) -> None:
+    def __init__(
+        self,
+        routes: Mapping[int, Target],
+        broadcast_buses: list[Bus],
+        own: Mapping[int, Target] | None = None,
+    ) -> None:
         self.routes = dict(routes)
         self.broadcast_buses = broadcast_buses
-        by_line = {target.bus.name: target.bus for target in self.routes.values()}
-        by_line.update((bus.name, bus) for bus in broadcast_buses)
-        self.buses = list(by_line.values())
+        lines: dict[str, LineService] = {t.bus.name: t.bus for t in self.routes.values()}
+        lines.update((bus.name, bus) for bus in broadcast_buses)
+        #: The lines a leaving master's requests are cancelled on (not the own units':
+        #: nothing waits there).
+        self.buses = list(lines.values())
+        own = dict(own or {})
+        self.routes.update(own)
+        lines.update((target.bus.name, target.bus) for target in own.values())
         #: The running line of each line name (``bus``; read directly once per request).
-        self.by_line = by_line
+        self.by_line = lines
         self.admitter = Admitter.of(
             {unit: CoreTarget(target.bus.name, target.slave) for unit, target in routes.items()},
             [bus.name for bus in broadcast_buses],
+            {unit: CoreTarget(target.bus.name, target.slave) for unit, target in own.items()},
         )
 
     def lookup(self, unit: int) -> Target | None:
         """The route for ``unit``, ``None`` when there is none."""
         return self.routes.get(unit)
 
-    def bus(self, line: str) -> Bus:
+    def bus(self, line: str) -> LineService:
         """The running line called ``line`` (a name from the routing table)."""
         return self.by_line[line]
 
@@ -428,7 +469,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         transaction_id: int,
         unit: int,
         pdu: bytes,
-        bus: Bus,
+        bus: LineService,
         slave: int,
         arrived: float,
         ticket: AuditTicket | None = None,
@@ -488,7 +529,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             )
 
     def _broadcast(
-        self, transaction_id: int, pdu: bytes, lines: list[Bus], ticket: AuditTicket | None
+        self, transaction_id: int, pdu: bytes, lines: list[LineService], ticket: AuditTicket | None
     ) -> None:
         """Send a write to every line that takes broadcasts and is up; 0x0A when none is."""
         server = self._server

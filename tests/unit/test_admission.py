@@ -209,3 +209,19 @@ def test_the_table_gives_each_slave_the_lowest_unit_that_reaches_it() -> None:
     table = Admitter.of({12: Target("a", 2), 2: Target("a", 2), 1: Target("a", 1)}).table
     assert table.units == {Target("a", 1): 1, Target("a", 2): 2}
     assert table.units.get(("a", 2)) == 2 and table.units.get(("b", 2)) is None
+
+
+def test_a_unit_the_gateway_answers_itself_is_granted_by_its_unit_id_only() -> None:
+    """The status unit goes to a line of its own, but the policy sees it unrouted: a rule
+    that names slave 100 (on any line) does not reach status unit 100; one listing unit 100
+    does."""
+    own = Admitter.of(ROUTES, ["a"], {100: Target("status", 100)})
+    assert own.admit(ANYONE, 100, READ, OPEN) == Submit(Target("status", 100))
+    assert own.table.lookup(100) is None  # not a route of the table a pair forwards by
+    by_slave = Policy((Rule(key="r", slaves=frozenset({1, 100})),), routes=ROUTES)
+    assert own.admit(ANYONE, 1, READ, by_slave) == Submit(Target("a", 1))
+    denied = summary(own.admit(ANYONE, 100, READ, by_slave))
+    assert denied == (ExceptionCode.ILLEGAL_FUNCTION, Outcome.DENIED, True)
+    naming = Policy((Rule(key="r", units=frozenset({100}), access=Access.READ),), routes=ROUTES)
+    assert own.admit(ANYONE, 100, READ, naming) == Submit(Target("status", 100))
+    assert summary(own.admit(ANYONE, 100, WRITE, naming))[1] is Outcome.DENIED  # type: ignore[index]

@@ -6,7 +6,14 @@ from typing import Any
 
 import pytest
 
-from gateway.config import ConfigError, PollBlock, build_config, config_warnings, poll_plan_share
+from gateway.config import (
+    ConfigError,
+    PollBlock,
+    build_config,
+    config_warnings,
+    policy_warnings,
+    poll_plan_share,
+)
 
 LINES = {"a": {"device": "/dev/ttyUSB0", "units": [1, 2]}, "b": {"device": "/dev/ttyUSB1"}}
 ROUTES = [{"unit": 100, "line": "b", "slave": 7}]
@@ -111,3 +118,29 @@ def test_a_plan_above_half_the_wire_time_is_warned_about() -> None:
     heavy = config([{"unit": 1, "count": 125, "every": 0.3}])
     (warning,) = [w for w in config_warnings(heavy) if w.startswith("poll:")]
     assert "line 'a'" in warning and "9600 baud" in warning and "raise every" in warning
+
+
+def test_the_status_units_line_label_is_no_real_lines_name() -> None:
+    raw: dict[str, Any] = {
+        "lines": {"status": {"device": "/dev/ttyUSB0", "units": [1]}},
+        "polling": {"status_unit": 250},
+    }
+    with pytest.raises(ConfigError) as caught:
+        build_config(raw, "plant.toml")
+    (problem,) = caught.value.problems
+    assert "lines.status" in problem and "rename the line" in problem
+    raw["polling"] = {"status_unit": 0}
+    assert build_config(raw, "plant.toml").line("status").name == "status"  # off: no clash
+
+
+def test_a_rule_may_name_the_status_unit_alone() -> None:
+    raw: dict[str, Any] = {
+        "lines": LINES,
+        "server": {"policy": "p"},
+        "policies": {"p": {"rules": [{"units": [250], "access": "read"}]}},
+        "polling": {"status_unit": 250},
+    }
+    assert policy_warnings(build_config(raw, "p.toml")) == []
+    raw["polling"] = {"status_unit": 0}
+    (warning,) = policy_warnings(build_config(raw, "p.toml"))
+    assert "none of its units is routed" in warning
