@@ -269,6 +269,7 @@ class Gateway:
                 built.context if built else None,
             )
             server.tracer, server.audit = self.trace, self.audit
+            server.pair_sources = self.config.redundancy.peer_hosts
             self.servers.append(server)
         self.server = self.servers[0]
 

@@ -182,6 +182,11 @@ class RedundancyConfig:
     def paired(self) -> bool:
         return self.peer is not None
 
+    @property
+    def peer_hosts(self) -> frozenset[str]:
+        """The peer's addresses (``peer``'s and ``peer_modbus``'s): where its links come from."""
+        return frozenset(address[0] for address in (self.peer, self.peer_modbus) if address)
+
 
 @dataclass(frozen=True)
 class CacheRule:

@@ -56,25 +56,37 @@ from many, would otherwise displace masters at work (the share rule sees a busy
 host with three connections as heavier than twenty silent hosts with one each),
 and under ``"refuse"`` fill the table for good.
 
-Invariants: the count never exceeds ``max_connections`` (an eviction frees the
-slot it fills); a connection with a request in flight is never closed; while any
-never-used connection is open, no connection that has sent a request is closed;
-a newcomer whose source holds less than its fair share is never refused, under
-either policy, while another source holding more than its own has a never-used
-connection; under ``"refuse"`` only a never-used connection is ever closed, and
-only for such a newcomer. With no never-used connection open
-(``close_oldest_idle``): an evicted connection of the newcomer's own source or
-of a source only one heavier was idle for ``evict_min_idle``; a newcomer is never
-refused while another source holding two more than its own has a connection with
-nothing in flight, hence one whose source stays within its fair share once
+The redundancy peer's links. A standby forwards its masters' requests to the active
+over links, one per master address, opened from its own address (``pair``: the
+addresses of the configured peer). The standby has admitted those masters at its own
+listener, with this same rule, so the active does not make them compete as one source:
+the peer's connections have a budget of their own, ``max_connections`` of them, outside
+the count the other sources share. A newcomer from the peer is admitted while the peer
+holds fewer, whatever the others hold (``max_per_source`` does not apply to it), and
+is never evicted for another source's newcomer; the others' decisions are made as if
+the peer's connections were not there. Only the configured peer's address is believed:
+the listener's address screen decides who may connect at all.
+
+Invariants: the count of the other sources' connections never exceeds
+``max_connections`` (an eviction frees the slot it fills), nor does the peer's; a
+connection with a request in flight is never closed; while any never-used connection
+is open, no connection that has sent a request is closed; a newcomer whose source
+holds less than its fair share is never refused, under either policy, while another
+source holding more than its own has a never-used connection; under ``"refuse"``
+only a never-used connection is ever closed, and only for such a newcomer. With no
+never-used connection open (``close_oldest_idle``): an evicted connection of the
+newcomer's own source or of a source only one heavier was idle for
+``evict_min_idle``; a newcomer is never refused while another source holding two
+more than its own has a connection with nothing in flight, hence one whose source
+stays within its fair share once
 admitted (``held + 1 <= max_connections // sources``, the newcomer's counted) is
 never refused while the others have nothing in flight.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 
@@ -144,9 +156,25 @@ def has_free_slot(limits: ShareLimits, total: int, held: int) -> bool:
 
 
 def admit_connection(
-    source: str, limits: ShareLimits, connections: Sequence[OpenConnection]
+    source: str,
+    limits: ShareLimits,
+    connections: Sequence[OpenConnection],
+    pair: Collection[str] = (),
 ) -> Verdict:
-    """Admit, evict one of ``connections`` or refuse a newcomer from ``source``."""
+    """Admit, evict one of ``connections`` or refuse a newcomer from ``source``; the
+    connections of ``pair`` (the redundancy peer's addresses) have their own budget."""
+    if pair:
+        if source in pair:
+            held = sum(1 for connection in connections if connection.source in pair)
+            return ADMIT if held < limits.max_connections else Refuse(Refusal.MAX_CONNECTIONS)
+        others = [i for i, connection in enumerate(connections) if connection.source not in pair]
+        if len(others) < len(connections):
+            verdict = admit_connection(source, limits, [connections[i] for i in others])
+            return (
+                replace(verdict, index=others[verdict.index])
+                if isinstance(verdict, Evict)
+                else verdict
+            )
     counts: dict[str, int] = {}
     oldest_unused: dict[str, int] = {}  # per source: its longest-open never-used connection
     for index, connection in enumerate(connections):

@@ -39,7 +39,8 @@ longest-idle one with nothing in flight (a never-used one while any is open):
 one idle for ``evict_min_idle`` to a newcomer of its own address or of one a
 connection lighter, any to a newcomer whose address holds at least two fewer;
 else the next heaviest address is tried, down to the newcomer's own; none:
-refused. Only a complete request makes a master active (and used).
+refused. Only a complete request makes a master active (and used). The redundancy
+peer's links (``pair_sources``) have a budget of their own, outside the others' count.
 Connection events are logged at DEBUG and summarised at INFO once a minute;
 faults a client can repeat at will are rate-limited per source and kind.
 
@@ -721,6 +722,9 @@ class ModbusTcpServer:
         self._chains: dict[bytes, tuple[bytes, ...]] = {}
         self.tracer = FrameTrace()  #: the gateway's, given at construction; used while active
         self.audit: AuditLog | None = None  #: the audit log, when configured (``Gateway``)
+        #: The redundancy peer's addresses (``Gateway``): its links, which carry the masters
+        #: it admitted, have a connection budget of their own (``core.connection_share``).
+        self.pair_sources: frozenset[str] = frozenset()
         self._connections: dict[MasterConnection, None] = {}
         self._per_source: dict[str, int] = {}
         self._listeners: list[socket.socket] = []
@@ -944,7 +948,12 @@ class ModbusTcpServer:
             config.when_full == "close_oldest_idle",
             config.evict_min_idle,
         )
-        if has_free_slot(limits, len(self._connections), self._per_source.get(source, 0)):
+        pair = self.pair_sources
+        total = len(self._connections)
+        if pair:  # the redundancy peer's links have a budget of their own (core)
+            total -= sum(self._per_source.get(host, 0) for host in pair)
+        held = self._per_source.get(source, 0)
+        if source not in pair and has_free_slot(limits, total, held):
             return None
         connections = list(self._connections)
         now = time.monotonic()
@@ -952,7 +961,7 @@ class ModbusTcpServer:
             OpenConnection(c.source, c.idle_for(now), c.in_flight, c.requests > 0)
             for c in connections
         ]
-        verdict = admit_connection(source, limits, snapshot)
+        verdict = admit_connection(source, limits, snapshot, pair)
         if isinstance(verdict, Evict):
             self._evict(connections[verdict.index], verdict, peer)
             return None

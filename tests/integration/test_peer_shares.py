@@ -1,9 +1,10 @@
 """Forwarding between two real gateways over loopback: each master's share and record.
 
-The *active* is a gateway alone (it answers ``GET /role`` as active) in front of a
-simulated line; the *standby* is a paired gateway whose peer is that one, with a line of
-its own that it only listens to. Masters connect from their own loopback addresses
-(127.0.0.5, ...), since the standby answers 0x0A to anything from its peer's address.
+A pair in one process: the *active* (127.0.0.2, priority 200) in front of a simulated
+line, started first, takes over; the *standby* (127.0.0.3), with a line of its own that
+it only listens to, finds it active and forwards. A short lease keeps the start quick.
+Masters connect from their own loopback addresses (127.0.0.5 and up), since a gateway
+answers 0x0A to anything from its peer's address while it stands by.
 """
 
 from __future__ import annotations
@@ -14,12 +15,16 @@ import struct
 from pathlib import Path
 from typing import Any
 
+import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, wait_until
 
+from bench.pair_lab import free_ports
 from gateway.sim import plc
 
 READ_1 = struct.pack(">BHH", 3, 0, 1)
 HOSTILE, HONEST, DIRECT = "127.0.0.5", "127.0.0.6", "127.0.0.7"
+ACTIVE_HOST, STANDBY_HOST = "127.0.0.2", "127.0.0.3"
+MANY_HOSTILE = [f"127.0.0.{n}" for n in range(10, 22)]  # twelve addresses
 
 
 def pair_of(
@@ -32,33 +37,37 @@ def pair_of(
     """(the active's line, the active, the standby), the standby forwarding to the active."""
     sim = make_sim({1: plc(1), 2: plc(2)})
     quiet = make_sim({1: plc(1), 2: plc(2)})  # the standby's own line: it only listens
-    tables: dict[str, Any] = {"server": dict(server or {})}
-    audits: list[dict[str, Any]] = [{}, {}]
-    if audit is not None:
-        audits = [
-            {"audit": {"path": str(audit / "active.jsonl")}},
-            {"audit": {"path": str(audit / "standby.jsonl")}},
-        ]
-    active = make_gateway(
-        {**tables, **audits[0], "lines": {"a": sim.line_table([1, 2], **(line or {}))}}
-    )
-    endpoint = active.gateway.metrics_address
-    assert endpoint is not None
-    standby = make_gateway(
-        {
-            **tables,
-            **audits[1],
-            "lines": {"a": quiet.line_table([1, 2], **(line or {}))},
+    ports = {host: free_ports(host, 2) for host in (ACTIVE_HOST, STANDBY_HOST)}
+
+    def tables(host: str, peer: str, priority: int, bus: SimBus) -> dict[str, Any]:
+        modbus, http = ports[host]
+        peer_modbus, peer_http = ports[peer]
+        raw: dict[str, Any] = {
+            "server": {**(server or {}), "listen": f"{host}:{modbus}"},
+            "metrics": {"listen": f"{host}:{http}"},
+            "lines": {"a": bus.line_table([1, 2], **(line or {}))},
             "redundancy": {
-                "peer": f"{endpoint[0]}:{endpoint[1]}",
-                "peer_modbus": f"{active.address[0]}:{active.port}",
+                "peer": f"{peer}:{peer_http}",
+                "peer_modbus": f"{peer}:{peer_modbus}",
+                "priority": priority,
+                "lease": 0.2,
+                "takeover_after": 0.6,
             },
         }
-    )
+        if audit is not None:
+            raw["audit"] = {"path": str(audit / f"{host}.jsonl")}
+        return raw
+
+    active = make_gateway(tables(ACTIVE_HOST, STANDBY_HOST, 200, sim))
+    active_pair = active.gateway.pair
+    assert active_pair is not None
+    wait_until(lambda: active.call(lambda: not active_pair.standing_by), "the first one active")
+    standby = make_gateway(tables(STANDBY_HOST, ACTIVE_HOST, 100, quiet))
     pair = standby.gateway.pair
     assert pair is not None
     wait_until(lambda: standby.call(lambda: pair.forwarder.peer_active), "the peer seen active")
     assert standby.call(lambda: pair.standing_by)
+    assert active.call(lambda: not active_pair.standing_by)
     return sim, active, standby
 
 
@@ -100,13 +109,18 @@ async def flat_out(poller: Poller, stop: asyncio.Event) -> None:
             return
 
 
-def test_a_master_holding_most_of_the_standbys_connections_leaves_the_others_their_share(
-    make_sim: SimFactory, make_gateway: GatewayFactory
+@pytest.mark.parametrize(
+    "hostile_sources", [[HOSTILE] * 12, MANY_HOSTILE], ids=["one address", "12 addresses"]
+)
+def test_a_host_holding_most_of_the_standbys_connections_leaves_the_others_their_share(
+    make_sim: SimFactory, make_gateway: GatewayFactory, hostile_sources: list[str]
 ) -> None:
     """A host holds 12 of the standby's 16 connections, each polling flat out, while four
     masters of the active keep it busy (16 slots on each): an honest master of the
-    standby still gets at least 90 % of 40 polls answered. The active sees the host's 12
-    connections as one link: one slot and one share of its line."""
+    standby still gets at least 90 % of 40 polls answered. From one address, the host's
+    connections share one link (one slot and one share of the active's line); from
+    twelve, they take twelve links, which the active admits within the peer's own budget
+    of connections, beside the four of its masters, without refusing the honest one's."""
     _sim, active, standby = pair_of(make_sim, make_gateway, server={"max_connections": 16})
     pair = standby.gateway.pair
     assert pair is not None
@@ -115,7 +129,7 @@ def test_a_master_holding_most_of_the_standbys_connections_leaves_the_others_the
     async def scenario() -> tuple[list[bytes], int]:
         stop = asyncio.Event()
         direct = [await Poller.open(active.address, DIRECT) for _ in range(4)]
-        hostile = [await Poller.open(standby.address, HOSTILE) for _ in range(12)]
+        hostile = [await Poller.open(standby.address, source) for source in hostile_sources]
         load = [asyncio.ensure_future(flat_out(p, stop)) for p in direct + hostile]
         honest = await Poller.open(standby.address, HONEST)
         answers: list[bytes] = []
@@ -134,7 +148,7 @@ def test_a_master_holding_most_of_the_standbys_connections_leaves_the_others_the
     answers, links = asyncio.run(scenario())
     good = [answer for answer in answers if answer[:2] == bytes((3, 2))]  # one register
     assert len(good) >= 36, [answer.hex() for answer in answers if answer not in good][:5]
-    assert links == 2  # the host's twelve connections share one link; the honest has its own
+    assert links == len(set(hostile_sources)) + 1  # one per address; the honest has its own
 
 
 def records(gateway: RunningGateway, path: Path) -> list[dict[str, Any]]:
@@ -174,12 +188,14 @@ def test_a_forwarded_write_that_executed_but_got_0x0b_has_one_record_naming_its_
             r for r in records(gateway, path) if r["event"] == "request" and peer in json.dumps(r)
         ]
 
-    mine = naming(standby, tmp_path / "standby.jsonl")
+    mine = naming(standby, tmp_path / f"{STANDBY_HOST}.jsonl")
     assert len(mine) == 1, mine
     assert mine[0]["peer"] == peer and mine[0]["outcome"] == "unknown"
     assert mine[0]["function"] == 6 and mine[0]["slave"] == 2
     # The active recorded the write under the standby's address, never the master's.
-    theirs = [r for r in records(active, tmp_path / "active.jsonl") if r["event"] == "request"]
+    theirs = [
+        r for r in records(active, tmp_path / f"{ACTIVE_HOST}.jsonl") if r["event"] == "request"
+    ]
     assert [r["outcome"] for r in theirs] == ["unknown"]
-    assert not theirs[0]["peer"].startswith(HONEST)
-    assert naming(active, tmp_path / "active.jsonl") == []
+    assert theirs[0]["peer"].startswith(f"{STANDBY_HOST}:")
+    assert naming(active, tmp_path / f"{ACTIVE_HOST}.jsonl") == []

@@ -188,6 +188,40 @@ def test_a_source_no_heavier_than_the_newcomers_keeps_its_silent_connections() -
     assert admit_connection("10.0.0.5", limits, snapshot) == Evict(0, never_used=True)
 
 
+# --------------------------------------------------------------------------- the pair's links
+
+PEER = "10.0.0.9"  # the redundancy peer: its links carry the masters it admitted
+
+
+def test_the_peers_links_have_a_budget_of_their_own() -> None:
+    """The others hold every slot: a link of the peer still gets in, up to
+    max_connections of its own, and the explicit cap per address does not apply to it."""
+    limits = replace(FULL_4, max_per_source=1)
+    others = [busy(A), busy(A), busy(B), busy(C)]
+    assert admit_connection(PEER, limits, others, pair={PEER}) == ADMIT
+    links = [busy(PEER)] * 3
+    assert admit_connection(PEER, limits, others + links, pair={PEER}) == ADMIT
+    assert admit_connection(PEER, limits, others + links + [busy(PEER)], pair={PEER}) == Refuse(
+        Refusal.MAX_CONNECTIONS
+    )
+    # Without the pair named, the same link is one more connection of a source.
+    assert admit_connection(PEER, limits, others, pair=()) == Refuse(Refusal.MAX_CONNECTIONS)
+
+
+def test_the_others_decide_as_if_the_peers_links_were_not_there() -> None:
+    links = [idle(PEER, 99.0), idle(PEER, 99.0), idle(PEER, 99.0)]
+    # Three of the others' four slots used: a newcomer is admitted, the links not counted.
+    assert admit_connection(C, FULL_4, [*links, busy(A), busy(A), busy(B)], pair={PEER}) == ADMIT
+    # At the others' limit, the victim is one of theirs (its index in the whole snapshot),
+    # never a link of the peer however idle and numerous.
+    snapshot = [links[0], idle(A, 20.0), links[1], idle(A, 30.0), busy(B), busy(A), links[2]]
+    assert admit_connection(C, FULL_4, snapshot, pair={PEER}) == Evict(3)
+    everything_busy = [links[0], busy(A), busy(A), busy(B), busy(B), links[1]]
+    assert admit_connection(C, FULL_4, everything_busy, pair={PEER}) == Refuse(
+        Refusal.MAX_CONNECTIONS
+    )
+
+
 def test_refusal_reasons_are_the_metric_labels() -> None:
     assert {reason.value for reason in Refusal} == {"max_connections", "max_per_source"}
 

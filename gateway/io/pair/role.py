@@ -85,9 +85,7 @@ class Pair:
         self._metrics = metrics
         metrics.watch_forwarding(forwarder.stats.by_outcome)
         self._keepalive_master = KeepAliveMaster()
-        self._peer_hosts = {config.peer[0]} | (
-            {config.peer_modbus[0]} if config.peer_modbus else set()
-        )
+        self._peer_hosts = config.peer_hosts
         self._timer: asyncio.TimerHandle | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._applied: Role | None = None
