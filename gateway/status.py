@@ -16,7 +16,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
-from .core.outcome import SlaveState as SlaveState  # the status vocabulary is the core's
+from .core.outcome import BlockState as BlockState  # the status vocabulary is the core's
+from .core.outcome import SlaveState as SlaveState
 
 
 class LineState(enum.Enum):
@@ -52,6 +53,26 @@ class SlaveStatus:
 
 
 @dataclass(frozen=True, slots=True)
+class PollBlockStatus:
+    """One poll block of a line (agent mode): what it reads, its pace and its freshness."""
+
+    block: str  # ``UNIT:FUNCTION:FIRST-LAST``, as the metrics' ``block`` label names it
+    line: str
+    unit: int  # the unit id of its ``[[poll]]`` entry
+    slave: int  # the slave address on the line
+    function: int
+    first: int  # the first address it reads
+    last: int  # and the last
+    every: float  # seconds between polls, as set
+    max_age: float  # seconds: older data is never answered from memory
+    state: BlockState
+    period: float | None = None  # the achieved period (a moving mean); None before two polls
+    age: float | None = None  # seconds since its data was read; None: never polled
+    served: int = 0  # reads answered from its memory since start
+    polls: Mapping[str, int] = field(default_factory=dict)  # its polls by outcome
+
+
+@dataclass(frozen=True, slots=True)
 class LineStatus:
     """One serial line and the slaves routed to it."""
 
@@ -73,6 +94,7 @@ class LineStatus:
     uart_errors: Mapping[str, int] | None = None  # kernel counters (TIOCGICOUNT), by kind
     not_heard: int = 0  # routed slaves in ``slaves`` that have not answered
     unavailable: int = 0  # requests for it answered 0x0A since start: the line down or full
+    blocks: tuple[PollBlockStatus, ...] = ()  # its poll blocks, in configuration order
 
 
 @dataclass(frozen=True, slots=True)

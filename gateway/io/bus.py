@@ -41,7 +41,7 @@ from ..core.framing import framing_for
 from ..core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
 from ..core.outcome import BlockState, Outcome, SlaveState
 from ..metrics import GatewayMetrics
-from ..status import LineState, LineStatus, SlaveStatus
+from ..status import LineState, LineStatus, PollBlockStatus, SlaveStatus
 from .clock import PreciseClock, wait_until
 from .line_notes import LineNotes
 from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
@@ -501,11 +501,11 @@ class Bus:
                 observe(wire_time)
             # ``tally.count``, its usual case inline: once per answer.
             tally = tallies.get(request.slave)
-            if tally is not None and outcome is _OK:
+            if tally is not None and outcome is _OK and not request.poll:
                 tally.requests += 1
                 tally.last_seen = heard_at
             else:
-                self.tally.count(request.slave, pdu, outcome, heard_at)
+                self.tally.count(request.slave, pdu, outcome, heard_at, request.poll)
             # A second answer goes nowhere, and the request is freed at once: a master's
             # reply callback usually refers to its own request, a reference cycle the
             # garbage collector would otherwise have to find, one per transaction.
@@ -564,6 +564,32 @@ def line_status(bus: Bus, slaves: Iterable[int] = ()) -> LineStatus:
         settings=line_settings(config),
         uart_errors=bus.uart_errors(),
         not_heard=sum(1 for slave in listed if not slave.heard),
+        blocks=poll_block_status(bus.name, bus.poll_blocks(), time.monotonic()),
+    )
+
+
+def poll_block_status(
+    line: str, blocks: Iterable[PlannedBlock], now: float
+) -> tuple[PollBlockStatus, ...]:
+    """A snapshot of a line's poll blocks at ``now`` (monotonic), as ``/status`` shows them."""
+    return tuple(
+        PollBlockStatus(
+            block=config.label,
+            line=line,
+            unit=config.unit,
+            slave=config.slave,
+            function=config.function,
+            first=config.address,
+            last=config.address + config.count - 1,
+            every=config.every,
+            max_age=config.max_age,
+            state=block.state(now),
+            period=_rounded(block.period),
+            age=_rounded(block.age(now)),
+            served=block.served,
+            polls={outcome.value: count for outcome, count in block.outcomes.items()},
+        )
+        for config, block in blocks
     )
 
 

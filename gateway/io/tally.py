@@ -33,15 +33,26 @@ class LineTally:
     def __init__(self) -> None:
         self.slaves: dict[int, SlaveTally] = {}
 
-    def count(self, slave: int, pdu: bytes, outcome: Outcome, now: float | None = None) -> None:
+    def count(
+        self,
+        slave: int,
+        pdu: bytes,
+        outcome: Outcome,
+        now: float | None = None,
+        poll: bool = False,
+    ) -> None:
         """One answer went back to a master (a slave's, or the gateway's own 0x0A/0x0B),
-        heard at ``now`` (``time.monotonic()``; read here when not given)."""
+        heard at ``now`` (``time.monotonic()``; read here when not given). The answer to
+        one of the line's own polls (agent mode, ``poll``) is no master's request: it only
+        says when the slave was last heard (its block counts it)."""
         tally = self.slaves.get(slave)
         if tally is None:
             tally = self.slaves[slave] = SlaveTally()
-        tally.requests += 1
         if outcome is Outcome.OK or outcome is Outcome.SLAVE_EXCEPTION:
             tally.last_seen = time.monotonic() if now is None else now
+        if poll:
+            return
+        tally.requests += 1
         if outcome is Outcome.SLAVE_EXCEPTION:
             code = pdu[1] if len(pdu) > 1 else 0
             tally.exceptions[code] = tally.exceptions.get(code, 0) + 1

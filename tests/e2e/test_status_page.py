@@ -64,6 +64,7 @@ def test_the_status_page_in_chromium(gateway_with: GatewayOnSim, tmp_path: Path)
         )
         assert browser.wait_for(_state("a", 1), "slave 1") == "up"
         assert browser.evaluate(_state("a", 2)) == "up"
+        assert browser.evaluate("document.getElementById('blocksection').hidden")  # no [[poll]]
         browser.wait_for("document.getElementById('tracestate').textContent === 'streaming'",
                          "the live trace to connect")  # fmt: skip
         with gw.connect() as master:
@@ -99,6 +100,49 @@ def test_the_status_page_in_chromium(gateway_with: GatewayOnSim, tmp_path: Path)
     finally:
         browser.close()
     assert screenshot.stat().st_size > 10_000
+
+
+def test_the_poll_blocks_in_chromium(
+    make_sim: SimFactory, make_gateway: GatewayFactory, tmp_path: Path
+) -> None:
+    """Agent mode's blocks: range, pace, age and state, failing in red; none: no table."""
+    chromium = require_tool("chromium")
+    sim = make_sim({1: plc(1)})
+    raw: dict[str, Any] = {
+        "lines": {"a": sim.line_table([1, 2], timeout=0.1, retries=0)},
+        "poll": [
+            {"unit": 1, "function": 3, "address": 0, "count": 10, "every": 0.1},
+            {"unit": 2, "function": 1, "address": 16, "count": 8, "every": 0.1},
+        ],
+    }
+    gw = make_gateway(raw)
+    assert gw.gateway.metrics_address is not None
+    host, port = gw.gateway.metrics_address
+    browser = Browser(chromium)
+    try:
+        for domain in ("Runtime", "Log", "Page"):
+            browser.command(f"{domain}.enable")
+        browser.command("Page.navigate", url=f"http://{host}:{port}/")
+        fresh, failing = '#blocks tr[data-block="1:3:0-9"]', '#blocks tr[data-block="2:1:16-23"]'
+        browser.wait_for(f"{_text(fresh + ' td.state')} === 'fresh'", "block 1:3:0-9 fresh")
+        browser.wait_for(f"{_text(failing + ' td.state')} === 'failing'", "block 2 failing")
+        assert not browser.evaluate("document.getElementById('blocksection').hidden")
+        assert browser.evaluate(_text(f"{fresh} td.range")) == "0\u20139"
+        assert browser.evaluate(_text(f"{fresh} td.every")) == "0.10 s"
+        assert browser.evaluate(_text(f"{fresh} td.age")).endswith(" s")
+        assert browser.evaluate(_text(f"{failing} td.age")) == "never"
+        browser.wait_for(f"{_text(fresh + ' td.period')} !== '\u2013'", "the achieved period")
+        assert (
+            browser.evaluate(
+                f"getComputedStyle(document.querySelector('{failing} td.state')).color"
+            )
+            == "rgb(207, 34, 46)"
+        )  # failing, in red
+        assert browser.evaluate(_text(f"{failing} td.failed")) != "0"
+        browser.screenshot(tmp_path / "blocks.png")
+        assert browser.errors() == []
+    finally:
+        browser.close()
 
 
 WIDE, PHONE = (1400, 900), (390, 844)
