@@ -191,6 +191,7 @@ def quantile(upper_bounds: Sequence[float], counts: Sequence[int], q: float) -> 
                 return upper_bounds[-1]
             lower = upper_bounds[index - 1] if index else 0.0
             upper = upper_bounds[index]
-            return lower + (upper - lower) * (rank - seen) / count
+            # Within the bucket, never past its bound: 0.01 + 0.09 * 25/25 is 0.10000000000000002.
+            return min(upper, lower + (upper - lower) * (rank - seen) / count)
         seen += count
     return upper_bounds[-1]
