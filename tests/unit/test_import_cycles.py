@@ -178,3 +178,26 @@ def test_the_line_driver_and_the_pair_import_each_other_in_no_cycle() -> None:
         group for group in find_cycles(graph) if DRIVER in group and any(map(_in_pair, group))
     ]
     assert tangled == []
+
+
+LINE = "gateway.core.line"
+
+
+def test_the_line_machine_and_its_parts_import_each_other_in_no_cycle() -> None:
+    """Inside ``core/line`` every import counts (type-only ones, those inside functions,
+    a package's ``__init__`` outside the importer's own): the wire strategies and the
+    parts never import the machine, so nothing leads back to it."""
+    graph = import_graph(every_import=True)
+    line = {
+        module: {
+            target
+            for target in targets
+            if target.startswith(LINE + ".") or (target == LINE and not module.startswith(LINE))
+        }
+        for module, targets in graph.items()
+        if module.startswith(LINE + ".")
+    }
+    assert f"{LINE}.records" in line[f"{LINE}.machine"]  # the graph sees the package
+    assert find_cycles(line) == []
+    for strategy in ("wire", "flights"):
+        assert f"{LINE}.machine" not in line[f"{LINE}.{strategy}"]

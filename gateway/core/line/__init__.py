@@ -74,7 +74,9 @@ machine changes what becomes of a request and emits actions):
 * ``sharing``: read coalescing and the read cache;
 * ``order``: read-after-write questions over the parts above;
 * ``wire``: the wire strategy, and ``SerialWire`` (one attempt at a time);
-  ``flights``: ``FlightWire`` (several attempts by transaction id on a TCP line);
+  ``flights``: ``FlightWire`` (several attempts by transaction id on a TCP line). A wire
+  decodes and returns what it found (``Finding``); it never calls the machine;
+* ``polling``: agent mode's poll plan, the blocks' memory and their freshness;
 * ``foreign``: frames heard that no attempt asked for, other masters' requests among
   them, and those requests awaiting their answers;
 * ``machine``: ``LineCore``, the one class that makes every transition (its module

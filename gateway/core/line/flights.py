@@ -39,7 +39,7 @@ What changes with pipelining:
 
 from __future__ import annotations
 
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from typing import Final
 
 from .. import pdu as fc
@@ -48,8 +48,8 @@ from ..mbap import MbapDecoder, TransactionIds
 from ..outcome import DiscardReason
 from ..rtu import RtuFrame, check_identity
 from .fair_queue import Master
-from .records import INFINITY, Attempt, LineRequest, may_change
-from .wire import Wire
+from .records import INFINITY, Attempt, LineRequest
+from .wire import Finding, Found, Wire, discarded
 
 #: The most requests ``max_in_flight`` may allow on one connection.
 MAX_IN_FLIGHT: Final = 64
@@ -64,13 +64,16 @@ OpenKey = tuple[Hashable, int]
 class FlightWire(Wire):
     """Up to ``capacity`` attempts outstanding, matched by TID; see the module doc."""
 
-    def __init__(self, ids: TransactionIds, max_in_flight: int) -> None:
+    def __init__(
+        self, ids: TransactionIds, max_in_flight: int, encode: Callable[[int, bytes], bytes]
+    ) -> None:
         if not 1 <= max_in_flight <= MAX_IN_FLIGHT:
             raise ValueError(f"max_in_flight {max_in_flight} outside 1..{MAX_IN_FLIGHT}")
         super().__init__(
             quiet_line=False, concurrent=True, capacity=max_in_flight, orders_outstanding=True
         )
         self.ids = ids
+        self.encode = encode  # the framing's: each call takes the next transaction id
         self.flights: dict[int, Attempt] = {}  # TID -> attempt
         self.stream = MbapDecoder()
         self.out_of_step = False
@@ -79,7 +82,6 @@ class FlightWire(Wire):
         # (master, slave) -> [requests outstanding, of which with side effects]
         self.open: dict[OpenKey, list[int]] = {}
         self.opened_by: dict[LineRequest, tuple[OpenKey, bool]] = {}  # by identity
-        self.estimate = 0.0
 
     def timer(self) -> float:
         when = INFINITY
@@ -113,48 +115,50 @@ class FlightWire(Wire):
         self.stream = MbapDecoder()
         self.lost_tids.clear()
 
-    def receive(self, data: bytes, now: float) -> None:
+    def receive(self, data: bytes, now: float) -> list[Finding]:
         """Bytes from the connection: each complete frame goes to the attempt its TID names."""
-        line = self.line
+        found: list[Finding] = []
         if self.out_of_step:
-            line.discard(DiscardReason.LATE, len(data))
-            return
+            found.append(discarded(DiscardReason.LATE, len(data)))
+            return found
         stream = self.stream
         try:
             stream.feed(data)
             while (frame := stream.next_frame()) is not None:
-                self._take(frame.transaction_id, frame.unit_id, frame.pdu, now)
+                self._take(frame.transaction_id, frame.unit_id, frame.pdu, now, found)
         except FramingError:
-            # Out of step: every later byte is suspect. The driver reconnects on this note.
+            # Out of step: every later byte is suspect. The machine reconnects on this.
             self.out_of_step = True
-            line.discard(DiscardReason.BAD_HEADER, 1)
-        line.service(now)
+            found.append(discarded(DiscardReason.BAD_HEADER, 1))
+        return found
 
-    def _take(self, tid: int, unit: int, pdu: bytes, now: float) -> None:
-        line = self.line
+    def _take(self, tid: int, unit: int, pdu: bytes, now: float, found: list[Finding]) -> None:
         flight = self.flights.get(tid)
         if flight is None:
             lost = self.lost_tids.pop(tid, None)
-            line.discard(DiscardReason.UNEXPECTED_TID, 1, lost[0] if lost is not None else 0)
+            found.append(
+                discarded(DiscardReason.UNEXPECTED_TID, 1, lost[0] if lost is not None else 0)
+            )
             if lost is not None:  # a timed-out attempt's answer: the slave is alive, slow
                 slave, sent_at, function = lost
-                if line.timing.learn:
-                    line.timing.late(slave, function, now - sent_at)
-                line.alive(slave)
+                found.append(
+                    Finding(Found.LATE_ANSWER, slave=slave, sent_at=sent_at, function=function)
+                )
             return
         request = flight.request
         try:
             check_identity(unit, request.pdu[0], request.pdu, unit, pdu)
         except ResponseError as error:
             # Its TID but not its answer: discarded; the attempt waits on to its deadline.
-            line.discard(DiscardReason(error.kind), 1, request.slave)
+            found.append(discarded(DiscardReason(error.kind), 1, request.slave))
             return
         self.estimate += (now - flight.sent_at - self.estimate) * _ESTIMATE_WEIGHT
         self.end(flight)
-        line.complete(flight, RtuFrame(unit, pdu), now)
+        found.append(Finding(Found.COMPLETE, flight, RtuFrame(unit, pdu)))
 
-    def expire(self, now: float) -> None:
+    def expire(self, now: float) -> list[Finding]:
         """Attempts past their deadline fail; their TIDs stay reserved."""
+        found: list[Finding] = []
         expired = [flight for flight in self.flights.values() if now >= flight.deadline]
         for flight in expired:
             lost = self.lost_tids
@@ -162,7 +166,9 @@ class FlightWire(Wire):
             lost[flight.tid] = (request.slave, flight.sent_at, request.pdu[0])
             if len(lost) > _LOST_TIDS_KEPT:
                 del lost[next(iter(lost))]
-            self.line.fail(flight, None, now)
+            self.end(flight)
+            found.append(Finding(Found.FAILED, flight))
+        return found
 
     # -- choosing and sending ------------------------------------------------------------
 
@@ -185,7 +191,7 @@ class FlightWire(Wire):
         held: set[int] | None = None
         for request in master.queue:
             if request.broadcast:
-                if held or self.line.order.broadcast_held(master.key, request):
+                if held or self.parts.order.broadcast_held(master.key, request):
                     return None  # its master's earlier requests go first
                 if self.flights:
                     self.draining = True
@@ -204,40 +210,25 @@ class FlightWire(Wire):
     def may_go(self, request: LineRequest, now: float) -> bool:
         return self._may_go(request)
 
-    def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
-        line = self.line
+    def start(self, attempt: Attempt, frame: bytes) -> bytes:
+        """``frame`` was encoded with the next transaction id: another one while that id
+        still names an attempt or a lost one (never two meanings for one id)."""
+        request = attempt.request
         if request not in self.opened_by:
             self._mark_open(request)
-        slave = request.slave
-        pdu = request.pdu
-        frame = line.encode(slave, pdu)
         tid = self.ids.current
-        while tid in self.flights or tid in self.lost_tids:  # never two meanings for one TID
-            frame = line.encode(slave, pdu)
+        while tid in self.flights or tid in self.lost_tids:
+            frame = self.encode(request.slave, request.pdu)
             tid = self.ids.current
-        charged = 0.0
-        if master is not None and not credit:
-            charged = self.estimate
-            line.queue.charge_ahead(master, charged)
-            if master.queue and master.heap_seq < 0:
-                line.queue.push(master)
-        sent_by = now + len(frame) * line.char_time
-        epoch = line.sharing.epoch(slave)
-        if line.policy.cache and any(may_change(f.request, slave) for f in self.flights.values()):
-            epoch = -1  # a change to it is outstanding: the device may run it after this read
-        timing = line.timing
-        deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
-        decoder = line.new_decoder(slave, pdu)
-        expected, above = timing.expected_at, timing.learn_above
-        self.flights[tid] = Attempt(
-            request, decoder, now, deadline, credit, expected, above, tid, epoch, charged
-        )
+        attempt.tid = tid
+        self.flights[tid] = attempt
         self.outstanding = len(self.flights)
         return frame
 
     def end(self, attempt: Attempt) -> None:
-        self.flights.pop(attempt.tid, None)
-        self.outstanding = len(self.flights)
+        if self.flights.get(attempt.tid) is attempt:
+            del self.flights[attempt.tid]
+            self.outstanding = len(self.flights)
 
     def take_all(self) -> list[Attempt]:
         flights = list(self.flights.values())
@@ -245,9 +236,9 @@ class FlightWire(Wire):
         self.outstanding = 0
         return flights
 
-    def may_cache(self, attempt: Attempt) -> bool:
+    def may_cache(self, attempt: Attempt, epoch: int) -> bool:
         """Not when a write was submitted after this read went: its answer may be older."""
-        return attempt.epoch == self.line.sharing.epoch(attempt.request.slave)
+        return attempt.epoch == epoch
 
     def uncacheable(self) -> None:
         """Reads sent while the cache was off were not checked for a change outstanding

@@ -140,6 +140,15 @@ class LateWindows:
         del self.windows[slave]
         self.wanted.discard(slave)
 
+    def owners(self) -> list[tuple[int, bytes]]:
+        """(slave, PDU) of each window's lost request: answers to them are ours, not
+        another master's (``foreign``)."""
+        return [
+            (slave, window.owner.pdu)
+            for slave, window in self.windows.items()
+            if window.owner is not None
+        ]
+
     def holds(self, request: LineRequest, now: float) -> bool:
         """True when ``request`` could be confused with a lost answer still on its way."""
         window = self.windows.get(request.slave)

@@ -2,10 +2,11 @@
 
 Rule 1 (h11's): everything that changes what becomes of a request lives in this file,
 in ``LineCore``. The parts (``fair_queue``, ``health``, ``late``, ``sharing``, ``order``,
-``response_timing``, ``foreign``) keep state and answer questions; the wire strategy
-(``wire.SerialWire``, one attempt at a time; ``flights.FlightWire``, attempts by
-transaction id) says which bytes answer which attempt. Only ``LineCore`` appends to
-``transmits``, ``deliveries`` and ``notes``. Theory of operation and invariants: the
+``response_timing``, ``foreign``, ``polling``) keep state and answer questions; the wire
+strategy (``wire.SerialWire``, one attempt at a time; ``flights.FlightWire``, attempts by
+transaction id) decodes and returns what it found (``wire.Finding``): which bytes answer
+which attempt. It never calls the machine; the machine applies each finding
+(``_apply``). Only ``LineCore`` appends to ``transmits``, ``deliveries`` and ``notes``. Theory of operation and invariants: the
 package's docstring (``gateway.core.line``).
 
 The transitions, by entry point (``now`` in every one; ``get_timer`` says when to call
@@ -22,9 +23,9 @@ entry point                 what a request can become
 ``service``                 sent (a retry, a proof read, the lane on its share, the
                             fairest master, the lane free), broadcast, or dropped
                             (nobody waits for it)
-``receive`` (via the wire)  answered (``complete``), garbled (``garbled`` then ``fail``),
-                            another master's frame heard (``hear``), a lost answer
-                            recognised (``late_bytes``, ``late_frame``)
+``receive`` (the wire's     answered (``complete``), garbled (``garbled`` then ``fail``),
+findings, ``_apply``)       another master's frame heard (``hear``), a lost answer
+                            recognised (``late_bytes``, ``late_frame``, by its id)
 ``handle_timer``            an attempt timed out (``fail``: window, isolation, retry or
                             0x0B, maybe a reconnect), a lane request or a queued one
                             overdue (0x0B), windows and foreign requests expired
@@ -40,7 +41,7 @@ entry point                 what a request can become
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Hashable
+from collections.abc import Hashable, Iterable
 from typing import Final
 
 from .. import pdu as fc
@@ -50,7 +51,7 @@ from ..outcome import DiscardReason, LineEvent, Outcome, ReconnectReason, SlaveS
 from ..rtu import RtuFrame
 from ..timing import character_time
 from .fair_queue import FairQueue, Master
-from .foreign import ANSWERED_BY_ECHO, ForeignMasters, ForeignRequest, HeardKind, Own
+from .foreign import ANSWERED_BY_ECHO, ForeignMasters, ForeignRequest, Heard, HeardKind, Own
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import MAX_INCONCLUSIVE, PROOF_FUNCTIONS, LateWindows, proof_pdu
 from .order import OrderRules
@@ -68,12 +69,13 @@ from .records import (
     LineStats,
     Note,
     Transmit,
+    may_change,
     no_reply,
     tuple_new,
 )
-from .response_timing import ResponseTiming
+from .response_timing import DECAY_EVERY, EVIDENCE, ResponseTiming
 from .sharing import ReadSharing
-from .wire import SerialWire, Wire
+from .wire import Finding, Found, SerialWire, Wire, WireParts
 
 #: The master a proof read is charged to when the request that lost its answer is gone.
 PROOF_MASTER: Final = "the line's proof reads"
@@ -135,7 +137,7 @@ class LineCore:
         self._silent_streak: dict[int, tuple[SlaveState, int]] = {}
         self._submitted = 0  # requests submitted so far (``LineRequest.order``)
         self._apply_policy(policy)
-        self.wire.bind(self)
+        self.wire.attach(WireParts(self.late, self.foreign, self.order, self.sharing, self.lane))
 
     # -- configuration -------------------------------------------------------------------
 
@@ -155,6 +157,10 @@ class LineCore:
         self.timing.configure(policy, self.wire.quiet_line, self.char_time)
         self.lane.configure(policy.probe_share)
         self.echo = policy.echo
+        wire = self.wire
+        wire.char_time, wire.silence, wire.echo = self.char_time, self.silence, self.echo
+        wire.garbled_wait = self.garbled_wait
+        wire.listens = self.framing.transaction_ids is None
         # A foreign request awaits its answer as long as any of ours may wait for one.
         longest = max(policy.max_timeout, policy.timeout_for(0), *policy.slave_timeouts.values())
         self.foreign.configure(policy.silence, longest)
@@ -496,14 +502,52 @@ class LineCore:
         if self._silent_misses:
             self._silent_misses = 0
             self._silent_streak.clear()
-        self.wire.receive(data, now)
+        wire = self.wire
+        if wire.quiet_line and now > self.quiet_since:
+            self.quiet_since = now
+        found = wire.receive(data, now)
+        if found:
+            self._apply(found, now)
+        self.service(now)
+
+    def _apply(self, found: list[Finding], now: float) -> None:
+        """Apply what the wire found, in the order found (``wire.Found``)."""
+        for finding in found:
+            kind = finding.kind
+            attempt = finding.attempt
+            if kind is Found.COMPLETE:
+                assert attempt is not None and finding.frame is not None
+                self.complete(attempt, finding.frame, now)
+            elif kind is Found.DISCARD:
+                assert finding.reason is not None
+                self.discard(finding.reason, finding.amount, finding.slave)
+            elif kind is Found.FAILED:
+                assert attempt is not None
+                self.fail(attempt, finding.error, now)
+            elif kind is Found.GARBLED:
+                assert attempt is not None and finding.error is not None
+                self.garbled(attempt, finding.error, finding.damaged, now)
+            elif kind is Found.HEAR:
+                self.hear(finding.data, now, asked=finding.slave)
+            elif kind is Found.HEARD:
+                self._heard(finding.heard)
+            elif kind is Found.LATE_BYTES:
+                self.late_bytes(finding.data, now)
+            elif kind is Found.LATE_FRAME:
+                self.late_frame(finding.data, now)
+            else:  # a lost attempt's answer, by its transaction id
+                self._late_answer(
+                    finding.slave, {finding.slave: (finding.sent_at, finding.function)}, now
+                )
 
     def handle_timer(self, now: float) -> None:
         """Time passed: end attempts, expire windows and waits, send what may go."""
         lane = self.lane
         if lane.requests:
             lane.credit_now(now)  # so the share's next instant is never in the past
-        self.wire.expire(now)
+        found = self.wire.expire(now)
+        if found:
+            self._apply(found, now)
         if lane.requests:
             for request in lane.expired(now):
                 self._lane_remove(request)
@@ -754,7 +798,38 @@ class LineCore:
         if not retry:  # its first attempt on this line (a handed-over one's too): no more
             request.sent = True  # reads join it, whatever an earlier line did with it
             self.sharing.close(request)
-        frame = self.wire.start(request, master, now, credit)
+        wire = self.wire
+        slave = request.slave
+        pdu = request.pdu
+        frame = self.frame(slave, pdu)
+        sent_by = now + len(frame) * self.char_time
+        timing = self.timing
+        # ``timing.deadline``, inline for a request heard before: once per transaction.
+        predicted = timing.predicted.get(pdu) if timing.plain else None
+        state = None
+        if predicted is not None and request.attempts == 1:
+            state = timing.peaks.get(slave << 8 | pdu[0])  # [peak, attempts, bound]
+        if predicted is None or state is None:
+            deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
+            expected = timing.expected_at
+            above = timing.learn_above
+        else:
+            expected = sent_by + predicted
+            deadline = expected + state[2]
+            above = expected + state[0] if state[3] >= EVIDENCE else -INFINITY
+            state[1] += 1.0
+            if state[1] >= DECAY_EVERY:
+                timing.decay(slave << 8 | pdu[0], state)
+        attempt = Attempt(
+            request, self.new_decoder(slave, pdu), now, deadline, credit, expected, above
+        )
+        if wire.concurrent:
+            self._start_concurrent(attempt, master, credit)
+        frame = wire.start(attempt, frame)
+        if wire.quiet_line:
+            self.quiet_since = sent_by
+            if self.echo:
+                wire.expect_echo(frame)
         if request.poll:
             block = self.plan.block_of(request)
             if block is not None:
@@ -769,6 +844,20 @@ class LineCore:
         self.transmits.append(  # a proof read has no queue wait to observe: as a retry
             tuple_new(Transmit, (frame, request, now - request.enqueued_at, retry or request.proof))
         )
+
+    def _start_concurrent(self, attempt: Attempt, master: Master | None, credit: bool) -> None:
+        """An attempt beside others: its master is charged the wire's estimate now (its
+        answer's time is not known before the next is chosen), and a read sent while a
+        change to its slave is outstanding is not cached (the device may run it first)."""
+        slave = attempt.request.slave
+        if master is not None and not credit:
+            charged = attempt.charged = self.wire.estimate
+            self.queue.charge_ahead(master, charged)
+            if master.queue and master.heap_seq < 0:
+                self.queue.push(master)
+        attempt.epoch = self.sharing.epoch(slave)
+        if self.policy.cache and any(may_change(r, slave) for r in self.wire.requests()):
+            attempt.epoch = -1
 
     def frame(self, slave: int, pdu: bytes) -> bytes:
         """The request frame for ``pdu`` to ``slave``, encoded once per distinct request."""
@@ -791,7 +880,8 @@ class LineCore:
         self.stats.frames_sent += 1
         self.stats.bytes_written += len(frame)
         self.sharing.cache.clear()  # what was read while it waited in the queue is stale now
-        self.wire.expect_echo(frame)
+        if self.echo:
+            self.wire.expect_echo(frame)
         self.transmits.append(Transmit(frame, request, now - request.enqueued_at, False))
         self._deliver(request, b"", Outcome.BROADCAST, -1.0)
         if master is not None:
@@ -856,14 +946,15 @@ class LineCore:
             return False  # a tcp or tls line: its answers name their requests
         own: Own = [(request.slave, request.pdu) for request in self.wire.requests()]
         if self.late.windows:
-            own.extend(
-                (slave, window.owner.pdu)
-                for slave, window in self.late.windows.items()
-                if window.owner is not None
-            )
+            own.extend(self.late.owners())
+        return self._heard(self.foreign.feed(data, now, self.char_time, own, stop, asked))
+
+    def _heard(self, frames: Iterable[Heard]) -> bool:
+        """Note other masters' frames among ``frames`` and learn from their answers;
+        ``True`` when a request frame was among them."""
         foreign = self.foreign
         master = False
-        for heard in foreign.feed(data, now, self.char_time, own, stop, asked):
+        for heard in frames:
             if heard.kind is HeardKind.MASTER:
                 master = True
                 if not foreign.listening:
@@ -1008,23 +1099,16 @@ class LineCore:
         self.fail(attempt, ResponseError(SHARED_ANSWER, detail), now)
 
     def garbled(self, attempt: Attempt, error: ResponseError, damaged: bool, now: float) -> None:
-        """A garbled frame: fail the attempt at once, or listen a little longer first.
-
-        A frame with the awaited unit, function and length is the answer itself,
-        damaged: no other answer is coming, the attempt fails at once. Anything else
-        may be noise in front of the real answer: the attempt fails only after the
-        line stayed quiet for ``garbled_wait``, and a valid answer meanwhile is taken.
-        """
+        """A garbled frame (the wire decided, ``SerialWire._garbled``): noted; a damaged
+        answer fails the attempt at once, anything else only after ``garbled_wait`` of
+        quiet (a valid answer meanwhile is taken)."""
         slave = attempt.request.slave
         if error.kind == BAD_CHECK:
             self.notes.append(Note(LineEvent.CRC_ERROR, slave, error.reason))
         else:
             self.discard(DiscardReason(error.kind), 1, slave)
-        attempt.garbled = error
         if damaged:
             self.fail(attempt, error, now, damaged=True)
-        else:
-            attempt.garbled_at = now + self.garbled_wait
 
     def fail(
         self, attempt: Attempt, error: ResponseError | None, now: float, damaged: bool = False
@@ -1272,7 +1356,7 @@ class LineCore:
     def _store_cache(self, attempt: Attempt, response: bytes, now: float) -> None:
         request = attempt.request
         rules = self.policy.cache
-        if not rules or not self.wire.may_cache(attempt):
+        if not rules or not self.wire.may_cache(attempt, self.sharing.epoch(attempt.request.slave)):
             return  # a write was submitted after this read went: its answer may be older
         if self.order.change_waits_for(request.slave):
             return  # the answer is older than a write still to run: kept, it would be stale

@@ -16,15 +16,20 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Hashable
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from .fair_queue import FairQueue
 from .health import ProbeLane
 from .records import LineRequest, may_change
 from .sharing import ReadSharing
 
-if TYPE_CHECKING:
-    from .wire import Wire
+
+class Outstanding(Protocol):
+    """What the rules ask of the wire (``wire.Wire``): the requests on it."""
+
+    def requests(self) -> list[LineRequest]: ...
+
+    def overtakable(self) -> list[LineRequest]: ...
 
 
 class OrderRules:
@@ -36,7 +41,7 @@ class OrderRules:
         lane: ProbeLane,
         sharing: ReadSharing,
         retries: deque[LineRequest],
-        wire: Wire,
+        wire: Outstanding,
     ) -> None:
         self.queue = queue
         self.lane = lane

@@ -25,7 +25,9 @@ class PipelinedLineCore(LineCore):
             raise ValueError(
                 f"max_in_flight > 1 needs a framing with transaction ids, not {framing.kind}"
             )
-        super().__init__(policy, now, stats, framing, FlightWire(ids, max_in_flight))
+        super().__init__(
+            policy, now, stats, framing, FlightWire(ids, max_in_flight, framing.encode)
+        )
 
 
 def new_line_core(

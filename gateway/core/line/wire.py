@@ -1,34 +1,86 @@
 """The wire as a strategy the machine holds: which bytes answer which attempt.
 
 Theory of operation. ``Wire`` is what the machine asks about the attempts on the wire
-and tells to start one; the wire decodes what comes back and calls the machine's
-transitions (``complete``, ``garbled``, ``fail``, ``discard``...). ``SerialWire`` is a
-shared medium with one attempt at a time: its answers are known by their shape
-(unit, function, length, echo), the line must be quiet for the gap before each frame,
-an adapter may echo our own frame, and a lost answer needs a late-answer window.
-``flights.FlightWire`` keeps several attempts outstanding on a connection whose
-answers carry their transaction ids.
+and tells to start one. Given bytes or time, a wire decodes and *returns* what it found
+(``Finding``: an answer, a garbled or failed attempt, bytes to discard or to hear as
+another master's, a lost answer); the machine applies each in order. A wire never calls
+the machine nor writes its state: it keeps its own (the attempts, the echo to strip) and
+asks the parts it is given (``attach``) questions. ``SerialWire`` is a shared medium with
+one attempt at a time: its answers are known by their shape (unit, function, length,
+echo), the line must be quiet for the gap before each frame, an adapter may echo our own
+frame, and a lost answer needs a late-answer window. ``flights.FlightWire`` keeps several
+attempts outstanding on a connection whose answers carry their transaction ids.
 """
 
 from __future__ import annotations
 
 from collections.abc import Hashable
-from typing import TYPE_CHECKING
+from enum import IntEnum
+from typing import NamedTuple
 
 from .. import pdu as fc
 from ..echo import strip_echo
 from ..errors import ResponseError
 from ..outcome import DiscardReason
+from ..rtu import RtuFrame
 from .fair_queue import Master
-from .records import DISCARD_KINDS, FRAME_CACHE_SIZE, INFINITY, Attempt, LineRequest
-from .response_timing import DECAY_EVERY, EVIDENCE
+from .foreign import ForeignMasters, Heard, HeardKind
+from .health import ProbeLane
+from .late import LateWindows
+from .order import OrderRules
+from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
+from .sharing import ReadSharing
 
-if TYPE_CHECKING:
-    from .machine import LineCore
+
+class Found(IntEnum):
+    """What a wire found in bytes or time (``Finding.kind``)."""
+
+    COMPLETE = 0  # ``attempt`` answered by ``frame`` (the wire has ended it)
+    GARBLED = 1  # ``attempt`` got ``error``; ``damaged``: its own answer, damaged (ended)
+    FAILED = 2  # ``attempt`` ended without an answer (``error``: the garble that ended it)
+    DISCARD = 3  # ``amount`` frames or bytes thrown away for ``reason`` (``slave``'s)
+    HEAR = 4  # ``data`` no attempt took: perhaps another master's (``slave``: the one asked)
+    HEARD = 5  # frames the wire had classified already (``heard``), to note and learn from
+    LATE_BYTES = 6  # ``data`` while nothing is on the wire: perhaps a lost answer
+    LATE_FRAME = 7  # ``data``, an intact frame the attempt discarded: perhaps a lost answer
+    LATE_ANSWER = 8  # a lost attempt's answer by its id: ``slave`` alive, ``at`` - ``sent_at``
+
+
+class Finding(NamedTuple):
+    """One thing a wire found; which fields mean something depends on ``kind``."""
+
+    kind: Found
+    attempt: Attempt | None = None
+    frame: RtuFrame | None = None
+    error: ResponseError | None = None
+    damaged: bool = False
+    reason: DiscardReason | None = None
+    amount: int = 0
+    slave: int = -1
+    data: bytes = b""
+    heard: tuple[Heard, ...] = ()
+    sent_at: float = 0.0
+    function: int = 0
+
+
+def discarded(reason: DiscardReason, count: int, slave: int = 0) -> Finding:
+    return Finding(Found.DISCARD, reason=reason, amount=count, slave=slave)
+
+
+class WireParts(NamedTuple):
+    """The machine's parts a wire asks questions of (``Wire.attach``)."""
+
+    late: LateWindows
+    foreign: ForeignMasters
+    order: OrderRules
+    sharing: ReadSharing
+    lane: ProbeLane
 
 
 class Wire:
     """The strategy's questions and commands; the defaults suit a wire without them."""
+
+    parts: WireParts
 
     def __init__(
         self,
@@ -49,10 +101,18 @@ class Wire:
         self.draining = False  # a broadcast waits for every attempt to end
         #: Attempts on the wire now: a plain attribute, read on every pass of the machine.
         self.outstanding = 0
+        #: The wire time charged ahead to a master when its request is sent (``FlightWire``).
+        self.estimate = 0.0
+        # Settings the machine gives (``LineCore._apply_policy``).
+        self.char_time = 0.0
+        self.silence = 0.0  # the quiet that ends an RTU answer
+        self.garbled_wait = 0.0  # the quiet after a garble before the attempt fails
+        self.echo = False  # the adapter echoes our frames
+        self.listens = True  # frames no attempt took may be other masters' (not MBAP)
 
-    def bind(self, line: LineCore) -> None:
-        """The machine this wire serves (it calls its transitions)."""
-        self.line = line
+    def attach(self, parts: WireParts) -> None:
+        """The parts this wire asks questions of (it never calls the machine)."""
+        self.parts = parts
 
     def timer(self) -> float:
         """The attempts' next deadline (``INFINITY``: none)."""
@@ -80,22 +140,23 @@ class Wire:
         """True when the lane's ``request`` may go now."""
         raise NotImplementedError
 
-    def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
-        """Start an attempt of ``request``: its frame, for the machine to transmit."""
+    def start(self, attempt: Attempt, frame: bytes) -> bytes:
+        """``attempt`` starts with ``frame``: the frame to transmit (the wire may give it
+        another transaction id)."""
         raise NotImplementedError
 
     def end(self, attempt: Attempt) -> None:
-        """``attempt`` failed (an answered one the wire ends itself)."""
+        """``attempt`` is over (a no-op when it was ended already)."""
         raise NotImplementedError
 
     def take_all(self) -> list[Attempt]:
         """Give up every attempt on the wire."""
         raise NotImplementedError
 
-    def receive(self, data: bytes, now: float) -> None:
+    def receive(self, data: bytes, now: float) -> list[Finding]:
         raise NotImplementedError
 
-    def expire(self, now: float) -> None:
+    def expire(self, now: float) -> list[Finding]:
         """Time passed: end the attempts whose time is up."""
         raise NotImplementedError
 
@@ -106,7 +167,7 @@ class Wire:
         """The port or connection went away (its attempts were answered)."""
 
     def expect_echo(self, frame: bytes) -> None:
-        """``frame`` was sent outside an attempt (a broadcast)."""
+        """``frame`` was sent: the adapter's echo of it is to be dropped (``echo``)."""
 
     def joined(self, request: LineRequest) -> None:
         """``request`` joined another master's read."""
@@ -117,8 +178,9 @@ class Wire:
     def forget(self, request: LineRequest) -> None:
         """``request`` leaves this line unanswered (a reload takes it)."""
 
-    def may_cache(self, attempt: Attempt) -> bool:
-        """True when the answer to ``attempt`` is no older than any change submitted."""
+    def may_cache(self, attempt: Attempt, epoch: int) -> bool:
+        """True when the answer to ``attempt`` is no older than any change submitted
+        (``epoch``: the slave's write epoch now)."""
         return True
 
     def uncacheable(self) -> None:
@@ -158,12 +220,12 @@ class SerialWire(Wire):
         """A request held by a late-answer window holds back the master's later requests
         to that slave, unless all of them are free of side effects (reads may pass reads;
         nothing passes a write, and a write passes nothing)."""
-        line = self.line
-        late = line.late
+        parts = self.parts
+        late, foreign, order = parts.late, parts.foreign, parts.order
         blocked: dict[int, bool] | None = None  # slave -> only safe requests held so far
         for request in master.queue:
             if request.broadcast:
-                if blocked or line.order.broadcast_held(master.key, request):
+                if blocked or order.broadcast_held(master.key, request):
                     return None
                 return request
             slave = request.slave
@@ -172,14 +234,14 @@ class SerialWire(Wire):
                 blocked[slave] = False
                 continue
             held = bool(late.windows) and late.holds(request, now)
-            if line.foreign_pending and not held:
-                held = line.foreign.holds(slave, request.pdu, now)
+            if foreign.pending and not held:
+                held = foreign.holds(slave, request.pdu, now)
             if (
                 not held
-                and (line.sharing.joined or line.lane.requests)
+                and (parts.sharing.joined or parts.lane.requests)
                 and request.pdu[0] not in fc.READ_FUNCTIONS
             ):
-                held = line.order.held_by_joined(master.key, request)
+                held = order.held_by_joined(master.key, request)
             if not held:
                 return request
             if blocked is None:
@@ -189,57 +251,21 @@ class SerialWire(Wire):
         return None
 
     def may_go(self, request: LineRequest, now: float) -> bool:
-        line = self.line
-        if line.foreign_pending and line.foreign.holds(request.slave, request.pdu, now):
+        parts = self.parts
+        foreign = parts.foreign
+        if foreign.pending and foreign.holds(request.slave, request.pdu, now):
             return False
-        return not line.late.holds(request, now)
+        return not parts.late.holds(request, now)
 
-    def start(self, request: LineRequest, master: Master | None, now: float, credit: bool) -> bytes:
-        line = self.line
-        slave = request.slave
-        pdu = request.pdu
-        # ``line.frame``, inline: once per transaction (a poll of many addresses misses).
-        frames = line._frames
-        if frames is None:
-            frame = line.encode(slave, pdu)
-        else:
-            key = (slave, pdu)
-            cached = frames.get(key)
-            if cached is None:
-                if len(frames) >= FRAME_CACHE_SIZE:
-                    frames.clear()  # a bound, not an LRU: polling refills it with what is used
-                cached = frames[key] = line.encode(slave, pdu)
-            frame = cached
-        sent_by = now + len(frame) * line.char_time
-        timing = line.timing
-        # ``timing.deadline``, inline for a request heard before: once per transaction.
-        predicted = timing.predicted.get(pdu) if timing.plain else None
-        state = None
-        if predicted is not None and request.attempts == 1:
-            state = timing.peaks.get(slave << 8 | pdu[0])  # [peak, attempts, bound]
-        if predicted is None or state is None:
-            deadline = timing.deadline(slave, pdu, request.attempts, sent_by)
-            expected = timing.expected_at
-            above = timing.learn_above
-        else:
-            expected = sent_by + predicted
-            deadline = expected + state[2]
-            above = expected + state[0] if state[3] >= EVIDENCE else -INFINITY
-            state[1] += 1.0
-            if state[1] >= DECAY_EVERY:
-                timing.decay(slave << 8 | pdu[0], state)
-        self.attempt = Attempt(
-            request, line.new_decoder(slave, pdu), now, deadline, credit, expected, above
-        )
+    def start(self, attempt: Attempt, frame: bytes) -> bytes:
+        self.attempt = attempt
         self.outstanding = 1
-        line.quiet_since = sent_by
-        if line.echo:
-            self.echo_left = self.echo_frame = frame
         return frame
 
     def end(self, attempt: Attempt) -> None:
-        self.attempt = None
-        self.outstanding = 0
+        if self.attempt is attempt:
+            self.attempt = None
+            self.outstanding = 0
 
     def take_all(self) -> list[Attempt]:
         attempt = self.attempt
@@ -252,60 +278,86 @@ class SerialWire(Wire):
         self.echo_left = self.echo_frame = b""
 
     def expect_echo(self, frame: bytes) -> None:
-        if self.line.echo:
-            self.echo_left = self.echo_frame = frame
+        self.echo_left = self.echo_frame = frame
 
-    def receive(self, data: bytes, now: float) -> None:
-        line = self.line
-        if now > line.quiet_since:
-            line.quiet_since = now
+    def receive(self, data: bytes, now: float) -> list[Finding]:
+        found: list[Finding] = []
         if self.echo_left:
             data = self._strip_echo(data)
             if not data:
-                return
+                return found
         attempt = self.attempt
         if attempt is None:
-            line.discard(DiscardReason.LATE, len(data))
-            line.hear(data, now)  # another master's frames, or its slaves' answers
-            if line.late.windows:
-                line.late_bytes(data, now)
-            line.service(now)  # a foreign request answered, or a window closed
-            return
+            # Another master's frames, its slaves' answers, or a lost answer of ours.
+            found.append(discarded(DiscardReason.LATE, len(data)))
+            found.append(Finding(Found.HEAR, data=data))
+            if self.parts.late.windows:
+                found.append(Finding(Found.LATE_BYTES, data=data))
+            return found
         if attempt.garbled is not None:
-            attempt.garbled_at = now + line.garbled_wait  # the line is not quiet yet
-        self._decode(attempt, data, now)
+            attempt.garbled_at = now + self.garbled_wait  # the line is not quiet yet
+        self._decode(attempt, data, now, found)
+        return found
 
-    def _decode(self, attempt: Attempt, data: bytes, now: float) -> None:
+    def _garbled(
+        self, attempt: Attempt, error: ResponseError, damaged: bool, now: float
+    ) -> Finding:
+        """The attempt got a garbled frame. A frame with the awaited unit, function and
+        length is the answer itself, damaged: the attempt ends now. Anything else may be
+        noise in front of the real answer: it ends only after ``garbled_wait`` of quiet,
+        and a valid answer meanwhile is taken."""
+        attempt.garbled = error
+        if damaged:
+            self.end(attempt)
+        else:
+            attempt.garbled_at = now + self.garbled_wait
+        return Finding(Found.GARBLED, attempt, error=error, damaged=damaged)
+
+    def _hear_now(self, data: bytes, now: float, asked: int, found: list[Finding]) -> bool:
+        """Classify ``data`` as the machine's ``hear`` would, here, because the decoding
+        goes on from the answer: ``True`` when another master's request was among them
+        (the bytes after it are left in ``foreign.take_unframed``)."""
+        if not self.listens:
+            return False
+        parts = self.parts
+        own = [(request.slave, request.pdu) for request in self.requests()]
+        own.extend(parts.late.owners())
+        heard = parts.foreign.feed(data, now, self.char_time, own, True, asked)
+        if not heard:
+            return False
+        found.append(Finding(Found.HEARD, heard=tuple(heard)))
+        return any(h.kind is HeardKind.MASTER or h.kind is HeardKind.ASKED for h in heard)
+
+    def _decode(self, attempt: Attempt, data: bytes, now: float, found: list[Finding]) -> None:
         """Feed ``data`` to the attempt's decoder: complete it, skip what is not its answer,
         or note that it was garbled."""
-        line = self.line
         decoder = attempt.decoder
-        unheard = data  # what the decoder has that ``line.hear`` has not (after ``heard``)
+        slave = attempt.request.slave
+        unheard = data  # what the decoder has that ``hear`` has not (after ``heard``)
         while True:
             try:
                 frame = decoder.feed(data)
             except ResponseError as error:
                 if unheard:  # not the answer (or not only): perhaps another master's frames
-                    master = line.hear(attempt.heard + unheard, now, True, attempt.request.slave)
+                    master = self._hear_now(attempt.heard + unheard, now, slave, found)
                     attempt.heard = unheard = b""
                     if master:  # no damaged answer: the answer may follow it
                         decoder.reset()
-                        data = unheard = line.foreign.take_unframed()
+                        data = unheard = self.parts.foreign.take_unframed()
                         if data:
                             continue
                         return
                 if error.kind in DISCARD_KINDS:
                     # Another unit's frame, a late answer to an earlier request, or noise
                     # in front of the answer: drop it and keep decoding what followed it.
-                    line.discard(DiscardReason(error.kind), 1, attempt.request.slave)
-                    if line.late.windows and error.frame:
-                        line.late_frame(error.frame, now)
+                    found.append(discarded(DiscardReason(error.kind), 1, slave))
+                    if error.frame and self.parts.late.windows:
+                        found.append(Finding(Found.LATE_FRAME, data=error.frame))
                 else:
-                    line.garbled(attempt, error, decoder.looks_like_answer, now)
-                    if self.attempt is not attempt:  # failed: the rest is late bytes
+                    found.append(self._garbled(attempt, error, decoder.looks_like_answer, now))
+                    if self.attempt is not attempt:  # ended: the rest is late bytes
                         if decoder.leftover:
-                            line.discard(DiscardReason.LATE, len(decoder.leftover))
-                        line.service(now)
+                            found.append(discarded(DiscardReason.LATE, len(decoder.leftover)))
                         return
                 data = decoder.leftover
                 decoder.reset()
@@ -316,24 +368,24 @@ class SerialWire(Wire):
         if frame is not None:
             trailing = decoder.leftover
             if trailing:
-                line.discard(DiscardReason.TRAILING_BYTES, len(trailing), attempt.request.slave)
+                found.append(discarded(DiscardReason.TRAILING_BYTES, len(trailing), slave))
             self.attempt = None  # ``end``, inline: once per transaction
             self.outstanding = 0
-            line.complete(attempt, frame, now)
-            if trailing and unheard:
-                line.hear(trailing, now)  # another master's frame right behind the answer?
-            line.service(now)
+            found.append(Finding(Found.COMPLETE, attempt, frame))
+            if trailing and unheard:  # another master's frame right behind the answer?
+                found.append(Finding(Found.HEAR, data=trailing))
             return
         if unheard:
-            attempt.heard += unheard  # heard by ``line.hear`` if they turn out not to be the answer
+            attempt.heard += unheard  # heard by ``hear`` if they turn out not to be the answer
         if decoder.waits_for_silence:
-            attempt.silence_at = now + line.silence
+            attempt.silence_at = now + self.silence
 
-    def expire(self, now: float) -> None:
+    def expire(self, now: float) -> list[Finding]:
+        found: list[Finding] = []
         attempt = self.attempt
         if attempt is None:
-            return
-        line = self.line
+            return found
+        slave = attempt.request.slave
         if now >= attempt.silence_at:
             attempt.silence_at = INFINITY
             decoder = attempt.decoder
@@ -342,31 +394,32 @@ class SerialWire(Wire):
             except ResponseError as error:
                 rest = decoder.leftover  # bytes behind noise: the answer may start there
                 if error.kind in DISCARD_KINDS:
-                    line.discard(DiscardReason(error.kind), 1, attempt.request.slave)
+                    found.append(discarded(DiscardReason(error.kind), 1, slave))
                 else:
-                    line.garbled(attempt, error, decoder.looks_like_answer, now)
+                    found.append(self._garbled(attempt, error, decoder.looks_like_answer, now))
                 decoder.reset()
                 if rest and self.attempt is attempt:
-                    self._decode(attempt, rest, now)
+                    self._decode(attempt, rest, now, found)
             else:
                 self.end(attempt)
-                line.complete(attempt, frame, now)
+                found.append(Finding(Found.COMPLETE, attempt, frame))
         if self.attempt is attempt and now >= attempt.garbled_at:
-            self._unheard(attempt, now)
-            line.fail(attempt, attempt.garbled, now)
+            self._fail(attempt, found, 0)
         if self.attempt is attempt and now >= attempt.deadline:
-            self._unheard(attempt, now)
-            if attempt.decoder.buffered:
-                line.discard(
-                    DiscardReason.INCOMPLETE, attempt.decoder.buffered, attempt.request.slave
-                )
-            line.fail(attempt, attempt.garbled, now)
+            self._fail(attempt, found, attempt.decoder.buffered)
+        return found
 
-    def _unheard(self, attempt: Attempt, now: float) -> None:
-        """The attempt fails: the bytes its decoder kept without a verdict were no answer."""
+    def _fail(self, attempt: Attempt, found: list[Finding], incomplete: int) -> None:
+        """The attempt ends unanswered: the bytes its decoder kept without a verdict were
+        no answer (heard first), and ``incomplete`` bytes of half an answer are dropped."""
+        self.end(attempt)
+        slave = attempt.request.slave
         if attempt.heard:
-            self.line.hear(attempt.heard, now, asked=attempt.request.slave)
+            found.append(Finding(Found.HEAR, data=attempt.heard, slave=slave))
             attempt.heard = b""
+        if incomplete:
+            found.append(discarded(DiscardReason.INCOMPLETE, incomplete, slave))
+        found.append(Finding(Found.FAILED, attempt, error=attempt.garbled))
 
     def _strip_echo(self, data: bytes) -> bytes:
         """Drop the echo of our own frame from ``data``; the rest is the line's."""
