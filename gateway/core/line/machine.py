@@ -6,8 +6,8 @@ in ``LineCore``. The parts (``fair_queue``, ``health``, ``late``, ``sharing``, `
 strategy (``wire.SerialWire``, one attempt at a time; ``flights.FlightWire``, attempts by
 transaction id) decodes and returns what it found (``wire.Finding``): which bytes answer
 which attempt. It never calls the machine; the machine applies each finding
-(``_apply``). Only ``LineCore`` appends to ``transmits``, ``deliveries`` and ``notes``. Theory of operation and invariants: the
-package's docstring (``gateway.core.line``).
+(``_apply``). Only ``LineCore`` appends to ``transmits``, ``deliveries`` and ``notes``.
+Theory of operation and invariants: the package's docstring (``gateway.core.line``).
 
 The transitions, by entry point (``now`` in every one; ``get_timer`` says when to call
 ``handle_timer`` next):
