@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import struct
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 import pytest
 from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, wait_until
 
+from bench.hostile import read_exactly
 from bench.pair_lab import free_ports
 from gateway.sim import plc
 
@@ -199,3 +201,50 @@ def test_a_forwarded_write_that_executed_but_got_0x0b_has_one_record_naming_its_
     assert [r["outcome"] for r in theirs] == ["unknown"]
     assert theirs[0]["peer"].startswith(f"{STANDBY_HOST}:")
     assert naming(active, tmp_path / f"{ACTIVE_HOST}.jsonl") == []
+
+
+def test_only_the_configured_peers_address_has_a_budget_and_it_is_bounded(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    """With max_connections = 2 held by masters at work (``when_full = "refuse"``), the
+    peer's address still gets two connections in, and no third; any other address gets
+    nothing more."""
+    sim = make_sim({1: plc(1)})
+    nobody = free_ports(STANDBY_HOST, 2)  # the peer's addresses, nothing listening there
+    server_table = {"max_connections": 2, "when_full": "refuse", "listen": f"{ACTIVE_HOST}:0"}
+    gateway = make_gateway(
+        {
+            "server": server_table,
+            "lines": {"a": sim.line_table([1])},
+            "redundancy": {
+                "peer": f"{STANDBY_HOST}:{nobody[0]}",
+                "peer_modbus": f"{STANDBY_HOST}:{nobody[1]}",
+            },
+        }
+    )
+    server = gateway.gateway.servers[0]
+    held: list[socket.socket] = []
+
+    def connect(source: str) -> socket.socket:
+        sock = socket.create_connection(gateway.address, DEADLINE_S, (source, 0))
+        sock.settimeout(DEADLINE_S)
+        held.append(sock)
+        return sock
+
+    def admitted(count: int) -> None:
+        wait_until(lambda: gateway.call(lambda: server.connections) == count, f"{count} open")
+
+    try:
+        for sock in (connect(DIRECT), connect(DIRECT)):  # masters at work: each has asked
+            sock.sendall(struct.pack(">HHHB", 1, 0, len(READ_1) + 1, 1) + READ_1)
+            assert read_exactly(sock, 7)[:2] == b"\x00\x01"
+        admitted(2)
+        connect(STANDBY_HOST)
+        connect(STANDBY_HOST)
+        admitted(4)
+        for source in (DIRECT, HOSTILE, STANDBY_HOST):
+            assert connect(source).recv(1) == b"", source  # closed at accept: an EOF
+        assert gateway.call(lambda: server.connections) == 4
+    finally:
+        for sock in held:
+            sock.close()
