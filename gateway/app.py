@@ -36,7 +36,7 @@ from .core.line import Handover
 from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
-from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, Request
+from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, Request, poll_block_status
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, role_route, start_http
 from .io.http_guard import Access
@@ -51,7 +51,7 @@ from .live import LiveView
 from .metrics import GatewayMetrics
 from .reload_summary import summarize
 from .restart_keys import keep_restart_settings
-from .status import LineStatus, MasterStatus, PairStatus
+from .status import LineStatus, MasterStatus, PairStatus, PollBlockStatus
 from .trace import FrameTrace, Tracer
 
 if TYPE_CHECKING:
@@ -140,6 +140,7 @@ class Gateway:
         #: The one frame trace every listener holds from its construction on.
         self.trace = FrameTrace() if tracer is None else FrameTrace(tracer)
         self.metrics = GatewayMetrics(registry)
+        self.metrics.watch_poll_blocks(self.poll_block_status)
         self.ready = asyncio.Event()
         self.stopped = asyncio.Event()
         self.buses: dict[str, Bus] = {}
@@ -200,6 +201,15 @@ class Gateway:
         blocks = [planned for bus in self.buses.values() for planned in bus.poll_blocks()]
         blocks.sort(key=lambda planned: planned.config.index)
         return blocks
+
+    def poll_block_status(self) -> list[PollBlockStatus]:
+        """Every line's poll blocks as ``/status`` shows them, now (what the metrics read)."""
+        now = time.monotonic()
+        return [
+            status
+            for bus in self.buses.values()
+            for status in poll_block_status(bus.name, bus.poll_blocks(), now)
+        ]
 
     def _block_freshness(self) -> list[PollBlockView]:
         """What the status unit reads: block N of the configuration at place N."""

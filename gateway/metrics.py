@@ -29,6 +29,7 @@ output and say nothing a restart counter does not.
 
 from __future__ import annotations
 
+import math
 import time
 from bisect import bisect_left
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -50,6 +51,7 @@ from .core.outcome import DiscardReason, Outcome, ReconnectReason, SlaveState
 from .core.pdu import function_name
 from .core.reasons import CloseReason, MasterFault, RejectReason
 from .core.status_unit import STATUS_LINE
+from .status import PollBlockStatus
 
 __all__ = [  # CloseReason and RejectReason live in core; importing them from here still works
     "CloseReason",
@@ -230,6 +232,64 @@ class _ResponseTimeoutCollector(Collector):
             for slave, seconds in sorted(learned().items()):
                 family.add_metric([line, UNIT_LABELS[slave]], seconds)
         yield family
+
+
+#: Every running line's poll blocks (agent mode), read at scrape time (``Gateway``).
+PollBlocks = Callable[[], Iterable[PollBlockStatus]]
+#: The outcomes every block's ``polls_total`` shows from the start (others as they come).
+POLL_OUTCOMES = (Outcome.OK, Outcome.SLAVE_EXCEPTION, Outcome.TARGET_FAILED, Outcome.NO_ROUTE)
+
+
+class _PollBlockCollector(Collector):
+    """Exports each poll block's freshness, pace and counts at scrape time (agent mode):
+    the blocks of the lines running now, so a block a reload removed goes with it."""
+
+    def __init__(self, sources: list[PollBlocks]) -> None:
+        self._sources = sources
+
+    def collect(self) -> Iterator[Metric]:
+        p = "modbus_gateway_poll_block_"
+        labels = ["line", "block"]
+        age = GaugeMetricFamily(
+            p + "age_seconds",
+            "Age of the block's data: seconds since the poll that read it was sent (+Inf "
+            "before its first good poll). Masters are never answered from older than max_age.",
+            labels=labels,
+        )
+        state = GaugeMetricFamily(
+            p + "state",
+            "The block's state: 0 fresh, 1 stale (older than max_age, or never polled), 2 "
+            "failing (its last poll got an exception, a timeout or a garbled answer).",
+            labels=labels,
+        )
+        period = GaugeMetricFamily(
+            p + "period_seconds",
+            "The block's achieved period between polls, a moving mean (NaN before two "
+            "polls); well above its every, the line is too busy for the plan.",
+            labels=labels,
+        )
+        served = CounterMetricFamily(
+            p + "served",
+            "Masters' reads answered from the block's memory.",
+            labels=labels,
+        )
+        polls = CounterMetricFamily(
+            "modbus_gateway_polls",
+            "The gateway's own polls of the block, by outcome.",
+            labels=[*labels, "outcome"],
+        )
+        for read in self._sources[-1:]:  # the gateway's; none before it starts
+            for block in read():
+                key = [block.line, block.block]
+                age.add_metric(key, math.inf if block.age is None else block.age)
+                state.add_metric(key, block.state.code)
+                period.add_metric(key, math.nan if block.period is None else block.period)
+                served.add_metric(key, block.served)
+                counts = {outcome.value: 0 for outcome in POLL_OUTCOMES}
+                counts.update(block.polls)
+                for outcome, count in sorted(counts.items()):
+                    polls.add_metric([*key, outcome], count)
+        yield from (age, state, period, served, polls)
 
 
 class CertificateExpiry(Protocol):
@@ -698,6 +758,12 @@ class GatewayMetrics:
         r.register(_ResponseTimeoutCollector(self._response_timeouts))
         self._forward_counts: list[ForwardCounts] = []
         r.register(_ForwardedCollector(self._forward_counts))
+        self._poll_blocks: list[PollBlocks] = []
+        r.register(_PollBlockCollector(self._poll_blocks))
+
+    def watch_poll_blocks(self, read: PollBlocks) -> None:
+        """Export the ``poll_block_*`` and ``polls_total`` series from ``read``."""
+        self._poll_blocks[:] = [read]
 
     def watch_forwarding(self, read: ForwardCounts) -> None:
         """Export ``redundancy_forwarded_total`` from ``read`` (a paired gateway's)."""
