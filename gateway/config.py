@@ -34,6 +34,14 @@ from .core.timing import character_time, t35, transmission_time
 from .schema import Key, Table, Type
 
 _LINE_KEYS_BY_NAME = schema.keys_of(Table.LINES)
+
+
+def _default(table: Table, name: str) -> Any:
+    """The schema's default for key ``name`` of ``table``: the dataclasses below take their
+    defaults from the keys rather than restating them (the schema is the model)."""
+    return schema.key(table, name).default
+
+
 DEFAULT_LISTEN = str(schema.key(Table.SERVER, "listen").default)
 DEFAULT_METRICS = str(schema.key(Table.METRICS, "listen").default)
 VALID_PARITIES = tuple(map(str, _LINE_KEYS_BY_NAME["parity"].choices))
@@ -79,24 +87,24 @@ class ServerConfig:
 
     host: str = "0.0.0.0"
     port: int = 502
-    max_connections: int = 100
-    when_full: str = "close_oldest_idle"
-    idle_timeout: float = 300.0
-    max_pipeline: int = 16
-    backlog: int = 1024
-    broadcast_reply: bool = False
+    max_connections: int = _default(Table.SERVER, "max_connections")
+    when_full: str = _default(Table.SERVER, "when_full")
+    idle_timeout: float = _default(Table.SERVER, "idle_timeout")
+    max_pipeline: int = _default(Table.SERVER, "max_pipeline")
+    backlog: int = _default(Table.SERVER, "backlog")
+    broadcast_reply: bool = _default(Table.SERVER, "broadcast_reply")
     refuse_functions: frozenset[int] = frozenset()
     #: Source networks every listener accepts (empty: any); a listener's own list applies too.
     allow: tuple[IPNetwork, ...] = ()
     #: Every listener refuses anything but reads.
-    read_only: bool = False
+    read_only: bool = _default(Table.SERVER, "read_only")
     #: The policy of the ``listen`` shorthand listener.
     policy: str | None = None
-    max_connections_per_source: int = 0
-    evict_min_idle: float = 10.0
-    send_timeout: float = 10.0
+    max_connections_per_source: int = _default(Table.SERVER, "max_connections_per_source")
+    evict_min_idle: float = _default(Table.SERVER, "evict_min_idle")
+    send_timeout: float = _default(Table.SERVER, "send_timeout")
     #: Seconds a TLS master has to complete its handshake before it is disconnected.
-    tls_handshake_timeout: float = 10.0
+    tls_handshake_timeout: float = _default(Table.SERVER, "tls_handshake_timeout")
 
 
 @dataclass(frozen=True)
@@ -105,17 +113,21 @@ class ListenerConfig:
     ``rtu-over-tcp`` (RTU frames over TCP)."""
 
     name: str
-    protocol: str = "tcp"
+    protocol: str = _default(Table.LISTENERS, "protocol")
     host: str = "0.0.0.0"
     port: int = 502
     cert: str | None = None  #: the server's certificate chain (PEM), tls only
     key: str | None = None  #: its private key (PEM), tls only
     ca: str | None = None  #: the CAs client certificates must chain to (PEM), tls only
     crl: str | None = None  #: revocation lists of client certificates (PEM), tls only
-    forward_secrecy_only: bool = False  #: tls: drop the required RSA key-exchange suite
-    session_resumption: bool = False  #: tls: session tickets (OpenSSL's 7,200 s lifetime)
+    forward_secrecy_only: bool = _default(
+        Table.LISTENERS, "forward_secrecy_only"
+    )  #: tls: drop the required RSA key-exchange suite
+    session_resumption: bool = _default(
+        Table.LISTENERS, "session_resumption"
+    )  #: tls: session tickets (OpenSSL's 7,200 s lifetime)
     allow: tuple[IPNetwork, ...] = ()  #: source networks accepted (empty: any)
-    read_only: bool = False
+    read_only: bool = _default(Table.LISTENERS, "read_only")
     policy: str | None = None  #: a name in ``GatewayConfig.policies``; None: no rules
     key_prefix: str = "server."  #: where it was configured, for messages
     #: ``serial-slave``: the serial line the gateway answers on as a slave (its device and
@@ -140,9 +152,9 @@ class MetricsConfig:
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = 9502
-    max_connections: int = 32
-    header_timeout: float = 5.0
-    max_connections_per_source: int = 8
+    max_connections: int = _default(Table.METRICS, "max_connections")
+    header_timeout: float = _default(Table.METRICS, "header_timeout")
+    max_connections_per_source: int = _default(Table.METRICS, "max_connections_per_source")
     allowed_hosts: tuple[str, ...] = ()
     status_token: str | None = None
     trace_token: str | None = None
@@ -155,8 +167,8 @@ class MetricsConfig:
 class LoggingConfig:
     """Log level and format."""
 
-    level: str = "info"
-    format: str = "text"
+    level: str = _default(Table.LOGGING, "level")
+    format: str = _default(Table.LOGGING, "format")
 
 
 @dataclass(frozen=True)
@@ -172,9 +184,9 @@ class RedundancyConfig:
 
     peer: tuple[str, int] | None = None
     peer_modbus: tuple[str, int] | None = None
-    priority: int = 100
-    lease: float = 1.0
-    takeover_after: float = 1.5
+    priority: int = _default(Table.REDUNDANCY, "priority")
+    lease: float = _default(Table.REDUNDANCY, "lease")
+    takeover_after: float = _default(Table.REDUNDANCY, "takeover_after")
     #: ``None``: off; ``(0, 0)``: "auto"; else (slave address, holding register).
     keepalive: tuple[int, int] | None = (0, 0)
 
@@ -237,8 +249,8 @@ class PollBlock:
 class PollingConfig:
     """``[polling]``: what agent mode's blocks share."""
 
-    status_unit: int = 0
-    max_blocks: int = 256
+    status_unit: int = _default(Table.POLLING, "status_unit")
+    max_blocks: int = _default(Table.POLLING, "max_blocks")
 
 
 @dataclass(frozen=True)
@@ -247,59 +259,61 @@ class LineConfig:
 
     name: str
     device: str
-    baudrate: int = 9600
-    data_bits: int = 8
-    parity: str = "N"
-    stop_bits: float = 1
+    baudrate: int = _default(Table.LINES, "baudrate")
+    data_bits: int = _default(Table.LINES, "data_bits")
+    parity: str = _default(Table.LINES, "parity")
+    stop_bits: float = _default(Table.LINES, "stop_bits")
     timeout: float = 0.367  # auto_timeout(9600): the fixed timeout unless ``learn_timeouts``
     #: ``timeout = "auto"`` (the file's default): each slave's timeout is learned
     #: (``core.line.response_timing``); a line built directly keeps ``timeout`` fixed.
     learn_timeouts: bool = False
     #: Learned timing: the wait for a slave or function never heard from, and the most.
-    initial_timeout: float = 1.0
-    max_timeout: float = 3.0
-    retries: int = 1
-    retry_unsafe: bool = False
+    initial_timeout: float = _default(Table.LINES, "initial_timeout")
+    max_timeout: float = _default(Table.LINES, "max_timeout")
+    retries: int = _default(Table.LINES, "retries")
+    retry_unsafe: bool = _default(Table.LINES, "retry_unsafe")
     frame_gap: float | None = None
-    broadcast: bool = True
-    broadcast_turnaround: float = 0.1
-    max_queue: int = 256
-    max_queue_per_master: int = 32
+    broadcast: bool = _default(Table.LINES, "broadcast")
+    broadcast_turnaround: float = _default(Table.LINES, "broadcast_turnaround")
+    max_queue: int = _default(Table.LINES, "max_queue")
+    max_queue_per_master: int = _default(Table.LINES, "max_queue_per_master")
     #: Seconds a request may wait unsent before it is answered 0x0B (0: no limit).
-    max_queue_wait: float = 5.0
+    max_queue_wait: float = _default(Table.LINES, "max_queue_wait")
     late_answer_window: float | None = None
     noisy_after: float | None = None
-    probe_share: float = 0.05
-    rs485: bool = False
-    rs485_rts_level_for_tx: bool = True
-    rs485_rts_level_for_rx: bool = False
-    rs485_delay_before_tx: float = 0.0
-    rs485_delay_after_tx: float = 0.0
+    probe_share: float = _default(Table.LINES, "probe_share")
+    rs485: bool = _default(Table.LINES, "rs485")
+    rs485_rts_level_for_tx: bool = _default(Table.LINES, "rs485_rts_level_for_tx")
+    rs485_rts_level_for_rx: bool = _default(Table.LINES, "rs485_rts_level_for_rx")
+    rs485_delay_before_tx: float = _default(Table.LINES, "rs485_delay_before_tx")
+    rs485_delay_after_tx: float = _default(Table.LINES, "rs485_delay_after_tx")
     units: tuple[int, ...] = ()
-    dead_after: int = 3
-    reconnect_after: int = 3
-    probe_interval: float = 1.0
-    probe_max_interval: float = 30.0
+    dead_after: int = _default(Table.LINES, "dead_after")
+    reconnect_after: int = _default(Table.LINES, "reconnect_after")
+    probe_interval: float = _default(Table.LINES, "probe_interval")
+    probe_max_interval: float = _default(Table.LINES, "probe_max_interval")
     slave_timeouts: Mapping[int, float] = field(default_factory=dict)
     #: Slave address → the name the status page shows (``names``).
     names: Mapping[int, str] = field(default_factory=dict)
-    coalesce: bool = True
+    coalesce: bool = _default(Table.LINES, "coalesce")
     cache: tuple[CacheRule, ...] = ()
     #: Agent mode's blocks on this line (from the top-level ``[[poll]]`` entries).
     polls: tuple[PollBlock, ...] = ()
     #: ``rtu``, ``ascii`` (serial devices) or ``rtu-over-tcp`` (``device`` is then ``HOST:PORT``).
-    kind: str = "rtu"
-    inter_char_timeout: float = 1.0  # ASCII: a frame whose characters stop this long is dropped
-    echo: bool = False  # the adapter echoes what the gateway sends: drop it
+    kind: str = _default(Table.LINES, "kind")
+    inter_char_timeout: float = _default(
+        Table.LINES, "inter_char_timeout"
+    )  # ASCII: a frame whose characters stop this long is dropped
+    echo: bool = _default(Table.LINES, "echo")  # the adapter echoes what the gateway sends: drop it
     #: The device server's or slave's address (network kinds; from ``address = "HOST:PORT"``;
     #: a ``tls`` line's address without a port means 802, Modbus/TCP Security's port).
     host: str = ""
     port: int = 0
     #: Seconds to wait after a connection is made before the first request (some device
     #: servers drop what arrives while they set up their serial side).
-    connect_delay: float = 0.0
+    connect_delay: float = _default(Table.LINES, "connect_delay")
     #: Seconds a connection attempt to the device server may take.
-    connect_timeout: float = 3.0
+    connect_timeout: float = _default(Table.LINES, "connect_timeout")
     #: ``silence`` when set: the quiet time that ends an answer of unpredictable length.
     silence_setting: float | None = None
     #: ``kind = "tls"``: the gateway's client certificate chain, its key, and the CAs the
@@ -310,12 +324,12 @@ class LineConfig:
     #: ``kind = "tls"``: the name the slave's certificate must carry (the address's host
     #: unless set); ``check_server_name = false`` skips only that check, never the chain's.
     server_name: str = ""
-    check_server_name: bool = True
+    check_server_name: bool = _default(Table.LINES, "check_server_name")
     #: ``kind = "tls"``: seconds the TLS handshake with the slave may take.
-    tls_handshake_timeout: float = 10.0
+    tls_handshake_timeout: float = _default(Table.LINES, "tls_handshake_timeout")
     #: Requests outstanding at once on the connection of an MBAP line (``tcp``, ``tls``);
     #: 1 elsewhere.
-    max_in_flight: int = 1
+    max_in_flight: int = _default(Table.LINES, "max_in_flight")
 
     def timeout_for(self, slave: int) -> float:
         """The response timeout of ``slave``: its override, else the line's."""
