@@ -15,19 +15,14 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from conftest import DEADLINE_S, RawClient, SimFactory
-from test_cli import GatewayProcess, RunGateway, gateway_command
-from test_cli import run_gateway as run_gateway  # a fixture
-
 from gateway.sim import plc
+from tests.e2e.test_cli import GatewayProcess, RunGateway, gateway_command
+from tests.e2e.test_cli import run_gateway as run_gateway  # a fixture
+from tests.helpers import DEADLINE_S, RawClient, SimFactory, h
 
 REOPENED = re.compile(r"audit log .* reopened")
 APPLIED = re.compile(r"reload: configuration from .* applied")
 REJECTED = re.compile(r"reload rejected")
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def wait_all(gateway: GatewayProcess, *patterns: re.Pattern[str]) -> None:

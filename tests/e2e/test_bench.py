@@ -26,36 +26,19 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
-from conftest import require_tool
 
 from bench.__main__ import select
 from bench.instruction_scenarios import count
 from bench.loadgen import LoadSpec, run
 from bench.scenarios import Bench, Timing, bare_server
 from bench.values import register_block
+from tests.helpers import TinyBench, mbap, require_tool
 
 REPO = Path(__file__).resolve().parents[2]
 SMOKE_BUDGET_S = 20.0
 TINY_BUDGET_S = 30.0  # several tiny runs, each paying for three process starts
-
-
-def _bench(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", *args, "--output", str(output)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert done.returncode in (0, 1), done.stdout + done.stderr  # 2: a process failed
-    results: dict[str, Any] = json.loads(output.read_text())
-    assert results["failures"] == {}, results["failures"]
-    return done, results
 
 
 def test_quick_scenario_completes_with_zero_wrong_answers(tmp_path: Path) -> None:
@@ -106,7 +89,7 @@ class _LyingServer(asyncio.Protocol):
             data = data[12:]
             values = struct.pack(f">{quantity}H", *range(address + 1, address + 1 + quantity))
             pdu = bytes((3, 2 * quantity)) + values
-            self.transport.write(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
+            self.transport.write(mbap(tid, unit, pdu))
 
 
 def _serve(factory: type[asyncio.Protocol]) -> Iterator[int]:
@@ -150,9 +133,10 @@ def test_load_generator_counts_wrong_answers(lying_server: int) -> None:
     assert set(result.wrong_kinds) == {"payload"}
 
 
-def test_tiny_late_and_dead_slave_scenarios_report_their_figures(tmp_path: Path) -> None:
+def test_tiny_late_and_dead_slave_scenarios_report_their_figures(tiny_bench: TinyBench) -> None:
     started = time.monotonic()
-    done, results = _bench(tmp_path, "--tiny", "late", "dead-default")
+    run = tiny_bench("late", "dead-default", ok=(0, 1))
+    results = run.results
     elapsed = time.monotonic() - started
     scenarios = results["scenarios"]
     assert set(scenarios) == {"late-few", "late-all", "dead-default"}
@@ -166,14 +150,15 @@ def test_tiny_late_and_dead_slave_scenarios_report_their_figures(tmp_path: Path)
     assert dead["run"]["load"]["killed_at"] is not None
     assert dead["baseline_tx_per_s"] > 0
     assert 0 <= dead["first_ratio"] <= 1.5
-    assert "wrong answers + read-after-write" in done.stdout
-    assert results["wrong_answers"] == 0, done.stdout
+    assert "wrong answers + read-after-write" in run.stdout
+    assert results["wrong_answers"] == 0, run.stdout
     assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
 
 
-def test_tiny_fairness_and_floor_scenarios_report_their_figures(tmp_path: Path) -> None:
+def test_tiny_fairness_and_floor_scenarios_report_their_figures(tiny_bench: TinyBench) -> None:
     started = time.monotonic()
-    done, results = _bench(tmp_path, "--tiny", "greedy", "absent", "floor")
+    run = tiny_bench("greedy", "absent", "floor", ok=(0, 1))
+    results = run.results
     elapsed = time.monotonic() - started
     scenarios = results["scenarios"]
     greedy = scenarios["greedy"]["groups"]
@@ -188,23 +173,24 @@ def test_tiny_fairness_and_floor_scenarios_report_their_figures(tmp_path: Path) 
         assert floor["cpu_ratio"] > 0
         assert floor["bare_tx_per_s"][0] > 0
         assert floor["bare_runs"][0]["load"]["wrong_answers"] == 0  # the floor is a real one
-    assert "gateway / mean bare" in done.stdout
-    assert results["wrong_answers"] == 0, done.stdout
+    assert "gateway / mean bare" in run.stdout
+    assert results["wrong_answers"] == 0, run.stdout
     assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
 
 
-def test_tiny_paced_scenario_measures_the_ceiling_beside_the_gateway(tmp_path: Path) -> None:
+def test_tiny_paced_scenario_measures_the_ceiling_beside_the_gateway(tiny_bench: TinyBench) -> None:
     started = time.monotonic()
-    done, results = _bench(tmp_path, "--tiny", "paced")
+    run = tiny_bench("paced", ok=(0, 1))
+    results = run.results
     elapsed = time.monotonic() - started
     for baudrate in ("9600", "115200"):
         paced = results["scenarios"]["paced"][baudrate]
         ceiling = paced["ceiling_run"]
-        assert ceiling["load"]["ok"] > 0, done.stdout  # the simulator answered it: right speed
+        assert ceiling["load"]["ok"] > 0, run.stdout  # the simulator answered it: right speed
         assert ceiling["load"]["wrong_answers"] == 0
         assert paced["ceiling_early_requests"] == 0  # it keeps t3.5: a ceiling, not a shortcut
         assert 0 < paced["ceiling_utilisation"] <= 1.0
-    assert "of ceiling" in done.stdout
+    assert "of ceiling" in run.stdout
     assert elapsed <= TINY_BUDGET_S, f"took {elapsed:.1f} s"
 
 
@@ -248,7 +234,7 @@ class _StaleServer(asyncio.Protocol):
             source = _StaleServer.previous or (unit, address, quantity)
             _StaleServer.previous = (unit, address, quantity)
             pdu = bytes((3, 2 * quantity)) + register_block(source[0], source[1], quantity)
-            self.transport.write(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
+            self.transport.write(mbap(tid, unit, pdu))
 
 
 def test_load_generator_names_whose_data_a_wrong_answer_carried(stale_server: int) -> None:

@@ -11,32 +11,22 @@ their response times, and every poll was recorded.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import TinyBench
 
 
-def _bench(tmp_path: Path, *names: str) -> tuple[str, dict[str, Any]]:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", *names, "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=180, check=False,
-    )  # fmt: skip
-    assert done.returncode in (0, 1), done.stdout + done.stderr  # 2: a process failed
-    results: dict[str, Any] = json.loads(output.read_text())
-    assert results["failures"] == {}, results["failures"]
-    assert results["wrong_answers"] == 0, done.stdout
-    return done.stdout, results["scenarios"]
+def _bench(tiny_bench: TinyBench, *names: str) -> tuple[str, dict[str, Any]]:
+    run = tiny_bench(*names, ok=(0, 1), timeout=180)  # 2: a process failed
+    results = run.results
+    assert results["wrong_answers"] == 0, run.stdout
+    return run.stdout, results["scenarios"]
 
 
 def test_closed_loop_and_absent_periodic_measure_both_servers_and_both_runs(
-    tmp_path: Path,
+    tiny_bench: TinyBench,
 ) -> None:
-    stdout, scenarios = _bench(tmp_path, "closed-loop", "absent-periodic")
+    stdout, scenarios = _bench(tiny_bench, "closed-loop", "absent-periodic")
     closed = scenarios["closed-loop"]
     assert set(closed) == {"10_paced", "100_unpaced"}
     for shape in closed.values():
@@ -63,8 +53,8 @@ def test_closed_loop_and_absent_periodic_measure_both_servers_and_both_runs(
     assert absent["median_limit_s"] >= 0.1
 
 
-def test_learning_devices_change_their_response_times(tmp_path: Path) -> None:
-    stdout, scenarios = _bench(tmp_path, "learning")
+def test_learning_devices_change_their_response_times(tiny_bench: TinyBench) -> None:
+    stdout, scenarios = _bench(tiny_bench, "learning")
     figures = scenarios["learning"]
     plc, turn = figures["soft_plc"], figures["turns_slow"]
     assert plc["polls"] == 12

@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 
 from bench.fairness import WORST_TARGET_S
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 BUDGET_S = 40.0
 
 

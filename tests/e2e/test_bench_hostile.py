@@ -7,26 +7,13 @@ master was served) and that the report carries every figure of issue 9.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-from typing import Any
-
 from bench.hostile import ATTACKS
+from tests.helpers import TinyBench
 
-REPO = Path(__file__).resolve().parents[2]
 
-
-def test_tiny_hostile_scenario_reports_every_attacker(tmp_path: Path) -> None:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", "hostile", "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=150, check=False,
-    )  # fmt: skip
-    assert done.returncode in (0, 1), done.stdout + done.stderr
-    results: dict[str, Any] = json.loads(output.read_text())
-    assert results["failures"] == {}, results["failures"]
+def test_tiny_hostile_scenario_reports_every_attacker(tiny_bench: TinyBench) -> None:
+    run = tiny_bench("hostile", ok=(0, 1), timeout=150)
+    results = run.results
     hostile = results["scenarios"]["hostile"]
     phases = hostile["phases"]
     assert list(phases) == ["baseline", *ATTACKS]
@@ -43,4 +30,4 @@ def test_tiny_hostile_scenario_reports_every_attacker(tmp_path: Path) -> None:
     figures = {check["figure"] for check in results["checks"]}
     assert {"floods: honest p99", "log lines/s one client causes",
             "/metrics after a unit x function scan"} <= figures  # fmt: skip
-    assert "Hostile clients" in done.stdout
+    assert "Hostile clients" in run.stdout

@@ -6,23 +6,12 @@ Only that the scenario works end to end (an ASCII simulator, the gateway with
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import TinyBench
 
 
-def test_tiny_ascii_scenario_reports_its_figures(tmp_path: Path) -> None:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", "ascii", "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
-    assert done.returncode in (0, 1), done.stdout + done.stderr  # 1: a target missed under load
-    results = json.loads(output.read_text())
-    assert results["failures"] == {}
+def test_tiny_ascii_scenario_reports_its_figures(tiny_bench: TinyBench) -> None:
+    run = tiny_bench("ascii", ok=(0, 1))  # 1: a target missed under load
+    results = run.results
     figures = results["scenarios"]["ascii"]
     assert figures["unpaced_ascii_tx_per_s"] > 0
     assert figures["unpaced_rtu_tx_per_s"] > 0

@@ -6,23 +6,12 @@ ASCII, every answer checked); the figures are measured with ``python -m bench re
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import TinyBench
 
 
-def test_tiny_reverse_scenario_reports_its_figures(tmp_path: Path) -> None:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", "reverse", "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout + done.stderr
-    results = json.loads(output.read_text())
-    assert results["failures"] == {}
+def test_tiny_reverse_scenario_reports_its_figures(tiny_bench: TinyBench) -> None:
+    run = tiny_bench("reverse")
+    results = run.results
     figures = results["scenarios"]["reverse"]
     for framing in ("rtu", "ascii"):
         assert figures[framing]["answers"] > 0

@@ -6,23 +6,12 @@ every answer checked); the figures themselves are measured with ``python -m benc
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import TinyBench
 
 
-def test_tiny_tls_scenario_reports_its_figures(tmp_path: Path) -> None:
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", "tls", "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout + done.stderr
-    results = json.loads(output.read_text())
-    assert results["failures"] == {}
+def test_tiny_tls_scenario_reports_its_figures(tiny_bench: TinyBench) -> None:
+    run = tiny_bench("tls")
+    results = run.results
     figures = results["scenarios"]["tls"]
     setup = figures["connection_setup"]
     assert set(setup) == {"plain TCP", "TLS 1.2", "TLS 1.3"}

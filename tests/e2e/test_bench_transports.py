@@ -7,26 +7,13 @@ checked); figures come from ``python -m bench transports``.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-from conftest import require_tool
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import TinyBench, require_tool
 
 
-def test_tiny_transports_scenario_reports_its_figures(tmp_path: Path) -> None:
+def test_tiny_transports_scenario_reports_its_figures(tiny_bench: TinyBench) -> None:
     require_tool("socat")
-    output = tmp_path / "results.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "--tiny", "transports", "--output", str(output)],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout + done.stderr
-    results = json.loads(output.read_text())
-    assert results["failures"] == {}
+    run = tiny_bench("transports")
+    results = run.results
     figures = results["scenarios"]["transports"]
     for kind in ("rtu", "rtu-over-tcp", "tcp"):
         assert figures[kind]["run"]["load"]["ok"] > 0

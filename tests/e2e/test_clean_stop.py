@@ -12,14 +12,14 @@ from __future__ import annotations
 import re
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import threading
 from collections.abc import Callable
 
 import pytest
-from conftest import DEADLINE_S, release
+
+from tests.helpers import DEADLINE_S, mbap, release
 
 #: Stops per test: the ERROR came on most stops, not on every one.
 STOPS = 3
@@ -55,7 +55,7 @@ class _Load:
             tid = 0
             while not self.stopping.is_set():
                 tid = (tid + 1) & 0xFFFF
-                frame = struct.pack(">HHHB", tid, 0, 1 + len(READ_ONE), unit) + READ_ONE
+                frame = mbap(tid, unit, READ_ONE)
                 try:
                     sock.sendall(frame)
                     if not sock.recv(260):

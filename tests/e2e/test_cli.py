@@ -20,18 +20,14 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, RawClient, Reply, SimFactory, release
 
 from gateway import __version__, build
 from gateway.core.ascii import encode_ascii
 from gateway.sim import open_pty_pair, plc, zl69x
 from gateway.sim.device import pack_registers
+from tests.helpers import DEADLINE_S, RawClient, Reply, SimFactory, h, release
 
 LISTENING = re.compile(r"listening on ([0-9.]+):(\d+)")
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def gateway_command(*args: str) -> list[str]:

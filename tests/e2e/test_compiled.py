@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import NamedTuple
 
 import pytest
-from conftest import environment_with_our_dependencies
+
+from tests.helpers import environment_with_our_dependencies
 
 #: Building takes mypyc a minute or more on a busy machine, the tests several.
 pytestmark = [pytest.mark.compiled, pytest.mark.timeout(1800)]

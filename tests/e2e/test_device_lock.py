@@ -22,7 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.config import build_config
+from gateway.io.serial_port import DeviceBusyError
+from gateway.sim import plc
+from tests.e2e.test_cli import GatewayProcess, RunGateway, gateway_command
+from tests.helpers import (
     DEADLINE_S,
     UNPACED_BAUDRATE,
     GatewayFactory,
@@ -30,11 +35,6 @@ from conftest import (
     SimFactory,
     release,
 )
-from test_cli import GatewayProcess, RunGateway, gateway_command
-
-from gateway.config import build_config
-from gateway.io.serial_port import DeviceBusyError
-from gateway.sim import plc
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys and locks")
 

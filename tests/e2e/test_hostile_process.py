@@ -18,10 +18,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, RawClient, SimFactory, mbap
-from test_cli import GatewayProcess
 
 from gateway.sim import plc
+from tests.e2e.test_cli import GatewayProcess
+from tests.helpers import DEADLINE_S, RawClient, SimFactory, mbap
 
 READ_1 = bytes.fromhex("03 0000 0001")
 ATTACKER = "127.0.0.2"

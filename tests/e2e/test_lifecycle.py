@@ -32,11 +32,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import release, wait_until
 
 from gateway.config import build_config
 from gateway.io.serial_port import SerialLink, SerialPortError, open_serial
 from gateway.sim import PtyPair, SimulatedLine, open_pty_pair, plc
+from tests.helpers import mbap, release, wait_until
 
 DEADLINE_S = 10.0
 READ_10 = bytes([0x03, 0x00, 0x00, 0x00, 0x0A])  # read holding registers 0..9
@@ -198,11 +198,6 @@ class GatewayProcess:
 
 
 # --------------------------------------------------------------------------- masters
-
-
-def mbap(transaction_id: int, unit: int, pdu: bytes) -> bytes:
-    """A Modbus TCP ADU built by hand."""
-    return struct.pack(">HHHB", transaction_id, 0, len(pdu) + 1, unit) + pdu
 
 
 class Master(threading.Thread):

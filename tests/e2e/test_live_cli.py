@@ -14,9 +14,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, RawClient, SimFactory, release, require_tool
 
 from gateway.sim import plc, zl69x
+from tests.helpers import DEADLINE_S, RawClient, SimFactory, release, require_tool
 
 READ_10 = bytes.fromhex("03 0000 000A")
 

@@ -34,7 +34,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import release, require_tool
+
+from tests.helpers import release, require_tool
 
 REPO = Path(__file__).resolve().parents[2]
 DOCS = REPO / "docs"

@@ -6,8 +6,8 @@ import json
 import urllib.request
 from pathlib import Path
 
-from conftest import DEADLINE_S
-from test_startup_messages import Started
+from tests.e2e.test_startup_messages import Started
+from tests.helpers import DEADLINE_S
 
 STATUS_PAGE = r"metrics on (http://127\.0\.0\.1:(\d+)/metrics), status page on (\S+)$"
 

@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, SimFactory, release, require_tool
 
 from gateway.core.line.response_timing import EVIDENCE
 from gateway.sim import UnitFaults, plc
+from tests.helpers import DEADLINE_S, SimFactory, release, require_tool
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys")
 

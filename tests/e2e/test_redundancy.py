@@ -23,12 +23,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from cdp import Browser
-from conftest import require_tool
 
 from bench.hostile import read_exactly
 from bench.pair_lab import PLC_10, READ_10, GatewayProc, PairLab, Poller
 from gateway.sim.device import DataBank, SimulatedDevice
+from tests.e2e.cdp import Browser
+from tests.helpers import mbap, require_tool
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux ptys and signals")
 
@@ -286,7 +286,7 @@ def test_a_standby_never_forwards_what_comes_from_its_peer(lab: PairLab) -> None
     while status(standby)["pair"]["peer_role"] != "active":  # it has heard the takeover
         assert time.monotonic() < deadline
         time.sleep(0.05)  # polling an HTTP endpoint
-    request = struct.pack(">HHHB", 7, 0, len(READ_10) + 1, 1) + READ_10
+    request = mbap(7, 1, READ_10)
     answers = {}
     for label, source in (("peer", active.host), ("other", "127.0.0.1")):
         with socket.create_connection(standby.modbus, timeout=10.0,
@@ -300,7 +300,7 @@ def test_a_standby_never_forwards_what_comes_from_its_peer(lab: PairLab) -> None
 def transact(address: tuple[str, int], unit: int, pdu: bytes) -> bytes:
     """One Modbus TCP request on a connection of its own; the answer's PDU."""
     with socket.create_connection(address, timeout=10.0) as master:
-        master.sendall(struct.pack(">HHHB", 9, 0, len(pdu) + 1, unit) + pdu)
+        master.sendall(mbap(9, unit, pdu))
         head = read_exactly(master, 7)
         return read_exactly(master, struct.unpack(">H", head[4:6])[0] - 1)
 

@@ -9,10 +9,10 @@ import sys
 from pathlib import Path
 
 import serial
-from conftest import DEADLINE_S, GatewayOnSim, SimBus, SimFactory
 
 from gateway.core.rtu import encode_rtu
 from gateway.sim import plc, power_controller, zl69x
+from tests.helpers import DEADLINE_S, GatewayOnSim, SimBus, SimFactory
 
 SIM_BAUDRATE = 38400  # not the first the scan tries: it has to find it
 

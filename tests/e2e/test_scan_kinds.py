@@ -16,11 +16,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, UNPACED_BAUDRATE, SimFactory, require_tool, wait_until
 
 from gateway.sim import plc, zl69x
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 from gateway.sim.tcp import SimulatedTcpSlave
+from tests.helpers import DEADLINE_S, UNPACED_BAUDRATE, SimFactory, require_tool, wait_until
 
 
 def _scan(config: Path, line: str, *args: str) -> subprocess.CompletedProcess[str]:
@@ -46,11 +46,6 @@ def _config(tmp_path: Path, table: str) -> Path:
     path = tmp_path / "gateway.toml"
     path.write_text('[lines.decoy]\ndevice = "/dev/null"\nunits = [9]\n\n' + table)
     return path
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def test_scan_an_rtu_line(make_sim: SimFactory, tmp_path: Path) -> None:

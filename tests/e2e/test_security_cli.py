@@ -23,12 +23,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import release, require_tool
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
 from gateway.io.tls import role_from_certificate
-from gateway.sim.pki import DAY, Pki, make_pki
+from gateway.sim.pki import DAY, Pki
+from tests.helpers import mbap, release, require_tool
 
 DEADLINE_S = 10.0
 READ = bytes.fromhex("03 0000 0001")
@@ -87,11 +87,6 @@ class Gateway:
         return self.proc.returncode
 
 
-@pytest.fixture
-def pki(tmp_path: Path) -> Pki:
-    return make_pki(tmp_path)
-
-
 def context(pki: Pki, client: str) -> ssl.SSLContext:
     result = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     result.load_verify_locations(cafile=str(pki.ca))
@@ -100,7 +95,7 @@ def context(pki: Pki, client: str) -> ssl.SSLContext:
 
 
 def request(sock: ssl.SSLSocket, tid: int, pdu: bytes) -> bytes:
-    sock.sendall(struct.pack(">HHHB", tid, 0, len(pdu) + 1, 1) + pdu)
+    sock.sendall(mbap(tid, 1, pdu))
     header = sock.recv(7)
     while len(header) < 7:
         header += sock.recv(7 - len(header))

@@ -22,10 +22,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, release
 
 from gateway.io.serial_port import PERMISSION_SETTLE_S
 from gateway.sim import PtyPair, open_pty_pair
+from tests.helpers import DEADLINE_S, release
 
 REPO = Path(__file__).resolve().parents[2]
 LISTENING = re.compile(r"listening on ([\d.]+):(\d+) \(Modbus TCP\)")

@@ -14,12 +14,11 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from cdp import Browser
-from conftest import GatewayFactory, GatewayOnSim, SimFactory, require_tool
-
 from gateway.pcap import PcapngWriter
 from gateway.sim import plc, zl69x
 from gateway.trace_client import TraceCapture
+from tests.e2e.cdp import Browser
+from tests.helpers import GatewayFactory, GatewayOnSim, SimFactory, require_tool
 
 READ_2 = bytes.fromhex("03 0000 0002")
 

@@ -3,10 +3,9 @@ cookies, and the page's own ``fetch('/status')`` and ``EventSource('/trace')`` t
 
 from __future__ import annotations
 
-from cdp import Browser
-from conftest import GatewayFactory, SimFactory, require_tool
-
 from gateway.sim import plc
+from tests.e2e.cdp import Browser
+from tests.helpers import GatewayFactory, SimFactory, require_tool
 
 STATUS_TOKEN = "status-0123456789abcdef"
 TRACE_TOKEN = "trace-0123456789abcdef"

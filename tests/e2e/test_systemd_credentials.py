@@ -21,8 +21,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, require_tool
-from test_startup_messages import Started
+
+from tests.e2e.test_startup_messages import Started
+from tests.helpers import DEADLINE_S, require_tool
 
 REPO = Path(__file__).resolve().parents[2]
 UNIT = REPO / "conf" / "modbus-gateway@.service"

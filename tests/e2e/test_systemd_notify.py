@@ -20,10 +20,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, UNPACED_BAUDRATE, RawClient, SimFactory
 
 from gateway.io.systemd import SystemdNotifier
 from gateway.sim import plc
+from tests.helpers import DEADLINE_S, UNPACED_BAUDRATE, RawClient, SimFactory
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs AF_UNIX and ptys")
 

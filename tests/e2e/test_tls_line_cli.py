@@ -10,16 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
-from gateway.sim.pki import Pki, make_pki
+from gateway.sim.pki import Pki
 
 TIMEOUT_S = 30
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
 
 
 def tls_config(tmp_path: Path, pki: Pki, key: str | None = None, **extra: str) -> Path:

@@ -12,7 +12,7 @@ import sys
 import threading
 import time
 
-from conftest import release
+from tests.helpers import mbap, release
 
 DEADLINE_S = 10.0
 
@@ -57,7 +57,7 @@ def test_trace_subcommand_prints_requests_and_replies_decoded() -> None:
                 (42, 1, bytes.fromhex("06 0000 0001")),  # another function: not traced
                 (43, 1, bytes.fromhex("03 0000 000A")),
             ):
-                sock.sendall(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
+                sock.sendall(mbap(tid, unit, pdu))
                 header = sock.recv(7, socket.MSG_WAITALL)
                 sock.recv(struct.unpack(">HHHB", header)[2] - 1, socket.MSG_WAITALL)
         request = _wait_for(lines, r"gateway\.trace: -> (\S+) tid=(\d+) unit=1 (.*)$", seen)

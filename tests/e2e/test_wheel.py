@@ -9,7 +9,8 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from conftest import environment_with_our_dependencies
+
+from tests.helpers import environment_with_our_dependencies
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,6 +1,6 @@
 """Reading a running gateway's metrics for the observability tests: scrapes, series, diffs.
 
-The gateway, the simulated line and the raw client come from ``tests/conftest.py``.
+The gateway, the simulated line and the raw client come from ``tests/helpers.py``.
 Reading through ``/metrics`` doubles as a synchronisation point: the HTTP
 request is served on the gateway's loop after every callback that ran before
 it, so a scrape taken after a reply was received sees that reply's counts.
@@ -12,8 +12,9 @@ from __future__ import annotations
 import http.client
 from collections.abc import Mapping
 
-from conftest import DEADLINE_S, RunningGateway
 from prometheus_client.parser import text_string_to_metric_families
+
+from tests.helpers import DEADLINE_S, RunningGateway
 
 #: A series: sample name and its labels, sorted.
 Series = tuple[str, tuple[tuple[str, str], ...]]

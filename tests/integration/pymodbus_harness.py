@@ -7,7 +7,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from conftest import DEADLINE_S
+from tests.helpers import DEADLINE_S
 
 
 def sim_device(unit: int, coils: list[bool], holding: list[int]) -> Any:

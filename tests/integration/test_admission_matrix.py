@@ -26,12 +26,20 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory, client_context
 
 from gateway.core.crc import append_crc, check_crc
 from gateway.sim import PtyPair, open_pty_pair, plc
 from gateway.sim.device import SimulatedDevice
 from gateway.sim.pki import Pki
+from tests.helpers import (
+    DEADLINE_S,
+    GatewayFactory,
+    RunningGateway,
+    SimFactory,
+    client_context,
+    h,
+    mbap,
+)
 
 BAUD = 19200
 #: Long beside t3.5 and the simulated line's answer: nothing coming within it is a silence.
@@ -40,10 +48,6 @@ MARKER = bytes.fromhex("03 0001 0001")  # a read of unit 1 after each request: t
 MARKER_ANSWER = bytes.fromhex("03 02 0002")
 
 Traffic = list[tuple[int, bytes, bool]]  # (slave address, PDU, broadcast) as the slaves saw it
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 class Recorder(SimulatedDevice):
@@ -210,7 +214,7 @@ class MbapMaster:
 
     def exchange(self, unit: int, pdu: bytes, silent: bool) -> bytes | None:
         self.tid += 1
-        self.sock.sendall(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
+        self.sock.sendall(mbap(self.tid, unit, pdu))
         header = self._read(7)
         tid, protocol, length, reply_unit = struct.unpack(">HHHB", header)
         assert (tid, protocol, reply_unit) == (self.tid, 0, unit), header.hex(" ")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
-from conftest import require_tool
+from tests.helpers import require_tool
 
 SCENARIOS = Path(__file__).with_name("alert_rules.test.yml")
 

@@ -19,24 +19,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory
-from test_admission_matrix import (
+
+from gateway.config import build_config
+from gateway.io.audit import verify_files
+from gateway.sim import open_pty_pair, plc
+from gateway.sim.pki import Pki
+from tests.helpers import DEADLINE_S, GatewayFactory, RunningGateway, SimFactory, h
+from tests.integration.test_admission_matrix import (
     Master,
     RtuOverWire,
     masters_by_listener,
     tcp_master,
 )
 
-from gateway.config import build_config
-from gateway.io.audit import verify_files
-from gateway.sim import open_pty_pair, plc
-from gateway.sim.pki import Pki
-
 BAUD = 19200
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 @dataclass

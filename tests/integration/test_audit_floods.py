@@ -20,11 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RawClient, RunningGateway, SimFactory, mbap
-from test_hostile import connect_from
 
 from gateway.io.audit import verify_files
 from gateway.sim import plc
+from tests.helpers import DEADLINE_S, GatewayFactory, RawClient, RunningGateway, SimFactory, mbap
+from tests.integration.test_hostile import connect_from
 
 #: How long each flood runs at most, and how many events it may cause at most.
 ATTACK_S = 1.5

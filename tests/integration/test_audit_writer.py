@@ -12,10 +12,10 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S
 
 from gateway.core.audit_record import refused_record
 from gateway.io.audit import AuditLog
+from tests.helpers import DEADLINE_S
 
 T0 = 1_800_000_000.0
 

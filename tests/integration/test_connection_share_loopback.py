@@ -16,11 +16,11 @@ import time
 from contextlib import ExitStack, suppress
 
 import pytest
-from conftest import DEADLINE_S, GatewayOnSim, RawClient, RunningGateway, wait_until
-from metrics_harness import series, value
-from test_hostile import HONEST_LINE, HonestMaster, closed_within, connect_from
 
 from gateway.sim import UnitFaults, plc
+from tests.helpers import DEADLINE_S, GatewayOnSim, RawClient, RunningGateway, wait_until
+from tests.integration.metrics_harness import series, value
+from tests.integration.test_hostile import HONEST_LINE, HonestMaster, closed_within, connect_from
 
 READ_1 = bytes.fromhex("03 0000 0001")
 BURSTY = "127.0.0.2"

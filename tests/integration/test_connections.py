@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from conftest import DEADLINE_S, GatewayOnSim, RawClient
-
 from gateway.sim import plc
+from tests.helpers import DEADLINE_S, GatewayOnSim, RawClient
 
 READ_1 = bytes.fromhex("03 0000 0001")
 

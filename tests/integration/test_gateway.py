@@ -18,7 +18,12 @@ from contextlib import ExitStack
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.config import build_config
+from gateway.core.rtu import encode_rtu
+from gateway.sim import PtyPair, UnitFaults, open_pty_pair, plc, power_controller, zl69x
+from gateway.sim.device import pack_bits, pack_registers
+from tests.helpers import (
     DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
@@ -27,18 +32,10 @@ from conftest import (
     Reply,
     RunningGateway,
     SimBus,
+    h,
     mbap,
     wait_until,
 )
-
-from gateway.config import build_config
-from gateway.core.rtu import encode_rtu
-from gateway.sim import PtyPair, UnitFaults, open_pty_pair, plc, power_controller, zl69x
-from gateway.sim.device import pack_bits, pack_registers
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def read_pdu(function: int, address: int, quantity: int) -> bytes:

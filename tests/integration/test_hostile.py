@@ -23,7 +23,10 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, suppress
 
 import pytest
-from conftest import (
+from prometheus_client.parser import text_string_to_metric_families
+
+from gateway.sim import plc
+from tests.helpers import (
     DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
@@ -34,10 +37,7 @@ from conftest import (
     mbap,
     wait_until,
 )
-from metrics_harness import exposition, http_get, metrics_address, series, value
-from prometheus_client.parser import text_string_to_metric_families
-
-from gateway.sim import plc
+from tests.integration.metrics_harness import exposition, http_get, metrics_address, series, value
 
 READ_1 = bytes.fromhex("03 0000 0001")
 #: How long an attack runs at most.

@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import gc
 
-from conftest import GatewayOnSim
-
 from gateway.core.line import LineRequest
 from gateway.sim import plc
+from tests.helpers import GatewayOnSim
 
 READ_10 = bytes.fromhex("03 0000 000A")
 WRITE_1 = bytes.fromhex("06 0001 0007")

@@ -19,7 +19,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway import live
+from gateway.io.http import HttpEndpoint
+from gateway.live import MAX_FILTER_VALUES, LiveView
+from gateway.sim import plc
+from gateway.sim.pki import make_pki
+from tests.helpers import (
     DEADLINE_S,
     GatewayFactory,
     RunningGateway,
@@ -27,13 +33,7 @@ from conftest import (
     require_tool,
     wait_until,
 )
-from metrics_harness import metrics_address, value
-
-from gateway import live
-from gateway.io.http import HttpEndpoint
-from gateway.live import MAX_FILTER_VALUES, LiveView
-from gateway.sim import plc
-from gateway.sim.pki import make_pki
+from tests.integration.metrics_harness import metrics_address, value
 
 STATUS_TOKEN = "status-0123456789abcdef"
 TRACE_TOKEN = "trace-0123456789abcdef"

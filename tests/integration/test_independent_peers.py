@@ -18,18 +18,19 @@ from contextlib import ExitStack
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.sim import PtyPair, open_pty_pair, plc, zl69x
+from gateway.sim.device import pack_registers
+from tests.helpers import (
     DEADLINE_S,
     GatewayFactory,
     GatewayOnSim,
     Reply,
     RunningGateway,
+    h,
     require_tool,
 )
-from pymodbus_harness import PymodbusServerThread, sim_device
-
-from gateway.sim import PtyPair, open_pty_pair, plc, zl69x
-from gateway.sim.device import pack_registers
+from tests.integration.pymodbus_harness import PymodbusServerThread, sim_device
 
 # --------------------------------------------------------------------------- pymodbus as master
 
@@ -163,10 +164,6 @@ def pymodbus_slave_line(
         gateway = make_gateway({"lines": {"a": table}})
         stack.callback(gateway.stop)  # first: before the slave and the ptys go
         yield slave, gateway
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def test_pymodbus_rtu_slave_behind_the_gateway(

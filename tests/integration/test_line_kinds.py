@@ -10,19 +10,15 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
-from conftest import GatewayFactory, SimFactory
-from metrics_harness import samples, series
-from test_sim import FUNCTION_VECTORS
 
 from gateway.config import build_config
 from gateway.sim import UnitFaults, plc
+from tests.helpers import GatewayFactory, SimFactory, h
+from tests.integration.metrics_harness import samples, series
+from tests.integration.test_sim import FUNCTION_VECTORS
 
 #: ptys refuse some parities (FIELD-NOTES): ASCII lines in tests run 8N1.
 ASCII_ON_PTY = {"kind": "ascii", "data_bits": 8, "parity": "N"}
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 @pytest.mark.parametrize(("request_hex", "response_hex"), FUNCTION_VECTORS)

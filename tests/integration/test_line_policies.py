@@ -13,7 +13,9 @@ import struct
 import time
 from pathlib import Path
 
-from conftest import (
+from gateway.config import build_config
+from gateway.sim import plc
+from tests.helpers import (
     DEADLINE_S,
     GatewayOnSim,
     LogCollector,
@@ -21,9 +23,6 @@ from conftest import (
     RunningGateway,
     wait_until,
 )
-
-from gateway.config import build_config
-from gateway.sim import plc
 
 READ_10 = bytes.fromhex("03 0000 000A")
 SLOW_READ = bytes.fromhex("03 0100 007D")  # 125 registers: ~265 ms on the wire at 9600 baud

@@ -12,7 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway import live
+from gateway.live import QUEUE_LIMIT
+from gateway.sim import plc
+from gateway.sim.pki import make_pki
+from tests.helpers import (
     DEADLINE_S,
     GatewayFactory,
     GatewayOnSim,
@@ -20,12 +25,7 @@ from conftest import (
     SimFactory,
     wait_until,
 )
-from metrics_harness import http_get, metrics_address, samples, series
-
-from gateway import live
-from gateway.live import QUEUE_LIMIT
-from gateway.sim import plc
-from gateway.sim.pki import make_pki
+from tests.integration.metrics_harness import http_get, metrics_address, samples, series
 
 READ_10 = bytes.fromhex("03 0000 000A")
 

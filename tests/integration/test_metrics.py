@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import socket
 
-from conftest import GatewayFactory, GatewayOnSim, RawClient, SimFactory, mbap, wait_until
-from metrics_harness import (
+from prometheus_client.parser import text_string_to_metric_families
+
+from gateway import __version__, build
+from gateway.sim import plc
+from tests.helpers import GatewayFactory, GatewayOnSim, RawClient, SimFactory, mbap, wait_until
+from tests.integration.metrics_harness import (
     Series,
     counter_changes,
     http_get,
@@ -20,10 +24,6 @@ from metrics_harness import (
     series,
     value,
 )
-from prometheus_client.parser import text_string_to_metric_families
-
-from gateway import __version__, build
-from gateway.sim import plc
 
 #: The families a fault may touch; each test pins down which of them change, and by how much.
 FAULT_FAMILIES = (

@@ -11,11 +11,11 @@ outcome it actually meets.
 
 from __future__ import annotations
 
-from conftest import DEADLINE_S, GatewayFactory, SimFactory
-from metrics_harness import exposition
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.sim import UnitFaults, plc
+from tests.helpers import DEADLINE_S, GatewayFactory, SimFactory
+from tests.integration.metrics_harness import exposition
 
 READ_1 = bytes.fromhex("03 0000 0001")
 #: Twenty function codes, each a valid request: reads, writes, diagnostics, file records,

@@ -18,7 +18,6 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -26,6 +25,7 @@ from gateway.config import build_config
 from gateway.core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
 from gateway.io.serial_port import open_serial
 from gateway.sim import BusStats, BusTimeline, MultidropBus, plc
+from tests.helpers import DEADLINE_S, GatewayFactory
 
 BAUD = 9600
 READ_10 = bytes.fromhex("03 0000 000A")

@@ -4,7 +4,7 @@ The peer is a real gateway in front of a simulated line (on its own loop in a
 background thread), or, for the hostile and slow cases, a small asyncio server that
 answers what a test tells it to. The forwarder runs on the test's own event loop.
 Synchronisation is by replies and by state the code reaches (polled with a deadline,
-as ``conftest.wait_until`` does), never by sleeping a guessed time.
+as ``tests.helpers.wait_until`` does), never by sleeping a guessed time.
 """
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayOnSim, RunningGateway
 
 from gateway.core.line import LineRequest
 from gateway.core.outcome import Outcome
 from gateway.io.pair.forward import PeerForwarder
 from gateway.sim import plc
 from gateway.sim.device import pack_registers
+from tests.helpers import DEADLINE_S, GatewayOnSim, RunningGateway, mbap
 
 READ_6 = struct.pack(">BHH", 3, 0, 6)
 READ_1 = struct.pack(">BHH", 3, 100, 1)
@@ -305,16 +305,12 @@ class FakePeer:
             writer.transport.abort()
 
 
-def mbap(tid: int, unit: int, pdu: bytes, protocol: int = 0) -> bytes:
-    return struct.pack(">HHHB", tid, protocol, len(pdu) + 1, unit) + pdu
-
-
 HOSTILE = {
     "another transaction id": lambda tid, unit: mbap(tid + 1, unit, registers([7])),
     "another unit": lambda tid, unit: mbap(tid, unit + 1, registers([7])),
     "another function": lambda tid, unit: mbap(tid, unit, bytes((4, 2, 0, 7))),
     "another byte count": lambda tid, unit: mbap(tid, unit, registers([7, 8])),
-    "a protocol id not 0": lambda tid, unit: mbap(tid, unit, registers([7]), protocol=1),
+    "a protocol id not 0": lambda tid, unit: mbap(tid, unit, registers([7]), protocol_id=1),
 }
 
 

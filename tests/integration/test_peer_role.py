@@ -12,7 +12,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
-from conftest import GatewayFactory, SimFactory, wait_until
 from prometheus_client import CollectorRegistry
 
 from gateway.config import MetricsConfig, build_config
@@ -32,6 +31,7 @@ from gateway.io.pair.channel import (
 from gateway.io.pair.role import boot_time
 from gateway.sim import plc
 from gateway.sim.pki import Pki, make_pki
+from tests.helpers import GatewayFactory, SimFactory, wait_until
 
 READ_1 = bytes.fromhex("0300000001")
 

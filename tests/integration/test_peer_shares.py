@@ -17,11 +17,19 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, wait_until
 
 from bench.hostile import read_exactly
 from bench.pair_lab import free_ports
 from gateway.sim import plc
+from tests.helpers import (
+    DEADLINE_S,
+    GatewayFactory,
+    RunningGateway,
+    SimBus,
+    SimFactory,
+    mbap,
+    wait_until,
+)
 
 READ_1 = struct.pack(">BHH", 3, 0, 1)
 HOSTILE, HONEST, DIRECT = "127.0.0.5", "127.0.0.6", "127.0.0.7"
@@ -90,7 +98,7 @@ class Poller:
     async def ask(self, unit: int, pdu: bytes) -> bytes:
         """The answer's PDU; b"" when the connection closed."""
         self.tid = (self.tid + 1) & 0xFFFF
-        self.writer.write(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
+        self.writer.write(mbap(self.tid, unit, pdu))
         try:
             header = await asyncio.wait_for(self.reader.readexactly(7), DEADLINE_S)
             tid, _protocol, length, _unit = struct.unpack(">HHHB", header)

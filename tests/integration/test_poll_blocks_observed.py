@@ -10,7 +10,10 @@ import subprocess
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.config import build_config
+from gateway.sim import plc
+from tests.helpers import (
     GatewayFactory,
     RunningGateway,
     SimBus,
@@ -18,10 +21,7 @@ from conftest import (
     require_tool,
     wait_until,
 )
-from metrics_harness import exposition, http_get, samples, series
-
-from gateway.config import build_config
-from gateway.sim import plc
+from tests.integration.metrics_harness import exposition, http_get, samples, series
 
 READ_2 = bytes.fromhex("03 0002 0002")
 

@@ -24,12 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import GatewayOnSim, RunningGateway, require_tool
-from metrics_harness import exposition, metrics_address
 
 from gateway.core import pdu as fc
 from gateway.metrics import GatewayMetrics
 from gateway.sim import plc
+from tests.helpers import GatewayOnSim, RunningGateway, require_tool
+from tests.integration.metrics_harness import exposition, metrics_address
 
 REPO = Path(__file__).resolve().parents[2]
 PROMETHEUS_CONFIG = REPO / "conf" / "prometheus.yml"

@@ -22,17 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
-    DEADLINE_S,
-    ConnectionClosedError,
-    GatewayFactory,
-    LogCollector,
-    RawClient,
-    RunningGateway,
-    SimFactory,
-    client_context,
-    wait_until,
-)
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 
@@ -43,6 +32,17 @@ from gateway.io.tls import certificate_facts
 from gateway.sim import plc
 from gateway.sim.line import UnitFaults
 from gateway.sim.pki import Pki
+from tests.helpers import (
+    DEADLINE_S,
+    ConnectionClosedError,
+    GatewayFactory,
+    LogCollector,
+    RawClient,
+    RunningGateway,
+    SimFactory,
+    client_context,
+    wait_until,
+)
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")

@@ -15,11 +15,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, SimFactory
 
 from gateway.config import build_config
 from gateway.restart_keys import fields_of, restart_keys
 from gateway.sim import plc
+from tests.helpers import DEADLINE_S, GatewayFactory, SimFactory
 
 
 def test_every_restart_only_key_names_the_fields_it_keeps() -> None:

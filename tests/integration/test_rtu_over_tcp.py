@@ -25,23 +25,20 @@ from contextlib import ExitStack
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.core.crc import append_crc
+from gateway.sim import plc, zl69x
+from gateway.sim.device import pack_registers
+from tests.helpers import (
     DEADLINE_S,
     GatewayFactory,
     RunningGateway,
     SimBus,
     SimFactory,
+    h,
     require_tool,
     wait_until,
 )
-
-from gateway.core.crc import append_crc
-from gateway.sim import plc, zl69x
-from gateway.sim.device import pack_registers
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def free_port() -> int:

@@ -13,17 +13,13 @@ import time
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory
-from test_sim import FUNCTION_VECTORS
 
 from gateway.config import build_config
 from gateway.core.crc import append_crc, check_crc
 from gateway.sim import plc, zl69x
 from gateway.sim.device import pack_registers
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, h
+from tests.integration.test_sim import FUNCTION_VECTORS
 
 
 def listener_address(gateway: RunningGateway, name: str = "rtu") -> tuple[str, int]:

@@ -20,7 +20,11 @@ import time
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.config import build_config
+from gateway.sim import plc
+from gateway.sim.pki import Pki
+from tests.helpers import (
     DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
@@ -34,10 +38,6 @@ from conftest import (
     require_tool,
     wait_until,
 )
-
-from gateway.config import build_config
-from gateway.sim import plc
-from gateway.sim.pki import Pki
 
 PLANT_RULES: list[dict[str, Any]] = [
     {"role": "operator", "units": [1], "functions": [3, "write_single_register", 16],

@@ -10,7 +10,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory
 
 from gateway.config import build_config
 from gateway.io.serial_port import (
@@ -20,6 +19,7 @@ from gateway.io.serial_port import (
     open_serial,
 )
 from gateway.sim import SimulatedLine, open_pty_pair, plc
+from tests.helpers import DEADLINE_S, GatewayFactory
 
 READ_10 = bytes.fromhex("03 0000 000A")
 

@@ -14,7 +14,6 @@ import os
 import select
 
 import pytest
-from conftest import DEADLINE_S
 
 from gateway.config import LineConfig, build_config
 from gateway.io.serial_port import (
@@ -24,6 +23,7 @@ from gateway.io.serial_port import (
     set_rs485_receive,
 )
 from gateway.sim import open_pty_pair
+from tests.helpers import DEADLINE_S
 
 FRAME = bytes.fromhex("01 03 0000 000A C5CD")
 

@@ -19,20 +19,24 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway, SimBus, SimFactory, require_tool
-from test_sim import FUNCTION_VECTORS
 
 from gateway.core.crc import append_crc, check_crc
 from gateway.core.timing import t35
 from gateway.sim import open_pty_pair, plc, zl69x
 from gateway.sim.device import pack_registers
+from tests.helpers import (
+    DEADLINE_S,
+    GatewayFactory,
+    RunningGateway,
+    SimBus,
+    SimFactory,
+    h,
+    require_tool,
+)
+from tests.integration.test_sim import FUNCTION_VECTORS
 
 BAUD = 19200
 T35 = t35(BAUD)
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 class RtuMaster:

@@ -21,33 +21,30 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from conftest import (
-    DEADLINE_S,
-    GatewayFactory,
-    LogCollector,
-    RunningGateway,
-    SimBus,
-    SimFactory,
-    wait_until,
-)
-from metrics_harness import samples, series
-from test_live import status, stream
-from test_serial_slave import socat_ptys  # noqa: F401  (a fixture)
-from test_sim import FUNCTION_VECTORS
 
 from gateway.config import build_config
 from gateway.core.ascii import MAX_ASCII_FRAME, decode_ascii, encode_ascii
 from gateway.core.crc import append_crc, check_crc
 from gateway.io.serial_slave import SerialSlave
 from gateway.sim import open_pty_pair, plc, zl69x
+from tests.helpers import (
+    DEADLINE_S,
+    GatewayFactory,
+    LogCollector,
+    RunningGateway,
+    SimBus,
+    SimFactory,
+    h,
+    wait_until,
+)
+from tests.integration.metrics_harness import samples, series
+from tests.integration.test_live import status, stream
+from tests.integration.test_serial_slave import socat_ptys  # noqa: F401  (a fixture)
+from tests.integration.test_sim import FUNCTION_VECTORS
 
 BAUD = 19200
 #: ptys refuse 7 data bits and some parities (FIELD-NOTES): ASCII lines in tests run 8N1.
 ASCII_ON_PTY = {"framing": "ascii", "data_bits": 8, "parity": "N"}
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def write_all(fd: int, data: bytes) -> None:

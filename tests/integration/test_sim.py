@@ -37,6 +37,7 @@ from gateway.sim import (
     power_controller,
     zl69x,
 )
+from tests.helpers import h
 
 REPO = Path(__file__).resolve().parents[2]
 TIMEOUT_S = 2.0
@@ -114,10 +115,6 @@ def wait_until(deadline: float) -> None:
     """Pace the master like a real one (t3.5 between frames); not a synchronisation."""
     while (remaining := deadline - time.perf_counter()) > 0:
         time.sleep(remaining / 2 if remaining > 0.001 else 0)
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 # --------------------------------------------------------------------------- reference vectors

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, RawClient, mbap
 
 from gateway.sim import SimulatedTcpSlave, r6
 from gateway.sim.pki import make_pki
@@ -39,12 +38,9 @@ from gateway.sim.profiles import (
     plc,
     zl69x,
 )
+from tests.helpers import DEADLINE_S, RawClient, h, mbap
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 VERSION_TEXT = (

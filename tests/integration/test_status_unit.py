@@ -11,22 +11,22 @@ from __future__ import annotations
 import struct
 from typing import Any
 
-from conftest import GatewayFactory, RawClient, RunningGateway, SimBus, SimFactory, wait_until
-from test_rtu_over_tcp_listener import RtuClient, listener_address
-from test_serial_slave import RtuMaster
-
 from gateway.config import build_config
 from gateway.sim import UnitFaults, open_pty_pair, plc
+from tests.helpers import (
+    GatewayFactory,
+    RawClient,
+    RunningGateway,
+    SimBus,
+    SimFactory,
+    h,
+    read,
+    wait_until,
+)
+from tests.integration.test_rtu_over_tcp_listener import RtuClient, listener_address
+from tests.integration.test_serial_slave import RtuMaster
 
 STATUS = 250
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
-
-def read(function: int, address: int, count: int) -> bytes:
-    return struct.pack(">BHH", function, address, count)
 
 
 def registers(pdu: bytes) -> list[int]:
@@ -58,7 +58,7 @@ def start(
 
 
 def status(client: RawClient, count: int = 6) -> list[int]:
-    return registers(client.request(STATUS, read(3, 0, count)))
+    return registers(client.request(STATUS, read(0, count)))
 
 
 def requests_total(gateway: RunningGateway, outcome: str, function: str) -> float:
@@ -83,18 +83,18 @@ def test_the_status_unit_says_each_blocks_age_and_state_in_configuration_order(
         ages = status(client)[0::2]
         assert ages[0] <= 5 and ages[2] <= 5
         # FC 4 reads the same registers; a sub-range starting inside a block too.
-        assert registers(client.request(STATUS, read(4, 3, 2)))[0] == 2
-        assert registers(client.request(STATUS, read(4, 3, 2)))[1] <= 5
+        assert registers(client.request(STATUS, read(3, 2, 4)))[0] == 2
+        assert registers(client.request(STATUS, read(3, 2, 4)))[1] <= 5
         # Past the last register (3 blocks: 6 registers): 02. A bad count: 03.
-        assert client.request(STATUS, read(3, 5, 2)) == h("83 02")
-        assert client.request(STATUS, read(4, 6, 1)) == h("84 02")
-        assert client.request(STATUS, read(3, 0, 0)) == h("83 03")
-        assert client.request(STATUS, read(3, 0, 126)) == h("83 03")
+        assert client.request(STATUS, read(5, 2)) == h("83 02")
+        assert client.request(STATUS, read(6, 1, 4)) == h("84 02")
+        assert client.request(STATUS, read(0, 0)) == h("83 03")
+        assert client.request(STATUS, read(0, 126)) == h("83 03")
         # Anything but FC 3 and FC 4, writes included: 01. None reaches the line.
         sent = sim.stats().requests
         assert client.request(STATUS, h("06 0000 0001")) == h("86 01")
         assert client.request(STATUS, h("10 0000 0001 02 0001")) == h("90 01")
-        assert client.request(STATUS, read(1, 0, 8)) == h("81 01")
+        assert client.request(STATUS, read(0, 8, 1)) == h("81 01")
         assert client.request(STATUS, h("2B 0E 01 00")) == h("AB 01")
         assert sim.stats().requests - sent <= 3 * 20  # only the plan's polls went meanwhile
         # The slave stops answering: block 0 turns failing, its age grows past max_age.
@@ -128,15 +128,15 @@ def test_the_access_rules_apply_to_the_status_unit_by_its_unit_id(
         make_sim, make_gateway, server={"policy": "p"}, policies={"p": {"rules": rules}}
     )
     with gateway.connect() as client:
-        assert client.request(STATUS, read(3, 0, 2)) == h("83 01")
-        assert client.request(1, read(3, 0, 1))[:2] == h("03 02")
+        assert client.request(STATUS, read(0, 2)) == h("83 01")
+        assert client.request(1, read(0))[:2] == h("03 02")
     # A rule that lists the unit grants it (its writes: 01, denied by the rule as well).
     granted = [{"units": [1]}, {"units": [STATUS], "access": "read"}]
     server = {"listen": "127.0.0.1:0", "policy": "p"}
     raw = tables(sim, server=server, policies={"p": {"rules": granted}})
     gateway.run(gateway.gateway.reload(build_config(raw, "<test>")))
     with gateway.connect() as client:
-        assert len(registers(client.request(STATUS, read(3, 0, 2)))) == 2
+        assert len(registers(client.request(STATUS, read(0, 2)))) == 2
         assert client.request(STATUS, h("06 0000 0001")) == h("86 01")
 
 
@@ -149,13 +149,13 @@ def test_a_reload_moves_the_status_unit_and_keeps_what_it_reads(
     raw = tables(sim, server={"listen": "127.0.0.1:0"}, polling={"status_unit": 251})
     gateway.run(gateway.gateway.reload(build_config(raw, "<test>")))
     with gateway.connect() as client:
-        assert client.request(STATUS, read(3, 0, 2)) == h("83 0A")  # no longer routed
-        age, state = registers(client.request(251, read(3, 0, 2)))
+        assert client.request(STATUS, read(0, 2)) == h("83 0A")  # no longer routed
+        age, state = registers(client.request(251, read(0, 2)))
         assert state == 0 and age <= 5  # the new status unit reads the same blocks
     raw = tables(sim, server={"listen": "127.0.0.1:0"}, polling={"status_unit": 0})
     gateway.run(gateway.gateway.reload(build_config(raw, "<test>")))
     with gateway.connect() as client:
-        assert client.request(251, read(3, 0, 2)) == h("83 0A")  # off
+        assert client.request(251, read(0, 2)) == h("83 0A")  # off
 
 
 def test_rtu_over_tcp_masters_read_the_status_unit_too(
@@ -166,9 +166,9 @@ def test_rtu_over_tcp_masters_read_the_status_unit_too(
     client = RtuClient(listener_address(gateway))
     try:
         fresh = h("03 02 0000")
-        wait_until(lambda: client.request(STATUS, read(3, 1, 1), 4) == fresh, "block 0 fresh")
+        wait_until(lambda: client.request(STATUS, read(1), 4) == fresh, "block 0 fresh")
         assert client.request(STATUS, h("06 0001 0000"), 2) == h("86 01")
-        assert client.request(STATUS, read(3, 6, 1), 2) == h("83 02")
+        assert client.request(STATUS, read(6), 2) == h("83 02")
     finally:
         client.close()
 
@@ -184,8 +184,8 @@ def test_serial_masters_read_the_status_unit_through_a_serial_slave_listener(
         wait_until(lambda: gateway.call(lambda: slave.up), "the serial-slave line open")
         master = RtuMaster(pair.sim_fd)
         fresh = h("03 02 0000")
-        wait_until(lambda: master.request(STATUS, read(3, 1, 1), 4) == fresh, "block 0 fresh")
+        wait_until(lambda: master.request(STATUS, read(1), 4) == fresh, "block 0 fresh")
         assert master.request(STATUS, h("06 0001 0000"), 2) == h("86 01")
-        assert master.request(STATUS, read(4, 6, 1), 2) == h("84 02")
+        assert master.request(STATUS, read(6, 1, 4), 2) == h("84 02")
     finally:
         pair.close()

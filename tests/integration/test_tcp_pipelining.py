@@ -23,19 +23,15 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RawClient
-from metrics_harness import samples, series
-from test_tcp_slaves import PymodbusTcpSlave, tcp_slave, wait_up
 
 from gateway.sim import SimulatedTcpSlave
 from gateway.sim.device import pack_registers
 from gateway.sim.profiles import plc
+from tests.helpers import DEADLINE_S, GatewayFactory, RawClient, mbap, read
+from tests.integration.metrics_harness import samples, series
+from tests.integration.test_tcp_slaves import PymodbusTcpSlave, tcp_slave, wait_up
 
 __all__ = ["tcp_slave"]  # the fixture, imported for the tests below
-
-
-def read(address: int, quantity: int = 1) -> bytes:
-    return struct.pack(">BHH", 3, address, quantity)
 
 
 class LibmodbusTcpSlave:
@@ -224,7 +220,7 @@ class ReorderingSlave:
                 for tid, unit, pdu in reversed(held):
                     address, quantity = struct.unpack(">HH", pdu[1:5])
                     answer = h3(pack_registers(list(range(address, address + quantity))))
-                    conn.sendall(struct.pack(">HHHB", tid, 0, len(answer) + 1, unit) + answer)
+                    conn.sendall(mbap(tid, unit, answer))
                 held.clear()
 
     def close(self) -> None:

@@ -14,16 +14,12 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import DEADLINE_S, GatewayFactory, RunningGateway
-from metrics_harness import samples, series
-from pymodbus_harness import PymodbusServerThread, sim_device
 
 from gateway.config import ConfigError, build_config
 from gateway.sim.device import pack_registers
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import DEADLINE_S, GatewayFactory, RunningGateway, h
+from tests.integration.metrics_harness import samples, series
+from tests.integration.pymodbus_harness import PymodbusServerThread, sim_device
 
 
 class PymodbusTcpSlave(PymodbusServerThread):

@@ -17,7 +17,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.x509.oid import NameOID
+
+from gateway.config import build_config
+from gateway.io.tls import TlsSetupError, certificate_facts, server_context
+from gateway.sim import plc
+from gateway.sim.pki import DAY, Pki
+from tests.helpers import (
     ConnectionClosedError,
     GatewayFactory,
     LogCollector,
@@ -27,14 +35,6 @@ from conftest import (
     client_context,
     wait_until,
 )
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.x509.oid import NameOID
-
-from gateway.config import build_config
-from gateway.io.tls import TlsSetupError, certificate_facts, server_context
-from gateway.sim import plc
-from gateway.sim.pki import DAY, Pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")

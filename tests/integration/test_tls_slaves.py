@@ -25,35 +25,21 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.sim import plc
+from gateway.sim.device import pack_registers
+from gateway.sim.pki import Pki
+from tests.helpers import (
     DEADLINE_S,
     GatewayFactory,
     LogCollector,
     RunningGateway,
     SimFactory,
+    h,
     wait_until,
 )
-from pymodbus_harness import PymodbusServerThread, sim_device
-from test_sim import FUNCTION_VECTORS
-
-from gateway.sim import plc
-from gateway.sim.device import pack_registers
-from gateway.sim.pki import Pki, make_pki
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    built = make_pki(tmp_path_factory.mktemp("pki"))
-    from cryptography.hazmat.primitives import serialization
-
-    other = built.directory / "other-ca.pem"
-    other.write_bytes(built.other_root.certificate.public_bytes(serialization.Encoding.PEM))
-    return built
-
+from tests.integration.pymodbus_harness import PymodbusServerThread, sim_device
+from tests.integration.test_sim import FUNCTION_VECTORS
 
 #: The slave gateway's rules: the operator may do anything on unit 7, the viewer may read.
 RULES: list[dict[str, Any]] = [

@@ -19,7 +19,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
+
+from gateway.config import build_config
+from gateway.io.tls import ListenerContext
+from gateway.sim import plc
+from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
+from tests.helpers import (
     DEADLINE_S,
     ConnectionClosedError,
     GatewayFactory,
@@ -30,11 +35,6 @@ from conftest import (
     client_context,
     wait_until,
 )
-
-from gateway.config import build_config
-from gateway.io.tls import ListenerContext
-from gateway.sim import plc
-from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
 
 READ = bytes.fromhex("03 0000 0001")
 READ_ANSWER = bytes.fromhex("03 02 0000")

@@ -6,11 +6,11 @@ import logging
 from collections.abc import Iterator
 
 import pytest
-from conftest import GatewayOnSim, LogCollector, RunningGateway, wait_until
-from metrics_harness import http_get
 
 from gateway.sim import plc
 from gateway.trace import Tracer
+from tests.helpers import GatewayOnSim, LogCollector, RunningGateway, wait_until
+from tests.integration.metrics_harness import http_get
 
 READ_10 = bytes.fromhex("03 0000 000A")
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_rtu_properties import Exchange, exchanges, split
 
 from gateway.core.ascii import MAX_ASCII_FRAME, AsciiResponseDecoder, decode_ascii, encode_ascii
 from gateway.core.errors import ResponseError
 from gateway.core.rtu import RtuFrame
+from tests.property.test_rtu_properties import Exchange, exchanges, split
 
 SETTINGS = settings(max_examples=200, deadline=None)
 

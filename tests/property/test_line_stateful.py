@@ -34,7 +34,6 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
-from line_harness import LineHarness, new_core
 
 from gateway.config import CacheRule, LineConfig
 from gateway.core import pdu as fc
@@ -48,6 +47,7 @@ from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
 from gateway.core.timing import character_time
+from tests.line_harness import LineHarness, new_core
 
 BAUD = 19200
 TIMEOUT = 0.1

@@ -7,7 +7,6 @@ from __future__ import annotations
 from itertools import pairwise
 from typing import NamedTuple
 
-from conftest import decode_as_the_core_does
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
@@ -24,6 +23,7 @@ from gateway.core.rtu import (
     request_length,
     response_length,
 )
+from tests.helpers import decode_as_the_core_does
 
 SETTINGS = settings(max_examples=200, deadline=None)
 

@@ -13,11 +13,7 @@ from gateway.core.errors import ExceptionCode
 from gateway.core.outcome import Outcome
 from gateway.core.policy import Access, DenyReason, Policy, Principal, Rule
 from gateway.core.routes import Target
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
+from tests.helpers import h
 
 #: Line a: slave 1 (unit 1) and slave 2 (units 2 and its alias 12); line b takes broadcasts.
 ROUTES = {1: Target("a", 1), 2: Target("a", 2), 12: Target("a", 2)}

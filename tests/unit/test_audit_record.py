@@ -27,12 +27,9 @@ from gateway.core.audit_record import (
     values_of,
 )
 from gateway.core.outcome import Outcome
+from tests.helpers import h
 
 T0 = 1_800_000_000.25
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
 
 
 def test_reads_are_not_audited_and_everything_else_is() -> None:

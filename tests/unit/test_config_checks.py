@@ -11,7 +11,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.config import (
-    ConfigError,
     GatewayConfig,
     auto_timeout,
     build_config,
@@ -20,12 +19,7 @@ from gateway.config import (
     parse_units,
 )
 from gateway.core.timing import t35, transmission_time
-
-
-def problems(raw: dict[str, Any]) -> list[str]:
-    with pytest.raises(ConfigError) as caught:
-        build_config(raw, "plant.toml")
-    return caught.value.problems
+from tests.helpers import problems
 
 
 def test_two_lines_on_one_device_is_an_error() -> None:

@@ -9,12 +9,7 @@ import pytest
 from gateway.cli import apply_overrides, build_parser
 from gateway.config import ConfigError, auto_timeout, build_config, config_warnings
 from gateway.core.timing import t35
-
-
-def problems(raw: dict[str, Any]) -> list[str]:
-    with pytest.raises(ConfigError) as caught:
-        build_config(raw, "plant.toml")
-    return caught.value.problems
+from tests.helpers import problems
 
 
 def test_an_rtu_over_tcp_line_and_its_network_defaults() -> None:

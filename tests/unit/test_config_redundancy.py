@@ -7,15 +7,10 @@ from typing import Any
 import pytest
 
 from gateway.cli import apply_overrides, build_parser
-from gateway.config import ConfigError, RedundancyConfig, build_config, config_warnings
+from gateway.config import RedundancyConfig, build_config, config_warnings
+from tests.helpers import problems
 
 LINE = {"a": {"device": "/dev/ttyUSB0", "units": [1]}}
-
-
-def problems(raw: dict[str, Any]) -> list[str]:
-    with pytest.raises(ConfigError) as caught:
-        build_config(raw, "plant.toml")
-    return caught.value.problems
 
 
 def test_without_a_peer_the_gateway_runs_alone() -> None:

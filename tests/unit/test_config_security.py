@@ -10,7 +10,6 @@ import pytest
 
 from gateway.cli import apply_overrides, build_parser
 from gateway.config import (
-    ConfigError,
     ListenerConfig,
     build_config,
     load_config,
@@ -19,6 +18,7 @@ from gateway.config import (
 )
 from gateway.core.policy import Access, Policy, Principal
 from gateway.io.access import peer_address_of
+from tests.helpers import problems
 
 LINE = {"a": {"device": "/dev/null", "units": [1, 2]}}
 TLS = {"protocol": "tls", "cert": "s.pem", "key": "s.key", "ca": "ca.pem"}
@@ -28,10 +28,8 @@ def config(**tables: Any) -> Any:
     return build_config({"lines": LINE, **tables}, "t.toml")
 
 
-def problems(**tables: Any) -> str:
-    with pytest.raises(ConfigError) as failure:
-        config(**tables)
-    return "\n".join(failure.value.problems)
+def problem_text(**tables: Any) -> str:
+    return "\n".join(problems({"lines": LINE, **tables}, "t.toml"))
 
 
 def test_without_listeners_the_server_listen_shorthand_is_the_one_tcp_listener() -> None:
@@ -54,7 +52,7 @@ def test_listeners_beside_the_shorthand_or_instead_of_it() -> None:
 
 
 def test_listener_faults_are_named() -> None:
-    text = problems(
+    text = problem_text(
         server={"listen": "0.0.0.0:502", "allow": ["10.0.0.300"]},
         listeners=[
             {"protocol": "tls", "cert": "s.pem"},
@@ -96,7 +94,7 @@ def test_rules_are_parsed() -> None:
 
 
 def test_rule_faults_are_named() -> None:
-    text = problems(policies={"p": {"rules": [
+    text = problem_text(policies={"p": {"rules": [
         {"role": 5, "units": [256], "functions": ["read_everything", "3:1", 200],
          "addresses": ["10-5"], "access": "all", "when": "always", "source": "nowhere"},
     ]}})  # fmt: skip

@@ -19,12 +19,8 @@ from gateway.io.tls import (
     line_failure_message,
     line_failure_reason,
 )
-from gateway.sim.pki import Pki, make_pki
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
-    return make_pki(tmp_path_factory.mktemp("pki"))
+from gateway.sim.pki import Pki
+from tests.helpers import problems
 
 
 def files(pki: Pki, client: str = "operator") -> dict[str, str]:
@@ -37,12 +33,6 @@ def tls_line(pki: Pki, **options: Any) -> LineConfig:
     table.update(files(pki))
     table.update(options)
     return build_config({"lines": {"plc": table}}).line("plc")
-
-
-def problems(table: dict[str, Any]) -> str:
-    with pytest.raises(ConfigError) as caught:
-        build_config({"lines": {"plc": {"units": [1], **table}}})
-    return str(caught.value)
 
 
 def test_a_tls_line_and_its_defaults(pki: Pki) -> None:
@@ -99,7 +89,7 @@ def test_settings_override_the_defaults(pki: Pki) -> None:
     ],
 )  # fmt: skip
 def test_mistakes_name_the_key_and_the_fix(table: dict[str, Any], expected: str) -> None:
-    assert expected in problems(table)
+    assert expected in "\n".join(problems({"lines": {"plc": {"units": [1], **table}}}))
 
 
 def test_skipping_the_name_check_is_warned_about(pki: Pki) -> None:

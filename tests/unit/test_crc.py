@@ -5,11 +5,7 @@ from __future__ import annotations
 import pytest
 
 from gateway.core.crc import append_crc, check_crc, crc16, crc16_bytes
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
+from tests.helpers import h
 
 # (frame without CRC, CRC bytes in wire order, source)
 REFERENCE_CRCS: list[tuple[str, str, str]] = [

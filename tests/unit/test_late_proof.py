@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import functools
 import random
-import struct
 
 import pytest
-from line_harness import DeafWhileBusyLine
 
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
@@ -21,13 +19,11 @@ from gateway.core.line.late import proof_pdu
 from gateway.core.line.records import answer_signature
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.timing import character_time
+from tests.helpers import read
+from tests.line_harness import DeafWhileBusyLine
 
 BAUD = 19200
 CHAR = character_time(BAUD, 8, "N", 1)
-
-
-def read(address: int, quantity: int = 10) -> bytes:
-    return struct.pack(">BHH", 3, address, quantity)
 
 
 def default_line(**settings: object) -> LineConfig:
@@ -53,7 +49,7 @@ def flat_out(line: DeafWhileBusyLine, masters: int, until: float) -> list[Outcom
     outcomes: list[Outcome] = []
 
     def send(master: str) -> None:
-        line.submit(master, draw.choice((1, 2)), read(draw.randrange(0, 9000)))
+        line.submit(master, draw.choice((1, 2)), read(draw.randrange(0, 9000), 10))
 
     def again(request: LineRequest, outcome: Outcome) -> None:
         outcomes.append(outcome)
@@ -110,14 +106,14 @@ def test_a_proof_read_lets_a_held_read_go_and_is_answered_to_nobody() -> None:
     config = default_line(retries=0, dead_after=0)  # no isolation: the slave stays up
     line = DeafWhileBusyLine(LineCore(config, -1.0), CHAR, turnaround)
     for index in range(4):
-        line.submit("a", 1, read(100))
+        line.submit("a", 1, read(100, 10))
         line.run(1.5 * (index + 1))
     assert [outcome for _, _, outcome, _ in line.outcomes][-1] is Outcome.TARGET_FAILED
-    line.submit("b", 1, read(200))  # its answer would look like the lost one: held
+    line.submit("b", 1, read(200, 10))  # its answer would look like the lost one: held
     line.run(30.0)
     assert line.wrong == 0
     assert [(m, o) for m, _, o, _ in line.outcomes][-1] == ("b", Outcome.OK)
-    assert read(100, 1) in [frame[1:6] for frame in line.sent]  # the proof read
+    assert read(100) in [frame[1:6] for frame in line.sent]  # the proof read
     assert [n.event for n in line.core.notes].count(LineEvent.PROOF_READ) == 1
     assert len(line.outcomes) == 5  # the proof read's answer went to nobody
 
@@ -132,7 +128,7 @@ def test_a_request_held_for_proof_of_a_down_slave_is_answered_at_once() -> None:
     line = DeafWhileBusyLine(LineCore(default_line(), -1.0), CHAR, turnaround)
 
     def poll(address: int) -> None:
-        line.submit("m", 1, read(address))
+        line.submit("m", 1, read(address, 10))
 
     for index in range(20):
         line.at(index * 0.1, functools.partial(poll, index))
@@ -147,9 +143,9 @@ def test_a_request_held_for_proof_of_a_down_slave_is_answered_at_once() -> None:
 
 def test_the_proof_read_is_one_whose_answer_looks_like_no_awaited_answer() -> None:
     awaited = {answer_signature(read(0, 10))}
-    assert proof_pdu(awaited, read(40, 10), read(0, 10)) == read(40, 1)
+    assert proof_pdu(awaited, read(40, 10), read(0, 10)) == read(40)
     assert proof_pdu(awaited, read(40, 3), read(0, 10)) == read(40, 3)  # known and distinct
-    assert proof_pdu({answer_signature(read(0, 1))}, None, read(7, 1)) == read(7, 2)
+    assert proof_pdu({answer_signature(read(0))}, None, read(7)) == read(7, 2)
     coils = bytes((1, 0, 5, 0, 4))  # 4 coils: one byte
     assert proof_pdu({answer_signature(coils)}, coils, None) == bytes((1, 0, 5, 0, 9))
     write = bytes((6, 0, 1, 0, 9))

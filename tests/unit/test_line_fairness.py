@@ -11,20 +11,20 @@ from __future__ import annotations
 
 import functools
 import itertools
-import struct
 from collections.abc import Callable
 from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from line_harness import SimulatedTime
 
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
+from tests.helpers import read
+from tests.line_harness import SimulatedTime
 
 BAUD = 9600
 CHAR = character_time(BAUD, 8, "N", 1)
@@ -35,10 +35,6 @@ DEEP_PIPELINE = 16  # 17 x 16 = 272 requests offered against max_queue 256: push
 DEEP_QUANTITY = 125
 POLITE_PERIOD = 0.5
 RESEND_AFTER = 0.1  # a deep master sends a refused request again this much later
-
-
-def read(address: int, quantity: int) -> bytes:
-    return struct.pack(">BHH", 3, address, quantity)
 
 
 def answer_frame(pdu: bytes, slave: int = SLAVE) -> bytes:
@@ -141,7 +137,7 @@ def test_a_polite_master_beside_seventeen_deep_pipelines_waits_one_transaction_a
     duration = 60.0
     start = 0.25
     for index in range(int((duration - start) / POLITE_PERIOD)):
-        wire.at(start + index * POLITE_PERIOD, lambda: wire.submit("polite", read(0, 1)))
+        wire.at(start + index * POLITE_PERIOD, lambda: wire.submit("polite", read(0)))
     wire.run(duration + 1.0)
 
     waits = wire.waits["polite"]
@@ -151,7 +147,7 @@ def test_a_polite_master_beside_seventeen_deep_pipelines_waits_one_transaction_a
     assert max(waits) <= 0.6, sorted(waits)[-5:]
     # One deep transaction on the wire, the gaps, and its own: the bound the docs state.
     deep_transaction = transaction_time(read(0, DEEP_QUANTITY))
-    own = transaction_time(read(0, 1))
+    own = transaction_time(read(0))
     assert max(waits) <= deep_transaction + own + 0.02
     # The deep masters still share the wire evenly: within two transactions of each other.
     deep = [time for master, time in wire.wire_time.items() if master.startswith("deep")]
@@ -194,7 +190,7 @@ def test_masters_with_nothing_waiting_go_next_after_the_transaction_on_the_wire(
     before = len(wire.sent)  # the transaction on the wire, if any, is in already
     names = [f"new{index}" for index in range(newcomers)]
     for index, name in enumerate(names):
-        wire.submit(name, read(61000 + index, 1))  # distinct: none joins another's
+        wire.submit(name, read(61000 + index))  # distinct: none joins another's
     wire.run(arrival + 2 * transaction_time(read(0, 125)) + newcomers)
     following = [str(request.master) for request in wire.sent[before:]]
     assert following[:newcomers] == names

@@ -12,7 +12,6 @@ from typing import Any
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from line_harness import LineHarness
 
 from gateway.config import LineConfig
 from gateway.core.ascii import encode_ascii
@@ -23,13 +22,11 @@ from gateway.core.line.response_timing import EVIDENCE, MARGIN, answer_pdu_lengt
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
+from tests.helpers import read
+from tests.line_harness import LineHarness
 
 BAUD = 19200
 CHAR = character_time(BAUD, 8, "N", 1)
-
-
-def read(address: int, quantity: int = 2, function: int = 3) -> bytes:
-    return struct.pack(">BHH", function, address, quantity)
 
 
 def write_registers(address: int, values: list[int]) -> bytes:
@@ -70,7 +67,7 @@ class Line(LineHarness):
 def test_a_foreign_request_on_an_idle_line_is_counted_and_the_line_is_shared() -> None:
     line = Line()
     assert not line.core.shared and line.core.last_master_frame_at is None
-    line.receive(encode_rtu(7, read(0)), 1.0)
+    line.receive(encode_rtu(7, read(0, 2)), 1.0)
     assert line.foreign_notes() == 1
     assert line.core.foreign_frames == 1
     assert line.core.shared
@@ -88,7 +85,7 @@ def test_a_foreign_request_on_an_idle_line_is_counted_and_the_line_is_shared() -
 
 def test_a_foreign_request_split_across_reads_and_behind_noise_is_found_once() -> None:
     line = Line()
-    frame = encode_rtu(7, read(0))
+    frame = encode_rtu(7, read(0, 2))
     line.receive(b"\x00" + frame[:3], 1.0)
     line.receive(frame[3:], 1.0 + 5 * CHAR)
     assert line.foreign_notes() == 1
@@ -97,7 +94,7 @@ def test_a_foreign_request_split_across_reads_and_behind_noise_is_found_once() -
 
 def test_a_slave_answer_alone_is_a_frame_not_a_master() -> None:
     line = Line()
-    line.receive(registers_answer(7, read(0), 1), 1.0)
+    line.receive(registers_answer(7, read(0, 2), 1), 1.0)
     assert line.foreign_notes() == 0
     assert not line.core.shared
     assert line.core.last_frame_at == 1.0
@@ -106,10 +103,10 @@ def test_a_slave_answer_alone_is_a_frame_not_a_master() -> None:
 
 def test_our_own_echo_is_not_a_foreign_master() -> None:
     line = Line(echo=True)
-    request = line.submit(1, read(100), 0.0)
+    request = line.submit(1, read(100, 2), 0.0)
     sent = line.frames()[0]
     line.receive(sent, len(sent) * CHAR)  # the adapter hears itself
-    line.receive(registers_answer(1, read(100), 5), 0.02)
+    line.receive(registers_answer(1, read(100, 2), 5), 0.02)
     assert line.answer_of(request)[1] == Outcome.OK
     assert line.foreign_notes() == 0 and not line.core.shared
 
@@ -145,7 +142,7 @@ def test_a_very_late_echo_of_our_write_is_not_a_foreign_master(pdu: bytes) -> No
     frame = line.frames()[0]
     line.timer()
     assert line.answer_of(request)[1] == Outcome.TARGET_FAILED
-    line.submit(2, read(0), 1.5)  # traffic: the late-answer window is closed on the way
+    line.submit(2, read(0, 2), 1.5)  # traffic: the late-answer window is closed on the way
     line.advance(3.0)
     assert 1 not in line.core.late.windows  # the late-answer guard knows the write no more
     line.receive(frame, OWN_ECHO_FOR_S - 0.1)
@@ -156,20 +153,20 @@ def test_a_very_late_echo_of_our_write_is_not_a_foreign_master(pdu: bytes) -> No
 
 def test_a_foreign_request_heard_while_our_attempt_waits_is_counted() -> None:
     line = Line()
-    request = line.submit(1, read(100), 0.0)
+    request = line.submit(1, read(100, 2), 0.0)
     line.frames()
-    foreign = encode_rtu(2, read(0))
+    foreign = encode_rtu(2, read(0, 2))
     line.receive(foreign[:4], 0.010)  # taken by our attempt's decoder, no verdict yet
     line.receive(foreign[4:], 0.012)  # now refused: heard as another master's
     assert line.foreign_notes() == 1
-    line.receive(registers_answer(1, read(100), 9), 0.03)
+    line.receive(registers_answer(1, read(100, 2), 9), 0.03)
     assert line.answer_of(request)[1] == Outcome.OK
 
 
 def test_an_ascii_line_notices_a_foreign_request() -> None:
     line = Line(ASCII)
-    line.receive(b"noise" + encode_ascii(7, read(0))[:9], 1.0)
-    line.receive(encode_ascii(7, read(0))[9:], 1.01)
+    line.receive(b"noise" + encode_ascii(7, read(0, 2))[:9], 1.0)
+    line.receive(encode_ascii(7, read(0, 2))[9:], 1.01)
     assert line.foreign_notes() == 1 and line.core.shared
 
 
@@ -178,30 +175,30 @@ def test_an_ascii_line_notices_a_foreign_request() -> None:
 
 def test_a_look_alike_request_waits_for_the_foreign_requests_answer() -> None:
     line = Line()
-    line.receive(encode_rtu(1, read(0)), 0.0)  # another master reads 2 registers of slave 1
-    request = line.submit(1, read(100), 0.01)  # so do we, other registers: same answer shape
+    line.receive(encode_rtu(1, read(0, 2)), 0.0)  # another master reads 2 registers of slave 1
+    request = line.submit(1, read(100, 2), 0.01)  # so do we, other registers: same answer shape
     assert line.frames() == []  # its answer could not be told from the other master's
     assert line.core.get_timer() == pytest.approx(3.0)  # at most until the foreign one expires
-    other = line.submit(2, read(100), 0.01)  # another slave is served meanwhile
-    assert line.frames() == [encode_rtu(2, read(100))]
-    line.receive(registers_answer(2, read(100), 1), 0.02)
+    other = line.submit(2, read(100, 2), 0.01)  # another slave is served meanwhile
+    assert line.frames() == [encode_rtu(2, read(100, 2))]
+    line.receive(registers_answer(2, read(100, 2), 1), 0.02)
     assert line.answer_of(other)[1] == Outcome.OK
-    line.receive(registers_answer(1, read(0), 500), 0.03)  # the foreign read's answer
+    line.receive(registers_answer(1, read(0, 2), 500), 0.03)  # the foreign read's answer
     line.advance(0.04)
-    assert line.frames() == [encode_rtu(1, read(100))]
-    line.receive(registers_answer(1, read(100), 7), 0.06)
-    assert line.answer_of(request) == (registers_answer(1, read(100), 7)[1:-2], Outcome.OK)
+    assert line.frames() == [encode_rtu(1, read(100, 2))]
+    line.receive(registers_answer(1, read(100, 2), 7), 0.06)
+    assert line.answer_of(request) == (registers_answer(1, read(100, 2), 7)[1:-2], Outcome.OK)
 
 
 def test_a_look_alike_goes_once_the_unanswered_foreign_request_expires() -> None:
     line = Line(learn_timeouts=True, max_timeout=1.0)
-    line.receive(encode_rtu(1, read(0)), 0.0)  # never answered
-    request = line.submit(1, read(100), 0.01)
+    line.receive(encode_rtu(1, read(0, 2)), 0.0)  # never answered
+    request = line.submit(1, read(100, 2), 0.01)
     line.advance(0.999)
     assert line.frames() == []
     line.advance(1.0)
-    assert line.frames() == [encode_rtu(1, read(100))]
-    line.receive(registers_answer(1, read(100), 7), 1.02)
+    assert line.frames() == [encode_rtu(1, read(100, 2))]
+    line.receive(registers_answer(1, read(100, 2), 7), 1.02)
     assert line.answer_of(request)[1] == Outcome.OK
 
 
@@ -217,21 +214,21 @@ def ambiguous(line: Line, ours: bytes, theirs: bytes, answer: bytes) -> LineRequ
 
 def test_an_answer_a_foreign_read_may_own_is_retried_not_delivered() -> None:
     line = Line()
-    request = ambiguous(line, read(100), read(0), registers_answer(1, read(0), 500))
+    request = ambiguous(line, read(100, 2), read(0, 2), registers_answer(1, read(0, 2), 500))
     assert line.answers == {}
     assert len(line.notes(LineEvent.SHARED_ANSWER)) == 1
     line.advance(0.03)
     assert line.frames() == []  # the retry waits: the other answer is still to come
-    line.receive(registers_answer(1, read(100), 9), 0.04)  # both answers have come now
+    line.receive(registers_answer(1, read(100, 2), 9), 0.04)  # both answers have come now
     line.advance(0.05)
-    assert line.frames() == [encode_rtu(1, read(100))]  # the retry
-    line.receive(registers_answer(1, read(100), 7), 0.07)
-    assert line.answer_of(request) == (registers_answer(1, read(100), 7)[1:-2], Outcome.OK)
+    assert line.frames() == [encode_rtu(1, read(100, 2))]  # the retry
+    line.receive(registers_answer(1, read(100, 2), 7), 0.07)
+    assert line.answer_of(request) == (registers_answer(1, read(100, 2), 7)[1:-2], Outcome.OK)
 
 
 def test_without_retries_the_ambiguous_answer_is_0x0b() -> None:
     line = Line(retries=0)
-    request = ambiguous(line, read(100), read(0), registers_answer(1, read(100), 500))
+    request = ambiguous(line, read(100, 2), read(0, 2), registers_answer(1, read(100, 2), 500))
     assert line.answer_of(request) == (bytes((0x83, 0x0B)), Outcome.TARGET_FAILED)
 
 
@@ -246,33 +243,33 @@ def test_an_ambiguous_answer_to_a_write_is_0x0b_never_sent_again() -> None:
 
 def test_an_exception_may_be_the_foreign_requests_too() -> None:
     line = Line(retries=0)
-    request = ambiguous(line, read(100), read(0, 5), encode_rtu(1, bytes((0x83, 0x02))))
+    request = ambiguous(line, read(100, 2), read(0, 5), encode_rtu(1, bytes((0x83, 0x02))))
     assert line.answer_of(request)[1] == Outcome.TARGET_FAILED
 
 
 def test_an_answer_of_another_length_is_ours_and_delivered() -> None:
     line = Line()
     line.receive(encode_rtu(1, read(0, 3)), 0.0)  # the foreign read's answer has 6 bytes
-    request = line.submit(1, read(100), 0.01)
-    line.receive(registers_answer(1, read(100), 7), 0.03)
+    request = line.submit(1, read(100, 2), 0.01)
+    line.receive(registers_answer(1, read(100, 2), 7), 0.03)
     assert line.answer_of(request)[1] == Outcome.OK
     assert line.notes(LineEvent.SHARED_ANSWER) == []
 
 
 def test_once_the_foreign_request_is_answered_our_answer_is_delivered() -> None:
     line = Line()
-    line.receive(encode_rtu(1, read(0)), 0.0)
-    line.receive(registers_answer(1, read(0), 500), 0.02)  # its answer, on an idle line
-    request = line.submit(1, read(100), 0.05)
-    line.receive(registers_answer(1, read(100), 7), 0.07)
+    line.receive(encode_rtu(1, read(0, 2)), 0.0)
+    line.receive(registers_answer(1, read(0, 2), 500), 0.02)  # its answer, on an idle line
+    request = line.submit(1, read(100, 2), 0.05)
+    line.receive(registers_answer(1, read(100, 2), 7), 0.07)
     assert line.answer_of(request)[1] == Outcome.OK
 
 
 def test_a_foreign_request_expires_after_the_longest_timeout() -> None:
     line = Line(learn_timeouts=True, max_timeout=1.0)
-    line.receive(encode_rtu(1, read(0)), 0.0)  # never answered
-    request = line.submit(1, read(100), 1.0)
-    line.receive(registers_answer(1, read(100), 7), 1.02)
+    line.receive(encode_rtu(1, read(0, 2)), 0.0)  # never answered
+    request = line.submit(1, read(100, 2), 1.0)
+    line.receive(registers_answer(1, read(100, 2), 7), 1.02)
     assert line.answer_of(request)[1] == Outcome.OK
 
 
@@ -309,8 +306,8 @@ def test_a_listening_line_learns_a_slaves_timing_from_the_answers_it_hears() -> 
 
 def test_a_line_that_is_not_listening_learns_too() -> None:
     line = Line(learn_timeouts=True)
-    line.receive(encode_rtu(5, read(0)), 1.0)
-    line.receive(registers_answer(5, read(0), 0), 1.3)
+    line.receive(encode_rtu(5, read(0, 2)), 1.0)
+    line.receive(registers_answer(5, read(0, 2), 0), 1.3)
     assert line.core.timing.learned(5, 3) is not None
     assert line.core.shared and line.core.heard_master_frames == 0
 
@@ -318,9 +315,9 @@ def test_a_line_that_is_not_listening_learns_too() -> None:
 def test_listening_ends_and_foreign_frames_count_again() -> None:
     line = Line()
     line.core.set_listening(True)
-    line.receive(encode_rtu(5, read(0)), 1.0)
+    line.receive(encode_rtu(5, read(0, 2)), 1.0)
     line.core.set_listening(False)
-    line.receive(encode_rtu(5, read(0)), 2.0)
+    line.receive(encode_rtu(5, read(0, 2)), 2.0)
     assert (line.core.heard_master_frames, line.core.foreign_frames) == (1, 1)
     assert line.foreign_notes() == 1
 
@@ -343,7 +340,7 @@ def test_our_request_never_takes_an_answer_a_pending_foreign_request_may_own(
     order: our read is answered OK only when no foreign read with its answer's signature
     was heard before that answer."""
     line = Line(retries=2)
-    ours, foreign = read(100), read(0, foreign_quantity)
+    ours, foreign = read(100, 2), read(0, foreign_quantity)
     answer = registers_answer(1, ours if answer_for_ours else foreign, 7)
     now = 0.0
     request: LineRequest | None = None
@@ -375,9 +372,9 @@ def test_our_request_never_takes_an_answer_a_pending_foreign_request_may_own(
 def test_a_reload_keeps_what_the_line_heard() -> None:
     line = Line()
     line.core.set_listening(True)
-    line.receive(encode_rtu(1, read(0)), 1.0)  # the peer's read, awaiting its answer
+    line.receive(encode_rtu(1, read(0, 2)), 1.0)  # the peer's read, awaiting its answer
     line.core.set_listening(False)
-    line.receive(encode_rtu(2, read(0)), 1.5)
+    line.receive(encode_rtu(2, read(0, 2)), 1.5)
     handover = line.core.handover()
     fresh = Line()
     fresh.core.take_over(handover, 2.0)
@@ -385,8 +382,8 @@ def test_a_reload_keeps_what_the_line_heard() -> None:
     assert core.shared and core.listening is False
     assert (core.heard_master_frames, core.foreign_frames) == (1, 1)
     assert core.last_master_frame_at == 1.5
-    request = fresh.submit(1, read(100), 2.0)
-    fresh.receive(registers_answer(1, read(0), 500), 2.02)  # still may be the peer's
+    request = fresh.submit(1, read(100, 2), 2.0)
+    fresh.receive(registers_answer(1, read(0, 2), 500), 2.02)  # still may be the peer's
     assert request.answered is False
     assert fresh.core.get_timer() is not None
 
@@ -406,22 +403,22 @@ def test_a_reload_keeps_the_writes_whose_very_late_echo_is_ours() -> None:
 
 def test_last_frame_at_counts_the_answers_to_our_own_requests_too() -> None:
     line = Line()
-    line.submit(1, read(100), 0.0)
-    line.receive(registers_answer(1, read(100), 7), 0.03)
+    line.submit(1, read(100, 2), 0.0)
+    line.receive(registers_answer(1, read(100, 2), 7), 0.03)
     assert line.core.last_frame_at == 0.03
     assert line.core.last_master_frame_at is None
-    line.receive(registers_answer(9, read(0), 7), 0.5)  # another master's slave, heard
+    line.receive(registers_answer(9, read(0, 2), 7), 0.5)  # another master's slave, heard
     assert line.core.last_frame_at == 0.5
 
 
 def test_a_held_retry_goes_once_the_foreign_request_expires() -> None:
     line = Line(learn_timeouts=True, max_timeout=1.0)
-    request = ambiguous(line, read(100), read(0), registers_answer(1, read(0), 500))
+    request = ambiguous(line, read(100, 2), read(0, 2), registers_answer(1, read(0, 2), 500))
     line.advance(1.004)
     assert line.frames() == []
     line.advance(1.006)  # the foreign read, heard at 0.005, is given up
-    assert line.frames() == [encode_rtu(1, read(100))]
-    line.receive(registers_answer(1, read(100), 7), 1.03)
+    assert line.frames() == [encode_rtu(1, read(100, 2))]
+    line.receive(registers_answer(1, read(100, 2), 7), 1.03)
     assert line.answer_of(request)[1] == Outcome.OK
 
 
@@ -432,32 +429,32 @@ def test_frames_in_one_read_during_our_attempt_are_taken_in_order() -> None:
     request (the protection holds) but not counted as another master (it may be that
     slave's malformed answer)."""
     line = Line()
-    request = line.submit(1, read(100), 0.0)
+    request = line.submit(1, read(100, 2), 0.0)
     line.frames()
-    theirs, ours = registers_answer(1, read(0), 500), registers_answer(1, read(100), 7)
-    line.receive(encode_rtu(1, read(0)) + theirs + ours, 0.02)
+    theirs, ours = registers_answer(1, read(0, 2), 500), registers_answer(1, read(100, 2), 7)
+    line.receive(encode_rtu(1, read(0, 2)) + theirs + ours, 0.02)
     assert line.foreign_notes() == 0 and len(line.notes(LineEvent.SHARED_ANSWER)) == 1
     assert not line.core.shared
     line.advance(0.03)
-    assert line.frames() == [encode_rtu(1, read(100))]
+    assert line.frames() == [encode_rtu(1, read(100, 2))]
     line.receive(ours, 0.05)
     assert line.answer_of(request) == (ours[1:-2], Outcome.OK)
 
 
 def test_a_foreign_request_right_behind_our_answer_is_heard() -> None:
     line = Line()
-    request = line.submit(1, read(100), 0.0)
+    request = line.submit(1, read(100, 2), 0.0)
     line.frames()
-    line.receive(registers_answer(1, read(100), 7) + encode_rtu(1, read(0)), 0.02)
+    line.receive(registers_answer(1, read(100, 2), 7) + encode_rtu(1, read(0, 2)), 0.02)
     assert line.answer_of(request)[1] == Outcome.OK
     assert line.foreign_notes() == 1
 
 
 def test_an_expired_foreign_request_never_puts_the_timer_in_the_past() -> None:
     line = Line(learn_timeouts=True, max_timeout=1.0)
-    line.receive(encode_rtu(9, read(0)), 0.0)  # a slave this gateway never asks: until 1.0
+    line.receive(encode_rtu(9, read(0, 2)), 0.0)  # a slave this gateway never asks: until 1.0
     line.receive(b"\x00", 2.0)  # the line is busy a moment
-    line.submit(1, read(100), 2.0)  # so this waits for the gap
+    line.submit(1, read(100, 2), 2.0)  # so this waits for the gap
     line.timer(2.0)  # a driver late for its timer
     assert line.core.foreign.pending == {}
     deadline = line.core.get_timer()
@@ -517,7 +514,7 @@ def test_a_tcp_line_has_no_foreign_masters() -> None:
     """Answers on an MBAP line carry their transaction ids: nothing there is framed as RTU."""
     config = LineConfig(name="t", device="/dev/null", kind="tcp", host="h", port=502)
     line = LineHarness(LineCore(config, -1.0, framing=mbap_framing()))
-    line.receive(encode_rtu(7, read(0)), 1.0)
+    line.receive(encode_rtu(7, read(0, 2)), 1.0)
     assert line.notes(LineEvent.FOREIGN_MASTER) == [] and not line.core.shared
 
 
@@ -549,5 +546,5 @@ def test_a_slave_answering_a_write_with_the_value_it_stored_is_no_second_master(
     assert line.answer_of(write)[1] is Outcome.TARGET_FAILED
     assert not line.core.shared
     # A request frame to another slave is another master's, as before.
-    line.receive(encode_rtu(7, read(0)), 3.0)
+    line.receive(encode_rtu(7, read(0, 2)), 3.0)
     assert line.core.shared

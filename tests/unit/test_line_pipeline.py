@@ -10,7 +10,6 @@ import struct
 from typing import Any
 
 import pytest
-from line_harness import LineHarness
 
 from gateway.cli import apply_overrides, build_parser
 from gateway.config import CacheRule, ConfigError, LineConfig, build_config
@@ -18,12 +17,10 @@ from gateway.core.framing import is_mbap, mbap_framing
 from gateway.core.line import LineCore, PipelinedLineCore, new_line_core
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome, SlaveState
+from tests.helpers import problems, read
+from tests.line_harness import LineHarness
 
 TIMEOUT = 0.5
-
-
-def read(address: int, quantity: int = 1, function: int = 3) -> bytes:
-    return struct.pack(">BHH", function, address, quantity)
 
 
 def write(address: int, value: int) -> bytes:
@@ -332,23 +329,21 @@ def test_one_in_flight_is_the_serial_core_itself() -> None:
     assert not is_mbap("rtu") and not is_mbap("ascii") and not is_mbap("rtu-over-tcp")
 
 
-def problems(table: dict[str, Any]) -> list[str]:
-    with pytest.raises(ConfigError) as caught:
-        build_config({"lines": {"n": table}}, "plant.toml")
-    return caught.value.problems
-
-
 def test_max_in_flight_in_the_configuration() -> None:
     tcp = {"kind": "tcp", "address": "10.0.0.9:502", "units": [1]}
     assert build_config({"lines": {"n": tcp}}).line("n").max_in_flight == 1
     assert build_config({"lines": {"n": {**tcp, "max_in_flight": 4}}}).line("n").max_in_flight == 4
-    assert problems({**tcp, "max_in_flight": 0}) == ["lines.n.max_in_flight: 0 outside 1..64"]
-    assert problems({**tcp, "max_in_flight": 65}) == ["lines.n.max_in_flight: 65 outside 1..64"]
+    assert problems({"lines": {"n": {**tcp, "max_in_flight": 0}}}) == [
+        "lines.n.max_in_flight: 0 outside 1..64"
+    ]
+    assert problems({"lines": {"n": {**tcp, "max_in_flight": 65}}}) == [
+        "lines.n.max_in_flight: 65 outside 1..64"
+    ]
     for table in (
         {"device": "/dev/ttyUSB0", "units": [1]},
         {"kind": "rtu-over-tcp", "address": "10.0.0.5:4001", "units": [1]},
     ):
-        (problem,) = problems({**table, "max_in_flight": 2})
+        (problem,) = problems({"lines": {"n": {**table, "max_in_flight": 2}}})
         assert problem.startswith("lines.n.max_in_flight: only a Modbus TCP line")
         assert "remove the key" in problem
 

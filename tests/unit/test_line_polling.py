@@ -17,14 +17,14 @@ from collections.abc import Hashable
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from line_harness import SimulatedTime, new_core
 
 from gateway.config import LineConfig, PollBlock
-from gateway.core import pdu as fc
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.polling import AGE_NEVER, PollPlan, changed_range
 from gateway.core.outcome import BlockState, Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
+from tests.helpers import read
+from tests.line_harness import SimulatedTime, new_core
 
 CHAR = 11 / 19200  # seconds a character takes at 19200 baud, 8N1 plus start
 
@@ -47,10 +47,6 @@ def block(
         "t",
         slave,
     )
-
-
-def read(address: int, count: int, function: int = 3) -> bytes:
-    return fc.read_request(function, address, count)
 
 
 def write(address: int, value: int) -> bytes:
@@ -163,7 +159,7 @@ def test_a_coil_block_answers_any_sub_range_repacked_as_the_slave_would() -> Non
     line.registers[1] = [i % 3 for i in range(100)]  # odd values are coils that are on
     line.run(0.5)
     for address, count in [(0, 40), (3, 9), (17, 1), (31, 9)]:
-        request = line.submit(1, read(address, count, function=1))
+        request = line.submit(1, read(address, count, 1))
         pdu, outcome = line.answer_of(request)
         assert outcome is Outcome.MEMORY
         bits = bytearray((count + 7) // 8)
@@ -176,7 +172,7 @@ def test_a_coil_block_answers_any_sub_range_repacked_as_the_slave_would() -> Non
 def test_reads_outside_a_block_or_of_another_function_go_to_the_wire() -> None:
     line = RegisterLine((block(address=10, count=10, every=5.0),))
     line.run(0.5)
-    for pdu in (read(5, 10), read(15, 10), read(10, 10, function=4), read(10, 1, function=1)):
+    for pdu in (read(5, 10), read(15, 10), read(10, 10, 4), read(10, 1, 1)):
         before = len(line.frames)
         request = line.submit(1, pdu)
         line.run(line.now + 0.2)
@@ -199,10 +195,10 @@ def test_a_due_poll_goes_before_the_masters_waiting_requests_never_inside_a_tran
     line = RegisterLine((block(count=10, every=1.0),))
     line.turnaround = 0.2  # each transaction takes about 0.21 s
     line.run(0.99)  # just before the second poll is due
-    requests = [line.submit(2, read(i, 1), master=f"m{i}") for i in range(5)]
+    requests = [line.submit(2, read(i), master=f"m{i}") for i in range(5)]
     line.run(3.0)
     poll = encode_rtu(1, read(0, 10))
-    reads = [encode_rtu(2, read(i, 1)) for i in range(5)]
+    reads = [encode_rtu(2, read(i)) for i in range(5)]
     # The first read was on the wire when the poll fell due: the poll goes right after it,
     # before the four masters that were waiting.
     assert line.frames[:6] == [poll, reads[0], poll, *reads[1:4]]
@@ -238,7 +234,7 @@ def test_an_exception_to_a_poll_is_never_kept_and_marks_the_block_failing() -> N
     plan = line.core.plan
     assert plan.blocks[0].answer is None
     assert plan.blocks[0].state(line.now) is BlockState.FAILING
-    request = line.submit(1, read(0, 1))
+    request = line.submit(1, read(0))
     line.run(1.0)
     assert line.answer_of(request)[1] is Outcome.SLAVE_EXCEPTION
     assert plan.blocks[0].status_registers(line.now) == (AGE_NEVER, 2)
@@ -257,7 +253,7 @@ def test_a_read_after_a_write_sees_it_from_any_master() -> None:
     # The block is polled again right after the write's answer, and serves the new value.
     polls_after_write = [f for f in line.frames[2:] if f == encode_rtu(1, read(0, 10))]
     assert polls_after_write
-    again = line.submit(1, read(3, 1), master="reader")
+    again = line.submit(1, read(3), master="reader")
     assert line.answer_of(again) == (bytes((3, 2)) + (777).to_bytes(2, "big"), Outcome.MEMORY)
 
 
@@ -278,16 +274,16 @@ def test_a_broadcast_write_stops_memory_answers_until_the_blocks_are_polled_agai
     line.run(0.5)
     line.submit(0, write(3, 9), master="writer")
     for slave in (1, 2):
-        request = line.submit(slave, read(0, 1), master="reader")
+        request = line.submit(slave, read(0), master="reader")
         assert request not in [r for r, *_ in line.answers]
     line.run(1.5)
     for slave in (1, 2):
-        request = line.submit(slave, read(0, 1), master="reader")
+        request = line.submit(slave, read(0), master="reader")
         assert line.answer_of(request)[1] is Outcome.MEMORY
 
 
 def test_changed_range_names_the_table_and_range_of_every_write_function() -> None:
-    assert changed_range(read(0, 1)) is None
+    assert changed_range(read(0)) is None
     assert changed_range(bytes((5, 0, 7, 0xFF, 0))) == ("coils", 7, 1)
     assert changed_range(bytes((15, 0, 7, 0, 12, 2, 0, 0))) == ("coils", 7, 12)
     assert changed_range(write(9, 1)) == ("holding_registers", 9, 1)
@@ -395,7 +391,7 @@ def test_no_read_returns_a_value_older_than_a_write_submitted_before_it(seed: in
 
 def test_a_plan_that_needs_the_whole_line_alternates_with_the_masters() -> None:
     line = RegisterLine((block(count=100, every=0.05),))  # each poll takes about 0.14 s
-    requests = [line.submit(2, read(i, 1), master=f"m{i % 3}") for i in range(10)]
+    requests = [line.submit(2, read(i), master=f"m{i % 3}") for i in range(10)]
     line.run(5.0)
     assert all(line.answer_of(request)[1] is Outcome.OK for request in requests)
     to_two = [i for i, frame in enumerate(line.frames) if frame[0] == 2]

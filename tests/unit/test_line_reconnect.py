@@ -8,18 +8,12 @@ connection is back, and does not count the silent connection's timeouts against 
 
 from __future__ import annotations
 
-import struct
-
-from line_harness import LineHarness
-
 from gateway.config import build_config
 from gateway.core.line import LineCore
 from gateway.core.outcome import LineEvent, Outcome, ReconnectReason, SlaveState
 from gateway.core.rtu import encode_rtu
-
-
-def read(address: int = 0) -> bytes:
-    return struct.pack(">BHH", 3, address, 1)
+from tests.helpers import read
+from tests.line_harness import LineHarness
 
 
 def answer(slave: int) -> bytes:
@@ -42,7 +36,7 @@ def poll(line: LineHarness, slave: int, now: float, answered: bool) -> float:
     """One read of ``slave`` at ``now``: every frame sent for it (the read, a proof read)
     answered 5 ms later, or none; the core's timers fired until the read is answered.
     Returns when it was."""
-    request = line.submit(slave, read(), now)
+    request = line.submit(slave, read(0), now)
     while request in line.unanswered():
         sent = line.frames()
         if sent and answered:

@@ -15,9 +15,9 @@ import logging
 from collections.abc import Callable, Iterator
 
 import pytest
-from conftest import LogCollector
 
 from gateway.logs import JsonFormatter, RateLimitedLogger, setup_logging
+from tests.helpers import LogCollector
 
 
 class ManualScheduler:

@@ -6,10 +6,7 @@ import pytest
 
 from gateway.core.errors import FramingError, ProtocolError
 from gateway.core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import h
 
 
 def drain(decoder: MbapDecoder) -> list[MbapFrame]:

@@ -20,22 +20,15 @@ from gateway.core.pdu import (
     validate_request,
     write_response,
 )
+from tests.helpers import h, read
 
 ILLEGAL_FUNCTION = ExceptionCode.ILLEGAL_FUNCTION
 ILLEGAL_ADDRESS = ExceptionCode.ILLEGAL_DATA_ADDRESS
 ILLEGAL_VALUE = ExceptionCode.ILLEGAL_DATA_VALUE
 
 
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
-
 def u16(value: int) -> bytes:
     return value.to_bytes(2, "big")
-
-
-def read(function: int, address: int, quantity: int) -> bytes:
-    return bytes((function,)) + u16(address) + u16(quantity)
 
 
 def write_coils(address: int, quantity: int, byte_count: int | None = None) -> bytes:
@@ -107,16 +100,16 @@ VALID: list[tuple[str, bytes]] = [
     ("001 fc03", h("03 0003 0003")),
     ("003 fc03", h("03 0001 0015")),
     # reads: 1..2000 bits, 1..125 registers, up to the last address
-    ("fc01 min", read(0x01, 0, 1)),
-    ("fc01 max", read(0x01, 0, 2000)),
-    ("fc02 max", read(0x02, 0, 2000)),
-    ("fc01 top", read(0x01, 0x10000 - 2000, 2000)),
-    ("fc02 last", read(0x02, 0xFFFF, 1)),
-    ("fc03 min", read(0x03, 0, 1)),
-    ("fc03 max", read(0x03, 0, 125)),
-    ("fc04 max", read(0x04, 0, 125)),
-    ("fc03 top", read(0x03, 0x10000 - 125, 125)),
-    ("fc04 last", read(0x04, 0xFFFF, 1)),
+    ("fc01 min", read(0, 1, 0x01)),
+    ("fc01 max", read(0, 2000, 0x01)),
+    ("fc02 max", read(0, 2000, 0x02)),
+    ("fc01 top", read(0x10000 - 2000, 2000, 0x01)),
+    ("fc02 last", read(0xFFFF, 1, 0x02)),
+    ("fc03 min", read(0, 1, 0x03)),
+    ("fc03 max", read(0, 125, 0x03)),
+    ("fc04 max", read(0, 125, 0x04)),
+    ("fc03 top", read(0x10000 - 125, 125, 0x03)),
+    ("fc04 last", read(0xFFFF, 1, 0x04)),
     # single writes
     ("fc05 on", h("05 FFFF FF00")),
     ("fc05 off", h("05 0000 0000")),
@@ -177,23 +170,23 @@ INVALID: list[tuple[str, bytes, ExceptionCode]] = [
     ("function 0xFF", h("FF 00"), ILLEGAL_FUNCTION),
     ("over 253 bytes", bytes((0x41,)) + bytes(253), ILLEGAL_VALUE),
     # read bits: quantity 1..2000
-    ("fc01 qty 0", read(0x01, 0, 0), ILLEGAL_VALUE),
-    ("fc01 qty 2001", read(0x01, 0, 2001), ILLEGAL_VALUE),
-    ("fc02 qty 0", read(0x02, 0, 0), ILLEGAL_VALUE),
-    ("fc02 qty 2001", read(0x02, 0, 2001), ILLEGAL_VALUE),
-    ("fc01 qty 0xFFFF", read(0x01, 0, 0xFFFF), ILLEGAL_VALUE),
-    ("fc01 past top", read(0x01, 0x10000 - 1999, 2000), ILLEGAL_ADDRESS),
-    ("fc02 last+1", read(0x02, 0xFFFF, 2), ILLEGAL_ADDRESS),
-    ("fc01 qty before address", read(0x01, 0xFFFF, 2001), ILLEGAL_VALUE),
+    ("fc01 qty 0", read(0, 0, 0x01), ILLEGAL_VALUE),
+    ("fc01 qty 2001", read(0, 2001, 0x01), ILLEGAL_VALUE),
+    ("fc02 qty 0", read(0, 0, 0x02), ILLEGAL_VALUE),
+    ("fc02 qty 2001", read(0, 2001, 0x02), ILLEGAL_VALUE),
+    ("fc01 qty 0xFFFF", read(0, 0xFFFF, 0x01), ILLEGAL_VALUE),
+    ("fc01 past top", read(0x10000 - 1999, 2000, 0x01), ILLEGAL_ADDRESS),
+    ("fc02 last+1", read(0xFFFF, 2, 0x02), ILLEGAL_ADDRESS),
+    ("fc01 qty before address", read(0xFFFF, 2001, 0x01), ILLEGAL_VALUE),
     ("fc01 short", h("01 0000 00"), ILLEGAL_VALUE),
     ("fc01 long", h("01 0000 0001 00"), ILLEGAL_VALUE),
     # read registers: quantity 1..125
-    ("fc03 qty 0", read(0x03, 0, 0), ILLEGAL_VALUE),
-    ("fc03 qty 126", read(0x03, 0, 126), ILLEGAL_VALUE),
-    ("fc04 qty 0", read(0x04, 0, 0), ILLEGAL_VALUE),
-    ("fc04 qty 126", read(0x04, 0, 126), ILLEGAL_VALUE),
-    ("fc03 past top", read(0x03, 0x10000 - 124, 125), ILLEGAL_ADDRESS),
-    ("fc04 last+1", read(0x04, 0xFFFF, 2), ILLEGAL_ADDRESS),
+    ("fc03 qty 0", read(0, 0, 0x03), ILLEGAL_VALUE),
+    ("fc03 qty 126", read(0, 126, 0x03), ILLEGAL_VALUE),
+    ("fc04 qty 0", read(0, 0, 0x04), ILLEGAL_VALUE),
+    ("fc04 qty 126", read(0, 126, 0x04), ILLEGAL_VALUE),
+    ("fc03 past top", read(0x10000 - 124, 125, 0x03), ILLEGAL_ADDRESS),
+    ("fc04 last+1", read(0xFFFF, 2, 0x04), ILLEGAL_ADDRESS),
     ("fc03 short", h("03 0000"), ILLEGAL_VALUE),
     ("fc03 only function", h("03"), ILLEGAL_VALUE),
     # FC5: value 0xFF00 or 0x0000
@@ -282,7 +275,7 @@ def test_invalid_requests_get_the_specified_exception(pdu: bytes, expected: Exce
 
 def test_error_carries_reason_text() -> None:
     with pytest.raises(ModbusError) as caught:
-        validate_request(read(0x03, 0, 126))
+        validate_request(read(0, 126, 0x03))
     assert caught.value.code is ExceptionCode.ILLEGAL_DATA_VALUE
     assert "126" in caught.value.reason
     assert str(caught.value) == caught.value.reason

@@ -22,10 +22,7 @@ from gateway.core.policy import (
     merge_ranges,
 )
 from gateway.core.routes import Target
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import h
 
 
 def net(text: str) -> ipaddress.IPv4Network | ipaddress.IPv6Network:

@@ -3,23 +3,19 @@ without using the line, and the slave's health is not touched."""
 
 from __future__ import annotations
 
-import struct
 from typing import Any
 
 import pytest
-from line_harness import LineHarness
 
 from gateway.config import LineConfig
 from gateway.core.errors import ExceptionCode
 from gateway.core.line import LineCore
 from gateway.core.outcome import Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
+from tests.helpers import read
+from tests.line_harness import LineHarness
 
 BAUD = 19200
-
-
-def read(address: int) -> bytes:
-    return struct.pack(">BHH", 3, address, 1)
 
 
 def answer(slave: int) -> bytes:

@@ -10,7 +10,6 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from line_harness import DeafWhileBusyLine, LineHarness
 
 from gateway.config import LineConfig, build_config
 from gateway.core.framing import RTU, mbap_framing
@@ -19,12 +18,10 @@ from gateway.core.line.response_timing import EVIDENCE, FLOOR_S, ResponseTiming
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
+from tests.helpers import read
+from tests.line_harness import DeafWhileBusyLine, LineHarness
 
 SLAVE = 1
-
-
-def read(address: int = 0, quantity: int = 2) -> bytes:
-    return struct.pack(">BHH", 3, address, quantity)
 
 
 def answer(slave: int = SLAVE, quantity: int = 2) -> bytes:
@@ -49,7 +46,7 @@ class Bus(LineHarness):
     def poll(self, turnaround: float | None, slave: int = SLAVE) -> tuple[str, float]:
         """One read; the slave answers ``turnaround`` after the request (``None``: never).
         Returns the outcome and when the master got it."""
-        request = self.submit(slave, read(), self.now)
+        request = self.submit(slave, read(0, 2), self.now)
         sent = self.frames()
         assert len(sent) == 1
         frame = answer(slave)
@@ -122,7 +119,7 @@ def test_a_number_or_a_slave_timeouts_entry_is_fixed() -> None:
     assert learned.wait(2, 3, 1) == learned.wait(2, 3, 2) == 0.7
     assert learned.learned(2, 3) is None
     fixed = ResponseTiming(LineConfig(name="t", device="/dev/null", timeout=0.4), RTU, 0.0)
-    assert fixed.deadline(SLAVE, read(), 2, 10.0) == 10.4
+    assert fixed.deadline(SLAVE, read(0, 2), 2, 10.0) == 10.4
 
 
 def test_tcp_lines_learn_per_line() -> None:
@@ -208,7 +205,7 @@ def test_a_late_answer_on_the_line_widens_the_slave_s_bound() -> None:
     for _ in range(50):
         bus.poll(0.005)
     assert bus.core.timing.learned(SLAVE, 3) == FLOOR_S
-    request = bus.submit(SLAVE, read(), bus.now)
+    request = bus.submit(SLAVE, read(0, 2), bus.now)
     bus.frames()
     bus.timer()  # no answer within the learned bound
     assert bus.answer_of(request)[1] is Outcome.TARGET_FAILED

@@ -7,7 +7,6 @@ they do not cover, from the worked examples of the Modbus Application Protocol v
 from __future__ import annotations
 
 import pytest
-from conftest import decode_as_the_core_does
 
 from gateway.core.crc import append_crc
 from gateway.core.errors import ProtocolError, ResponseError
@@ -21,11 +20,7 @@ from gateway.core.rtu import (
     request_length,
     response_length,
 )
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
+from tests.helpers import decode_as_the_core_does, h
 
 DEVICE_ID_OBJECTS = [
     # 002 (ZL-69X) example: objects 0, 1, 2 of lengths 0x16, 0x0A, 0x05.

@@ -10,11 +10,7 @@ from gateway.core.crc import append_crc
 from gateway.core.errors import FramingError
 from gateway.core.mbap import MbapFrame
 from gateway.core.rtu_stream import RtuStreamDecoder, encode_rtu_reply, heard_request
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
+from tests.helpers import h
 
 #: Requests of every length rule: fixed, byte count at 6, at 2, at 10, MEI, diagnostics.
 REQUESTS = [

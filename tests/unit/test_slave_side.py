@@ -13,10 +13,7 @@ from gateway.core.slave_side import (
     heard_ascii_request,
     request_or_none,
 )
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import h
 
 
 def test_the_specification_vector() -> None:

@@ -9,10 +9,7 @@ from hypothesis import strategies as st
 from gateway.config import PollBlock
 from gateway.core.line.polling import AGE_NEVER, PollPlan
 from gateway.core.status_unit import status_answer
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
+from tests.helpers import h
 
 
 def plan() -> PollPlan:

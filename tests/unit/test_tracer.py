@@ -7,7 +7,6 @@ import logging
 from collections.abc import Iterator
 
 import pytest
-from conftest import LogCollector
 
 from gateway.cli import build_parser
 from gateway.core.outcome import Outcome
@@ -16,6 +15,7 @@ from gateway.logs import JsonFormatter
 from gateway.metrics import GatewayMetrics
 from gateway.status import LineStatus, MasterStatus, PairStatus
 from gateway.trace import MAX_PENDING, FrameTrace, Tracer, parse_function, reply_outcome
+from tests.helpers import LogCollector
 
 READ_10 = bytes.fromhex("03 0000 000A")
 READ_10_ANSWER = bytes.fromhex("03 14") + bytes(20)
