@@ -10,11 +10,12 @@ import struct
 from typing import Any
 
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from gateway.config import LineConfig
 from gateway.core.ascii import encode_ascii
+from gateway.core.crc import crc16
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.foreign import OWN_ECHO_FOR_S, SHARED_FOR_S
@@ -472,6 +473,7 @@ def answers(request: bytes, frame: bytes) -> bool:
 
 
 @settings(max_examples=200, deadline=None)
+@example(requests=[(4, 1, 0, 1), (4, 1, 672, 13)], cuts=[])  # a CRC that passes both ways
 @given(
     requests=st.lists(
         st.tuples(
@@ -548,3 +550,14 @@ def test_a_slave_answering_a_write_with_the_value_it_stored_is_no_second_master(
     # A request frame to another slave is another master's, as before.
     line.receive(encode_rtu(7, read(0, 2)), 3.0)
     assert line.core.shared
+
+
+def test_a_request_whose_first_bytes_pass_for_another_answer_is_heard_as_a_request() -> None:
+    """``04 01 02 A0 00 0D FC 00`` (read 13 coils at 672) starts with seven bytes whose CRC
+    also checks as an FC 1 answer of two bytes. After a read of one coil of slave 4, the
+    answer is six bytes long: the frame is the next master's request, not that answer."""
+    line = Line()
+    first, second = encode_rtu(4, read(0, 1, 1)), encode_rtu(4, read(672, 13, 1))
+    assert crc16(second[:7]) == 0  # the coincidence itself
+    line.receive(first + second, 1.0 + len(first + second) * CHAR)
+    assert line.foreign_notes() == 2

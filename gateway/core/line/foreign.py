@@ -129,6 +129,18 @@ class Heard:
 Own = list[tuple[int, bytes]]
 
 
+def _answer_length(request: bytes, buffer: bytearray) -> int | None:
+    """The length of ``request``'s normal answer when the buffer starts like one and the
+    request says how long it is (a read's quantity, a write's echo): not the byte count
+    the buffer claims. A request frame whose first bytes happen to pass as an answer with
+    another byte count (and a matching CRC) is then a request, not that answer."""
+    if len(buffer) >= 2 and buffer[1] == request[0]:
+        expected = answer_pdu_length(request)
+        if expected is not None:
+            return 3 + expected  # unit, PDU, CRC
+    return response_length(request, buffer)
+
+
 class ForeignMasters:
     """What the line heard that it did not send (see the module doc)."""
 
@@ -241,9 +253,9 @@ class ForeignMasters:
         may still be completing, 0 when none starts there."""
         unit = buffer[0]
         candidates: list[int | None] = [
-            response_length(pdu, buffer) for slave, pdu in own if slave == unit
+            _answer_length(pdu, buffer) for slave, pdu in own if slave == unit
         ]
-        candidates.extend(response_length(r.pdu, buffer) for r in self.pending.get(unit, ()))
+        candidates.extend(_answer_length(r.pdu, buffer) for r in self.pending.get(unit, ()))
         candidates.append(request_length(buffer))
         candidates.append(response_length(bytes(buffer[1:2]), buffer))
         waiting = False
