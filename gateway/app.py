@@ -32,20 +32,20 @@ from .config import (
     build_config,
     read_config_file,
 )
-from .core.line import Handover
+from .core.line import Handover, LineRequest
 from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
-from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, Request, poll_block_status
+from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, poll_block_status
 from .io.clock import PreciseClock
 from .io.http import HttpEndpoint, role_route, start_http
-from .io.http_guard import Access
+from .io.http_guard import RouteAccess
 from .io.rtu_listener import rtu_over_tcp_server
 from .io.serial_port import check_devices_usable
 from .io.serial_slave import SerialSlave
 from .io.status_unit import StatusUnit
 from .io.systemd import SystemdNotifier
-from .io.tcp import ModbusTcpServer, Router, Target
+from .io.tcp import LineTarget, ModbusTcpServer, Router
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
 from .metrics import GatewayMetrics
@@ -316,7 +316,7 @@ class Gateway:
 
     async def _start_http(self) -> HttpEndpoint:
         routes = dict(self.live.routes) if self.live is not None else {}
-        routes["/role"] = (role_route(self._role), Access.STATUS)
+        routes["/role"] = (role_route(self._role), RouteAccess.STATUS)
         return await start_http(
             self.config.metrics,
             self.metrics.exposition_registry(),
@@ -434,7 +434,7 @@ class Gateway:
         self, line: LineConfig, bus: Bus | None, loop: asyncio.AbstractEventLoop
     ) -> bool:
         """Open ``line`` anew, handing over ``bus``'s queue; ``False`` when a stop came."""
-        queued: list[Request] = []
+        queued: list[LineRequest] = []
         handover: Handover | None = None
         if bus is not None:
             log.info("reload: line %s port settings changed, reopening", line.name)
@@ -554,7 +554,7 @@ class Gateway:
     def _build_router(self) -> Router:
         """The routing table of every listener's admission and of a standby's forwarding."""
         routes = {
-            unit: Target(self.buses[route.line], route.slave)
+            unit: LineTarget(self.buses[route.line], route.slave)
             for unit, route in self.config.routes.items()
         }
         broadcast = [bus for bus in self.buses.values() if bus.config.broadcast]
@@ -562,7 +562,9 @@ class Gateway:
         status_unit = self.config.polling.status_unit
         own = {}
         if status_unit:  # answered here, from the blocks of the lines running at each read
-            own[status_unit] = Target(StatusUnit(self._block_freshness, self.metrics), status_unit)
+            own[status_unit] = LineTarget(
+                StatusUnit(self._block_freshness, self.metrics), status_unit
+            )
         router = Router(routes, broadcast, own)
         if self.pair is not None:  # a standby forwards by the table the active admits by
             self.pair.reroute(router.admitter.table)

@@ -43,22 +43,8 @@ def _default(table: Table, name: str) -> Any:
 
 
 DEFAULT_LISTEN = str(schema.key(Table.SERVER, "listen").default)
-DEFAULT_METRICS = str(schema.key(Table.METRICS, "listen").default)
-VALID_PARITIES = tuple(map(str, _LINE_KEYS_BY_NAME["parity"].choices))
-#: Downstream line kinds (``kind`` under ``[lines.NAME]``); the first is the default.
-#: ``rtu-over-tcp``: RTU frames over a TCP connection to a serial device server (raw socket).
-#: ``tcp``: a Modbus TCP slave (MBAP under the gateway's own transaction ids).
-#: ``tls``: a Modbus/TCP Security slave (the same MBAP framing, over TLS 1.2 or newer).
-VALID_LINE_KINDS = tuple(map(str, _LINE_KEYS_BY_NAME["kind"].choices))
-VALID_WHEN_FULL = tuple(map(str, schema.key(Table.SERVER, "when_full").choices))
-VALID_LOG_FORMATS = tuple(map(str, schema.key(Table.LOGGING, "format").choices))
-VALID_LOG_LEVELS = tuple(map(str, schema.key(Table.LOGGING, "level").choices))
-VALID_PROTOCOLS = tuple(map(str, schema.key(Table.LISTENERS, "protocol").choices))
 #: ``server.max_connections_per_source`` before fair share: a file that still sets it is warned.
 OLD_PER_SOURCE_DEFAULT = 16
-#: What the masters on a ``serial-slave`` listener's line speak (its ``framing``); the first
-#: is the default. Named like ``--framing``: on a listener, ``kind`` would read as ``protocol``.
-VALID_SLAVE_FRAMINGS = tuple(map(str, schema.key(Table.LISTENERS, "framing").choices))
 #: Line kinds reached over the network rather than through a device node.
 NETWORK_LINE_KINDS = frozenset({"rtu-over-tcp", "tcp", "tls"})
 #: Silence that ends a frame of unknown length on a network link (segments, device servers).
@@ -68,7 +54,6 @@ NETWORK_SILENCE_S = 0.05
 NETWORK_ALLOWANCE_S = 0.1
 #: The IANA port of Modbus/TCP Security.
 DEFAULT_TLS_PORT = 802
-URL_SCHEMES = ("socket://", "rfc2217://", "loop://", "spy://")
 
 
 class ConfigError(Exception):
@@ -221,7 +206,7 @@ class CacheRule:
 
 
 @dataclass(frozen=True)
-class PollBlock:
+class PollConfig:
     """One ``[[poll]]`` block, resolved through the routes to its line and slave address."""
 
     unit: int
@@ -298,7 +283,7 @@ class LineConfig:
     coalesce: bool = _default(Table.LINES, "coalesce")
     cache: tuple[CacheRule, ...] = ()
     #: Agent mode's blocks on this line (from the top-level ``[[poll]]`` entries).
-    polls: tuple[PollBlock, ...] = ()
+    polls: tuple[PollConfig, ...] = ()
     #: ``rtu``, ``ascii`` (serial devices) or ``rtu-over-tcp`` (``device`` is then ``HOST:PORT``).
     kind: str = _default(Table.LINES, "kind")
     inter_char_timeout: float = _default(
@@ -415,7 +400,7 @@ class GatewayConfig:
     audit: AuditConfig = field(default_factory=AuditConfig)
     redundancy: RedundancyConfig = field(default_factory=RedundancyConfig)
     #: Agent mode: every ``[[poll]]`` block in the order written, and ``[polling]``.
-    polls: tuple[PollBlock, ...] = ()
+    polls: tuple[PollConfig, ...] = ()
     polling: PollingConfig = field(default_factory=PollingConfig)
 
     def line(self, name: str) -> LineConfig:
@@ -1049,7 +1034,7 @@ def _build_polling(
 
 def _build_polls(
     check: _Checker, raw: Mapping[str, Any], routes: Mapping[int, Route], polling: PollingConfig
-) -> tuple[PollBlock, ...]:
+) -> tuple[PollConfig, ...]:
     """The ``[[poll]]`` blocks, each resolved to its line and slave through the routes."""
     entries = raw.get("poll", [])
     if not isinstance(entries, list):
@@ -1061,7 +1046,7 @@ def _build_polls(
             f"{len(entries)} blocks, more than polling.max_blocks = "
             f"{polling.max_blocks}; merge blocks or raise polling.max_blocks",
         )
-    blocks: list[PollBlock] = []
+    blocks: list[PollConfig] = []
     for index, entry in enumerate(entries):
         prefix = f"poll[{index}]."
         if not isinstance(entry, dict):
@@ -1111,7 +1096,7 @@ def _build_polls(
                 "line's units or a [[routes]] entry, or poll a routed unit",
             )
             continue
-        block = PollBlock(
+        block = PollConfig(
             values["unit"], function, address, count, every, max_age, route.line, route.slave, index
         )
         for other in blocks:

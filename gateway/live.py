@@ -49,7 +49,7 @@ from .answer_values import answer_values
 from .core import pdu as fc
 from .core.outcome import Outcome
 from .io.http import GuardedRoute, PacedRenderer, extra_headers, respond
-from .io.http_guard import Access
+from .io.http_guard import RouteAccess
 from .metrics import NO_LINE, GatewayMetrics
 from .status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
 from .trace import FrameTrace, parse_function, reply_outcome
@@ -673,9 +673,9 @@ class LiveView:
     def routes(self) -> dict[str, GuardedRoute]:
         """Path → handler and what guards it, for the HTTP endpoint."""
         return {
-            "/": (self._index, Access.STATUS),
-            "/status": (self._status, Access.STATUS),
-            "/trace": (self._trace, Access.TRACE),
+            "/": (self._index, RouteAccess.STATUS),
+            "/status": (self._status, RouteAccess.STATUS),
+            "/trace": (self._trace, RouteAccess.TRACE),
         }
 
     def close(self) -> None:

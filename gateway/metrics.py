@@ -53,13 +53,6 @@ from .core.reasons import CloseReason, MasterFault, RejectReason
 from .core.status_unit import STATUS_LINE
 from .status import PollBlockStatus
 
-__all__ = [  # CloseReason and RejectReason live in core; importing them from here still works
-    "CloseReason",
-    "GatewayMetrics",
-    "MasterFault",
-    "RejectReason",
-]
-
 #: ``function`` label by function code (``other`` when unknown): an index, not a call.
 _FUNCTION_LABELS = tuple(function_name(code) for code in range(256))
 
@@ -112,15 +105,12 @@ _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0
 _WAIT_BUCKETS = (0.0, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
 
-#: Per-line traffic counts kept as plain integers by the line core, read only when scraped
-#: (a Prometheus child's ``inc`` takes a lock and microseconds, an integer add nanoseconds).
-LineCounters = LineStats
+class _LineStatsCollector(Collector):
+    """Exports every line's ``LineStats`` at scrape time: per-line traffic counts kept as plain
+    integers by the line core, read only when scraped (a Prometheus child's ``inc`` takes a
+    lock and microseconds, an integer add nanoseconds)."""
 
-
-class _LineCountersCollector(Collector):
-    """Exports every line's ``LineCounters`` at scrape time."""
-
-    def __init__(self, lines: dict[str, LineCounters]) -> None:
+    def __init__(self, lines: dict[str, LineStats]) -> None:
         self._lines = lines
 
     def collect(self) -> Iterator[Metric]:
@@ -749,9 +739,9 @@ class GatewayMetrics:
             registry=r,
         )
         self.describe_lines([])
-        self._line_counters: dict[str, LineCounters] = {}
+        self._line_counters: dict[str, LineStats] = {}
         self._line_kinds: dict[str, str] = {}  # line -> its kind in line_info
-        r.register(_LineCountersCollector(self._line_counters))
+        r.register(_LineStatsCollector(self._line_counters))
         self._uart_readers: dict[str, UartReader] = {}
         r.register(_UartErrorsCollector(self._uart_readers))
         self._response_timeouts: dict[str, ResponseTimeouts] = {}
@@ -807,11 +797,11 @@ class GatewayMetrics:
             self.retries.labels(line, unit)
             self.proof_reads.labels(line, unit)
 
-    def line_counters(self, line: str) -> LineCounters:
+    def line_counters(self, line: str) -> LineStats:
         """The traffic counters of ``line``; the same object across reloads (counters only grow)."""
         counters = self._line_counters.get(line)
         if counters is None:
-            counters = self._line_counters[line] = LineCounters()
+            counters = self._line_counters[line] = LineStats()
         return counters
 
     def set_response_timeouts(self, line: str, learned: ResponseTimeouts) -> None:

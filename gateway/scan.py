@@ -132,7 +132,7 @@ class Progress:
         self.stream.flush()
 
 
-class Wire(Protocol):
+class ScanWire(Protocol):
     """The bytes of one line, whatever carries them: a serial port or a TCP/TLS connection."""
 
     def write(self, data: bytes) -> None: ...
@@ -146,7 +146,7 @@ class Wire(Protocol):
     def close(self) -> None: ...
 
 
-class SerialWire:
+class SerialScanWire:
     """A serial device or pyserial URL, opened exactly as the gateway opens it."""
 
     def __init__(self, line: LineConfig) -> None:
@@ -172,7 +172,7 @@ class SerialWire:
         self.port.close()
 
 
-class SocketWire:
+class SocketScanWire:
     """A TCP connection (``rtu-over-tcp``, ``tcp``) or a TLS session (``tls``) to the line."""
 
     def __init__(self, line: LineConfig) -> None:
@@ -214,9 +214,9 @@ class SocketWire:
         self.sock.close()
 
 
-def open_wire(line: LineConfig) -> Wire:
+def open_wire(line: LineConfig) -> ScanWire:
     """The line's wire: a connection for a network kind, else its serial port."""
-    return SocketWire(line) if line.networked else SerialWire(line)
+    return SocketScanWire(line) if line.networked else SerialScanWire(line)
 
 
 class Port:

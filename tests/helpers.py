@@ -36,7 +36,7 @@ from gateway.app import Gateway
 from gateway.config import ConfigError, build_config
 from gateway.core.errors import ResponseError
 from gateway.core.framing import ResponseDecoder
-from gateway.sim import LineStats, PtyPair, SimulatedDevice, SimulatedLine, UnitFaults
+from gateway.sim import PtyPair, SimulatedDevice, SimulatedLine, SimulatedLineStats, UnitFaults
 from gateway.sim.pki import Pki
 
 T = TypeVar("T")
@@ -139,7 +139,7 @@ class SimBus:
         """Live fault settings of ``unit``."""
         return self.line.faults(unit)
 
-    def stats(self) -> LineStats:
+    def stats(self) -> SimulatedLineStats:
         """A snapshot of the line's counters."""
         return self.line.stats()
 

@@ -60,19 +60,6 @@ FUNCTION_NAMES: dict[int, str] = {
     ENCAPSULATED_INTERFACE: "encapsulated_interface",
 }
 
-#: Functions that change slave state: only these may be broadcast, and they are
-#: retried after a timeout only when the line is configured to do so.
-WRITE_FUNCTIONS = frozenset(
-    {
-        WRITE_SINGLE_COIL,
-        WRITE_SINGLE_REGISTER,
-        WRITE_MULTIPLE_COILS,
-        WRITE_MULTIPLE_REGISTERS,
-        WRITE_FILE_RECORD,
-        MASK_WRITE_REGISTER,
-        READ_WRITE_MULTIPLE_REGISTERS,
-    }
-)
 
 #: Writes that the serial-line specification allows to be broadcast (unit 0).
 BROADCAST_FUNCTIONS = frozenset(

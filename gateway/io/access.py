@@ -27,11 +27,6 @@ from .tls import HandshakeFailure, leaf_subject
 log = logging.getLogger("gateway.access")
 
 
-def peer_address(transport: asyncio.BaseTransport) -> IPAddress | None:
-    """The peer's IP address (an IPv4-mapped IPv6 address as IPv4), ``None`` if not IP."""
-    return peer_address_of(transport.get_extra_info("peername"))
-
-
 def peer_address_of(peer: object) -> IPAddress | None:
     """The IP address in a ``peername`` / ``accept()`` address tuple, ``None`` if not IP."""
     if not isinstance(peer, tuple) or not peer:
@@ -55,7 +50,7 @@ _REASON_TEXT = {
 }
 
 
-class OpenConnection(Protocol):
+class ClosingConnection(Protocol):
     """What a reload closing a connection tells of it (``tcp.MasterConnection`` has it)."""
 
     peer: str
@@ -85,7 +80,7 @@ class SourceScreen:
         return Door(self.allow_lists, tls)
 
     def closed_at_reload(
-        self, connection: OpenConnection, reason: NotAdmitted, audit: AuditLog | None = None
+        self, connection: ClosingConnection, reason: NotAdmitted, audit: AuditLog | None = None
     ) -> None:
         """Log (and audit, when configured), once per connection, one closed because it
         is no longer admitted."""

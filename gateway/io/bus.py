@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Hashable, Iterable, Mapping
 from typing import NamedTuple, Protocol
 
-from ..config import LineConfig, PollBlock
+from ..config import LineConfig, PollConfig
 from ..core import pdu as fc
 from ..core.errors import ExceptionCode
 from ..core.framing import framing_for
@@ -52,10 +52,6 @@ from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
 _OK = Outcome.OK  # a module global: read once per answer
-
-#: A request as the masters' side builds it: ``Request(slave, pdu, master, reply)``, where
-#: ``reply(pdu, outcome)`` takes the answer and its ``Outcome``.
-Request = LineRequest
 
 
 class LineRole(Protocol):
@@ -112,7 +108,7 @@ class PollBlockView(Protocol):
 class PlannedBlock(NamedTuple):
     """One poll block of a running line: its ``[[poll]]`` entry and its live state."""
 
-    config: PollBlock
+    config: PollConfig
     block: PollBlockView
 
 
@@ -231,7 +227,7 @@ class Bus:
         return tuple(
             PlannedBlock(block.spec, block)
             for block in self._core.plan.blocks
-            if isinstance(block.spec, PollBlock)  # the plan keeps the entry it was given
+            if isinstance(block.spec, PollConfig)  # the plan keeps the entry it was given
         )
 
     def learned_timeouts(self, slaves: Iterable[int]) -> dict[int, float]:

@@ -59,7 +59,7 @@ from prometheus_client.registry import Collector
 
 from ..config import MetricsConfig
 from ..logs import RateLimitedLogger
-from .http_guard import Access, Guard, HttpRefusal
+from .http_guard import Guard, HttpRefusal, RouteAccess
 from .tls import check_chain, cipher_string, load_authorities, load_key_pair
 
 log = logging.getLogger("gateway.http")
@@ -86,7 +86,7 @@ Route = Callable[
     [str, str, Mapping[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]
 ]
 #: A route and what guards it.
-GuardedRoute = tuple[Route, Access]
+GuardedRoute = tuple[Route, RouteAccess]
 
 
 def extra_headers() -> str:
@@ -391,14 +391,14 @@ class HttpEndpoint:
         self.refused = 0  #: connections closed at once at the cap
         self._faults: RateLimitedLogger | None = None  # bound to the loop in start()
         self._routes: dict[str, GuardedRoute] = {
-            "/metrics": (self._metrics, Access.OPEN),
-            "/healthz": (self._healthz, Access.OPEN),
-            "/readyz": (self._readyz, Access.OPEN),
-            "/": (self._index, Access.OPEN),
+            "/metrics": (self._metrics, RouteAccess.OPEN),
+            "/healthz": (self._healthz, RouteAccess.OPEN),
+            "/readyz": (self._readyz, RouteAccess.OPEN),
+            "/": (self._index, RouteAccess.OPEN),
         }
         self._routes.update(routes or {})
 
-    def add_route(self, path: str, route: Route, access: Access = Access.STATUS) -> None:
+    def add_route(self, path: str, route: Route, access: RouteAccess = RouteAccess.STATUS) -> None:
         """Serve ``path`` (without query) with ``route``, under the endpoint's limits and
         guarded as ``access`` says (by default as the status page)."""
         self._routes[path] = (route, access)

@@ -1,6 +1,6 @@
 """Who may read the HTTP endpoint's status page, ``/status`` and ``/trace``.
 
-Theory of operation: ``/metrics``, ``/healthz`` and ``/readyz`` are ``Access.OPEN``
+Theory of operation: ``/metrics``, ``/healthz`` and ``/readyz`` are ``RouteAccess.OPEN``
 (scrapers and health checks reach them whatever they send). The other routes are
 guarded, in this order:
 
@@ -27,7 +27,7 @@ from urllib.parse import parse_qs
 from ..config import MetricsConfig, is_loopback
 
 
-class Access(enum.Enum):
+class RouteAccess(enum.Enum):
     """What a route exposes, hence what guards it."""
 
     OPEN = "open"  #: metrics and health: any Host, no token
@@ -45,7 +45,7 @@ class HttpRefusal(enum.StrEnum):
     MAX_CONNECTIONS = "max_connections"  #: closed at accept: every connection is busy
 
 
-_COOKIE = {Access.STATUS: "mbgw_status", Access.TRACE: "mbgw_trace"}
+_COOKIE = {RouteAccess.STATUS: "mbgw_status", RouteAccess.TRACE: "mbgw_trace"}
 _STATUS: dict[HttpRefusal | None, int] = {HttpRefusal.HOST: 421, HttpRefusal.NO_TOKEN: 401}
 
 
@@ -106,7 +106,10 @@ class Guard:
     def __init__(self, config: MetricsConfig) -> None:
         listen = host_name(config.host)
         self._hosts = frozenset({listen, *config.allowed_hosts}) - {"0.0.0.0", "::", ""}
-        self._tokens = {Access.STATUS: config.status_token, Access.TRACE: config.trace_token}
+        self._tokens = {
+            RouteAccess.STATUS: config.status_token,
+            RouteAccess.TRACE: config.trace_token,
+        }
         self._secure = config.tls_cert is not None
 
     def host_allowed(self, header: str | None, local_address: str) -> bool:
@@ -117,10 +120,10 @@ class Guard:
         return name in self._hosts or is_loopback(name) or name == local_address.lower()
 
     def judge(
-        self, access: Access, target: str, headers: Mapping[str, str], local_address: str
+        self, access: RouteAccess, target: str, headers: Mapping[str, str], local_address: str
     ) -> Verdict:
         """Whether the request may have the route, and the cookies a ``?token=`` sets."""
-        if access is Access.OPEN:
+        if access is RouteAccess.OPEN:
             return Verdict()
         if not self.host_allowed(headers.get("host"), local_address):
             return Verdict(HttpRefusal.HOST)
@@ -142,6 +145,6 @@ class Guard:
             return Verdict(None, cookies)
         return Verdict(HttpRefusal.WRONG_TOKEN if given else HttpRefusal.NO_TOKEN)
 
-    def _cookie(self, access: Access, token: str) -> str:
+    def _cookie(self, access: RouteAccess, token: str) -> str:
         secure = "; Secure" if self._secure else ""
         return f"{_COOKIE[access]}={token}; Path=/; HttpOnly; SameSite=Strict{secure}"

@@ -50,10 +50,10 @@ from ..config import ListenerConfig
 from ..core import pdu as fc
 from ..core.admission import AnswerLocally, Broadcast, Submit
 from ..core.ascii import encode_ascii
-from ..core.line import no_reply
+from ..core.line import LineRequest, no_reply
 from ..core.outcome import Outcome
 from ..core.policy import Policy, Principal
-from ..core.routes import Target as CoreTarget
+from ..core.routes import Target
 from ..core.rtu import MAX_RTU_FRAME
 from ..core.rtu_stream import encode_rtu_reply, heard_request
 from ..core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
@@ -63,7 +63,6 @@ from ..metrics import UNIT_LABELS, GatewayMetrics
 from ..status import MasterStatus
 from ..trace import FrameTrace
 from .audit import AuditLog, AuditTicket
-from .bus import Request
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
 from .tcp import Router, count_local_answer
@@ -116,7 +115,7 @@ class SerialSlave:
         self._clock = PreciseClock(loop) if self._ascii is None else None
         self._link: SerialLink | None = None
         self._reopener: asyncio.Task[None] | None = None
-        self._pending: Request | None = None
+        self._pending: LineRequest | None = None
         self._answering: asyncio.TimerHandle | None = None  # an answer waiting for turnaround
         self._stopping = False
         self._open_error = ""
@@ -322,7 +321,7 @@ class SerialSlave:
             count_local_answer(self._metrics, self.name, self.policy, None, function, result)
 
     def _submit(
-        self, number: int, unit: int, pdu: bytes, target: CoreTarget, ticket: AuditTicket | None
+        self, number: int, unit: int, pdu: bytes, target: Target, ticket: AuditTicket | None
     ) -> None:
         """Queue the request on its line; only the latest request of the master is answered."""
         peer = self._serial.device
@@ -341,7 +340,7 @@ class SerialSlave:
                     self.tracer.dropped(peer, number, unit, function)
             self._metrics.count_request(line, unit_label, function, outcome)
 
-        request = Request(target.slave, pdu, self, reply)
+        request = LineRequest(target.slave, pdu, self, reply)
         self._pending = request
         self.router.bus(line).submit(request)
 
@@ -355,7 +354,7 @@ class SerialSlave:
         for line in result.lines:
             bus = self.router.bus(line)
             if bus.up:
-                bus.submit(Request(0, pdu, self, reply, broadcast=True))
+                bus.submit(LineRequest(0, pdu, self, reply, broadcast=True))
 
     def _answer(self, number: int, unit: int, pdu: bytes, outcome: Outcome) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""

@@ -76,18 +76,19 @@ from ..core.connection_share import (
     has_free_slot,
 )
 from ..core.errors import ExceptionCode, FramingError
-from ..core.line import no_reply
+from ..core.line import LineRequest, no_reply
 from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
 from ..core.outcome import Outcome
 from ..core.policy import IPAddress, Policy, Principal
-from ..core.routes import Target as CoreTarget
+from ..core.reasons import CloseReason, RejectReason
+from ..core.routes import Target
 from ..logs import EventSummary, RateLimitedLogger
-from ..metrics import UNIT_LABELS, CloseReason, GatewayMetrics, LoopHistogram, RejectReason
+from ..metrics import UNIT_LABELS, GatewayMetrics, LoopHistogram
 from ..status import MasterStatus
 from ..trace import FrameTrace
 from .access import SourceScreen, peer_address_of
 from .audit import AuditLog, AuditTicket
-from .bus import Bus, Request
+from .bus import Bus
 from .tls import (
     HandshakeFailure,
     HandshakeNote,
@@ -153,7 +154,7 @@ class LineService(Protocol):
         """The latency series the listener observes each answer in."""
         ...
 
-    def submit(self, request: Request) -> bool:
+    def submit(self, request: LineRequest) -> bool:
         """Take ``request``; its answer comes through ``request.reply`` (perhaps at once)."""
         ...
 
@@ -163,7 +164,7 @@ class LineService(Protocol):
 
 
 @dataclass(frozen=True, slots=True)
-class Target:
+class LineTarget:
     """Where a TCP unit id goes on the running lines: the line and the slave address."""
 
     bus: LineService
@@ -181,9 +182,9 @@ class Router:
 
     def __init__(
         self,
-        routes: Mapping[int, Target],
+        routes: Mapping[int, LineTarget],
         broadcast_buses: list[Bus],
-        own: Mapping[int, Target] | None = None,
+        own: Mapping[int, LineTarget] | None = None,
     ) -> None:
         self.routes = dict(routes)
         self.broadcast_buses = broadcast_buses
@@ -198,12 +199,12 @@ class Router:
         #: The running line of each line name (``bus``; read directly once per request).
         self.by_line = lines
         self.admitter = Admitter.of(
-            {unit: CoreTarget(target.bus.name, target.slave) for unit, target in routes.items()},
+            {unit: Target(target.bus.name, target.slave) for unit, target in routes.items()},
             [bus.name for bus in broadcast_buses],
-            {unit: CoreTarget(target.bus.name, target.slave) for unit, target in own.items()},
+            {unit: Target(target.bus.name, target.slave) for unit, target in own.items()},
         )
 
-    def lookup(self, unit: int) -> Target | None:
+    def lookup(self, unit: int) -> LineTarget | None:
         """The route for ``unit``, ``None`` when there is none."""
         return self.routes.get(unit)
 
@@ -290,7 +291,7 @@ class MasterConnection(asyncio.BufferedProtocol):
         self._decoder: RequestSplitter = MbapDecoder() if splitter is None else splitter
         self._buffer = memoryview(bytearray(READ_CHUNK))
         self._transport: asyncio.Transport | None = None
-        self._pending: set[Request] = set()
+        self._pending: set[LineRequest] = set()
         self._in_flight = 0
         self._pauses: int = ReadPause.NONE
         self._batch: list[bytes] | None = None  # replies of the running batch, one write
@@ -496,7 +497,7 @@ class MasterConnection(asyncio.BufferedProtocol):
             server.metrics.count_request(line, unit_label, function, outcome)
             self._request_done()
 
-        request = Request(slave, pdu, self, reply)
+        request = LineRequest(slave, pdu, self, reply)
         self._pending.add(request)
         self._in_flight += 1
         if not bus.submit(request):
@@ -557,7 +558,7 @@ class MasterConnection(asyncio.BufferedProtocol):
 
         self._in_flight += 1
         for bus in buses:
-            request = Request(0, pdu, self, sent, broadcast=True)
+            request = LineRequest(0, pdu, self, sent, broadcast=True)
             if bus.submit(request):
                 self._pending.add(request)
             else:

@@ -45,7 +45,7 @@ import logging
 import ssl
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -666,12 +666,6 @@ def _facts(
         trusted,
         revoked,
     )
-
-
-def certificates_of(tls: dict[str, ServerTls]) -> Iterator[CertificateInfo]:
-    """Every certificate of every listener, for the expiry metric."""
-    for built in tls.values():
-        yield from built.certificates
 
 
 # --------------------------------------------------------------------------- tls lines (client)

@@ -7,7 +7,7 @@ several gateways and the simulated slaves on one simulated RS-485 bus.
 """
 
 from .device import DataBank, SimulatedDevice
-from .line import LineStats, SimulatedLine, UnitFaults
+from .line import SimulatedLine, SimulatedLineStats, UnitFaults
 from .multidrop import BusCollision, BusFrame, BusNode, BusStats, BusTimeline, MultidropBus
 from .profiles import PROFILES, plc, power_controller, r6, zl69x
 from .pty import PtyPair, close_pty_pair, open_pty_pair
@@ -21,11 +21,11 @@ __all__ = [
     "BusStats",
     "BusTimeline",
     "DataBank",
-    "LineStats",
     "MultidropBus",
     "PtyPair",
     "SimulatedDevice",
     "SimulatedLine",
+    "SimulatedLineStats",
     "SimulatedTcpSlave",
     "TcpSlaveServer",
     "TcpSlaveStats",

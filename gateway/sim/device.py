@@ -24,10 +24,7 @@ from gateway.core.pdu import exception_pdu, validate_request
 #: Every function code the simulator implements: all those the core knows by name.
 ALL_FUNCTIONS = frozenset(fc.FUNCTION_NAMES)
 
-# Device identification object ids (basic category) and access codes.
-VENDOR_NAME = 0x00
-PRODUCT_CODE = 0x01
-MAJOR_MINOR_REVISION = 0x02
+# Device identification: the individual access code and the last object id of each category.
 _DEVICE_ID_INDIVIDUAL = 4
 _DEVICE_ID_CATEGORY_LAST = {1: 0x02, 2: 0x7F, 3: 0xFF}  # last object id of each category
 

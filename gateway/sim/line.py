@@ -70,8 +70,8 @@ class UnitFaults:
 
 
 @dataclass(frozen=True)
-class LineStats:
-    """A snapshot of what the line saw and did."""
+class SimulatedLineStats:
+    """A snapshot of what the simulated line saw and did."""
 
     requests: int  #: frames with a good CRC, for any unit (broadcasts included)
     responses: int  #: answers sent (an answer with injected faults counts once)
@@ -105,7 +105,7 @@ class _Counters:
     max_lateness_s: float = 0.0
 
 
-class _StopRequestedError(Exception):
+class _SimulationStoppedError(Exception):
     """Unwinds the serving thread when ``stop`` is called."""
 
 
@@ -233,12 +233,12 @@ class SimulatedLine:
             raise KeyError(unit)
         self._faults[unit] = faults
 
-    def stats(self) -> LineStats:
+    def stats(self) -> SimulatedLineStats:
         """A snapshot of the counters (taken without locking; each field is consistent)."""
         values = asdict(self._counters)
         if values["min_gap_s"] == float("inf"):
             values["min_gap_s"] = None
-        return LineStats(**values)
+        return SimulatedLineStats(**values)
 
     def start(self) -> None:
         """Start serving in a daemon thread."""
@@ -292,7 +292,7 @@ class SimulatedLine:
                 taken = self._take_frame()
                 if taken is not None:
                     self._serve_frame(*taken)
-        except _StopRequestedError:
+        except _SimulationStoppedError:
             return
         except Exception as error:  # kept for stop() to re-raise in the caller's thread
             self._error = error
@@ -301,7 +301,7 @@ class SimulatedLine:
         """Wait up to ``timeout`` for input and take it; True when bytes arrived."""
         readable, _, _ = select.select([self._fd, self._wake_r], [], [], timeout)
         if self._stopping.is_set():
-            raise _StopRequestedError
+            raise _SimulationStoppedError
         if self._fd in readable:
             return self._receive(time.perf_counter())
         return False
@@ -517,4 +517,4 @@ class SimulatedLine:
             if view:
                 select.select([self._wake_r], [self._fd], [], None)
                 if self._stopping.is_set():
-                    raise _StopRequestedError
+                    raise _SimulationStoppedError

@@ -185,7 +185,6 @@ R6_CYCLES = 0x1_2345_6789
 R6_RUN_TIME = 0x0000_0123_4567_89AB
 R6_COUNTER_START = (-2, 0x7FFF_FFFF_FFFF)
 R6_OUTPUTS = 128  # coils 0..127: IO board outputs (FC 1 reads, FC 5 writes)
-R6_UNIT_IDS = (0x01, 0xFF)  # the unit ids the document's examples address
 
 
 def _r6_holding() -> dict[int, int]:

@@ -57,7 +57,7 @@ class TcpSlaveStats:
 
 
 @dataclass
-class _Counters:
+class _TcpCounters:
     connections: int = 0
     requests: int = 0
     responses: int = 0
@@ -155,7 +155,7 @@ class TcpSlaveServer:
         for unit, device in units.items():  # an alias shares its device's faults
             first = next(u for u, d in units.items() if d is device)
             self._faults[unit] = self._faults.get(first) or UnitFaults()
-        self._counters = _Counters()
+        self._counters = _TcpCounters()
         self._transports: set[asyncio.Transport] = set()
 
     @property

@@ -19,7 +19,7 @@ from gateway.core.line import LineRequest
 from gateway.core.outcome import Outcome
 from gateway.core.redundancy import Role
 from gateway.io.http import HttpEndpoint, respond, start_http
-from gateway.io.http_guard import Access
+from gateway.io.http_guard import RouteAccess
 from gateway.io.pair.channel import (
     PeerPoller,
     PeerRole,
@@ -47,7 +47,7 @@ async def role_route(
 
 
 async def endpoint(config: MetricsConfig) -> HttpEndpoint:
-    routes = {"/role": (role_route, Access.STATUS)}
+    routes = {"/role": (role_route, RouteAccess.STATUS)}
     return await start_http(config, CollectorRegistry(), lambda: (True, "ok"), routes)
 
 

@@ -6,6 +6,7 @@ region is for a table whose columns carry meaning, and there are few of those.
 
 from __future__ import annotations
 
+import ast
 import io
 import tokenize
 import tomllib
@@ -50,3 +51,14 @@ def test_no_file_is_kept_from_the_formatter() -> None:
     for name, table in tables.items():
         kept = {key: table[key] for key in ("exclude", "extend-exclude") if key in table}
         assert not kept, f"[{name}] keeps files from ruff format: {kept}"
+
+
+def test_each_class_name_is_defined_once() -> None:
+    """One name, one meaning: a reader (and a grep) finds the class a name stands for."""
+    defined: dict[str, list[str]] = {}
+    for path in sorted(GATEWAY.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef):
+                defined.setdefault(node.name, []).append(path.relative_to(ROOT).as_posix())
+    twice = {name: places for name, places in defined.items() if len(places) > 1}
+    assert not twice, f"give each class a name of its own: {twice}"

@@ -8,7 +8,7 @@ import pytest
 
 from gateway.config import (
     ConfigError,
-    PollBlock,
+    PollConfig,
     build_config,
     config_warnings,
     policy_warnings,
@@ -50,8 +50,8 @@ def test_a_block_resolves_to_its_line_and_slave_through_the_routes() -> None:
         ]
     )
     first, second = built.polls
-    assert first == PollBlock(1, 3, 0, 50, 1.0, 3.0, "a", 1, 0)  # max_age: 3 x every
-    assert second == PollBlock(100, 1, 10, 2000, 0.5, 0.5, "b", 7, 1)
+    assert first == PollConfig(1, 3, 0, 50, 1.0, 3.0, "a", 1, 0)  # max_age: 3 x every
+    assert second == PollConfig(100, 1, 10, 2000, 0.5, 0.5, "b", 7, 1)
     assert built.line("a").polls == (first,) and built.line("b").polls == (second,)
     assert built.polling.status_unit == 0 and built.polling.max_blocks == 256
 

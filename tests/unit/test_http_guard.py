@@ -7,7 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.config import MetricsConfig, is_loopback
-from gateway.io.http_guard import Access, Guard, HttpRefusal, host_name
+from gateway.io.http_guard import Guard, HttpRefusal, RouteAccess, host_name
 
 STATUS = "s" * 20
 TRACE = "t" * 20
@@ -41,38 +41,40 @@ def guard(**config: object) -> Guard:
 def test_the_host_check_guards_status_and_trace_only() -> None:
     check = guard(host="0.0.0.0", allowed_hosts=("gw.example",))
     foreign = {"host": "attacker.example"}
-    assert check.judge(Access.OPEN, "/metrics", foreign, "10.0.0.5").refusal is None
-    assert check.judge(Access.STATUS, "/status", foreign, "10.0.0.5").refusal is HttpRefusal.HOST
-    assert check.judge(Access.TRACE, "/trace", foreign, "10.0.0.5").status == 421
+    assert check.judge(RouteAccess.OPEN, "/metrics", foreign, "10.0.0.5").refusal is None
+    assert (
+        check.judge(RouteAccess.STATUS, "/status", foreign, "10.0.0.5").refusal is HttpRefusal.HOST
+    )
+    assert check.judge(RouteAccess.TRACE, "/trace", foreign, "10.0.0.5").status == 421
     for host in ("gw.example:9502", "10.0.0.5:9502", "localhost", "[::1]:1"):
-        assert check.judge(Access.STATUS, "/", {"host": host}, "10.0.0.5").refusal is None
-    assert check.judge(Access.STATUS, "/", {}, "10.0.0.5").refusal is None  # no browser
+        assert check.judge(RouteAccess.STATUS, "/", {"host": host}, "10.0.0.5").refusal is None
+    assert check.judge(RouteAccess.STATUS, "/", {}, "10.0.0.5").refusal is None  # no browser
     # 0.0.0.0 is no name a browser can be sent to by a rebinding page: not in the list.
-    assert check.judge(Access.STATUS, "/", {"host": "0.0.0.0"}, "10.0.0.5").status == 421
+    assert check.judge(RouteAccess.STATUS, "/", {"host": "0.0.0.0"}, "10.0.0.5").status == 421
 
 
 def test_tokens_and_the_cookies_a_link_sets() -> None:
     check = guard(status_token=STATUS, trace_token=TRACE, tls_cert="c", tls_key="k")
     local = {"host": "localhost"}
-    assert check.judge(Access.STATUS, "/status", local, "").status == 401
+    assert check.judge(RouteAccess.STATUS, "/status", local, "").status == 401
     wrong = {**local, "authorization": "Bearer x"}
-    assert check.judge(Access.STATUS, "/status", wrong, "").status == 403
+    assert check.judge(RouteAccess.STATUS, "/status", wrong, "").status == 403
     right = {**local, "authorization": f"Bearer {STATUS}"}
-    assert check.judge(Access.STATUS, "/status", right, "").refusal is None
-    assert check.judge(Access.TRACE, "/trace", right, "").status == 403
-    link = check.judge(Access.STATUS, f"/?token={STATUS}&token={TRACE}", local, "")
+    assert check.judge(RouteAccess.STATUS, "/status", right, "").refusal is None
+    assert check.judge(RouteAccess.TRACE, "/trace", right, "").status == 403
+    link = check.judge(RouteAccess.STATUS, f"/?token={STATUS}&token={TRACE}", local, "")
     assert link.refusal is None and len(link.set_cookies) == 2
     assert all(
         "HttpOnly" in c and "SameSite=Strict" in c and "Secure" in c for c in link.set_cookies
     )
     cookie = {**local, "cookie": f"other=1; mbgw_trace={TRACE}"}
-    assert check.judge(Access.TRACE, "/trace?unit=1", cookie, "").refusal is None
-    assert check.judge(Access.STATUS, "/status", cookie, "").status == 401
+    assert check.judge(RouteAccess.TRACE, "/trace?unit=1", cookie, "").refusal is None
+    assert check.judge(RouteAccess.STATUS, "/status", cookie, "").status == 401
 
 
 @given(st.text(alphabet="abcdefghijklmnop0123456789-._~", min_size=1, max_size=40))
 def test_only_the_token_itself_opens(given_token: str) -> None:
     check = guard(status_token=STATUS)
     headers = {"authorization": f"Bearer {given_token}"}
-    verdict = check.judge(Access.STATUS, "/status", headers, "")
+    verdict = check.judge(RouteAccess.STATUS, "/status", headers, "")
     assert (verdict.refusal is None) == (given_token == STATUS)

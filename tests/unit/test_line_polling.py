@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.config import LineConfig, PollBlock
+from gateway.config import LineConfig, PollConfig
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.polling import AGE_NEVER, PollPlan, changed_range
 from gateway.core.outcome import BlockState, Outcome, SlaveState
@@ -36,8 +36,8 @@ def block(
     count: int = 10,
     every: float = 1.0,
     max_age: float | None = None,
-) -> PollBlock:
-    return PollBlock(
+) -> PollConfig:
+    return PollConfig(
         slave,
         function,
         address,
@@ -58,7 +58,7 @@ class RegisterLine(SimulatedTime):
     coil ``a`` is register ``a``'s lowest bit) and answer after ``turnaround`` seconds,
     or not at all while ``silent``."""
 
-    def __init__(self, blocks: tuple[PollBlock, ...], **settings: object) -> None:
+    def __init__(self, blocks: tuple[PollConfig, ...], **settings: object) -> None:
         super().__init__()
         config = LineConfig(
             name="t",

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.config import PollBlock
+from gateway.config import PollConfig
 from gateway.core.line.polling import AGE_NEVER, PollPlan
 from gateway.core.status_unit import status_answer
 from tests.helpers import h
@@ -15,9 +15,9 @@ from tests.helpers import h
 def plan() -> PollPlan:
     """Three blocks: fresh (polled at 10.0, 2.34 s before ``NOW``), failing, never polled."""
     specs = [
-        PollBlock(1, 3, 0, 10, 1.0, 3.0, "a", 1, 0),
-        PollBlock(2, 3, 0, 2, 1.0, 3.0, "a", 2, 1),
-        PollBlock(1, 4, 0, 4, 1.0, 3.0, "a", 1, 2),
+        PollConfig(1, 3, 0, 10, 1.0, 3.0, "a", 1, 0),
+        PollConfig(2, 3, 0, 2, 1.0, 3.0, "a", 2, 1),
+        PollConfig(1, 4, 0, 4, 1.0, 3.0, "a", 1, 2),
     ]
     poll_plan = PollPlan(specs, 0.0)
     fresh, failing, _never = poll_plan.blocks
