@@ -27,6 +27,7 @@ from types import FrameType
 from typing import Any
 
 from . import (
+    agent,
     closed_loop,
     fairness,
     hostile,
@@ -67,6 +68,7 @@ SCENARIOS: dict[str, Callable[[Bench], ScenarioResult]] = {
     **redundancy.SCENARIOS,
     **closed_loop.SCENARIOS,
     **learning.SCENARIOS,
+    **agent.SCENARIOS,
 }
 
 

@@ -94,6 +94,7 @@ class SimOptions:
     #: ``--response-time`` arguments: devices answering after a response time by phase
     #: (``bench.slaves.response_profile_argument``).
     response_time: Sequence[str] = ()
+    log_requests: bool = False  #: the simulator reports every request it executed, timed
     framing: str = "rtu"  #: "ascii": the slaves speak Modbus ASCII
     modbus_tcp_listen: str | None = None  #: HOST:PORT: a Modbus TCP slave instead of a pty
     #: With ``modbus_tcp_listen``: (certificate chain, key, CA) files: a Modbus/TCP Security
@@ -158,6 +159,8 @@ class Simulator:
             command += ["--die-on-signal", str(unit)]
         for profile in options.response_time:
             command += ["--response-time", profile]
+        if options.log_requests:
+            command.append("--log-requests")
         if options.framing != "rtu":
             command += ["--framing", options.framing]
         return command
@@ -184,12 +187,19 @@ class Simulator:
         if process is None:
             return self.stats
         self._process = None
-        _stop(process)
-        assert process.stdout is not None
-        for line in process.stdout.read().splitlines():
+        # Its counters are read while it exits: a line longer than the pipe's buffer
+        # (``--log-requests``) would otherwise hold it until it is killed.
+        output = ""
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+        try:
+            output, _ = process.communicate(timeout=STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            output, _ = process.communicate()
+        for line in output.splitlines():
             if line.startswith("{"):
                 self.stats = json.loads(line)
-        process.stdout.close()
         return self.stats
 
 

@@ -304,6 +304,9 @@ class Bench:
         self.progress = progress
         self.unpaced_runs: dict[tuple[int, int], Run] = {}
         self.runs: list[Run] = []  #: every run, in order
+        #: Wrong answers and read-after-write violations of scenarios that run their own
+        #: masters rather than the load generator (no ``Run`` to count them).
+        self.other_faults = 0
 
     def _run(
         self,
@@ -322,7 +325,7 @@ class Bench:
     @property
     def gateway_faults(self) -> int:
         """Wrong answers and read-after-write violations of the gateway, every run once."""
-        return sum(run.faults for run in self.runs if not run.reference)
+        return sum(run.faults for run in self.runs if not run.reference) + self.other_faults
 
     # -- helpers -------------------------------------------------------------------------
 

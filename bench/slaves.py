@@ -16,6 +16,10 @@ what the benchmark needs and a demo does not:
   ``UNIT:SHARE:MIN:MAX:first``: the unit's first read is one of them too.
 - ``--die-on-signal UNIT``: on SIGUSR1 the unit falls silent for good (a slave that
   dies in the middle of a run; the load generator sends the signal and notes when).
+- ``--log-requests``: every request a slave executes is kept with its arrival time
+  (``time.monotonic``, the same clock in every process) and its function, address and
+  quantity, and printed with the counters (``requests_log``, up to 200,000 per slave):
+  what reached the wire, counted where the wire ends.
 - ``--response-time UNITS:PHASES``: one device answering the unit ids ``UNITS``
   (``1,2,3,4``) with a response time drawn per answer, by phase: ``5@0.005-0.038``
   draws the device's first 5 answers (over all its unit ids) uniformly from 5-38 ms,
@@ -62,6 +66,7 @@ from .values import END_REGISTER, FIRST_REGISTER, register_value
 _STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 _READS = frozenset((1, 2, 3, 4))
 _WAIT_CAP_S = 0.5  # the late-answer thread re-checks for a stop at least this often
+_LOG_LIMIT = 200_000  # ``--log-requests``: requests kept per slave
 
 
 @dataclass(frozen=True)
@@ -286,9 +291,15 @@ class BenchSlave(SimulatedDevice):
         self.late: LateAnswers | None = None
         self.profile: ResponseProfile | None = None
         self.reads = 0  #: reads answered so far
+        #: ``--log-requests``: (arrival, function, address, quantity) of each request executed.
+        self.log: list[tuple[float, int, int, int]] | None = None
 
     def handle(self, pdu: bytes, *, broadcast: bool = False) -> bytes | None:
         """Answer now, or hand the answer to the late-answer thread (the line sends nothing)."""
+        log = self.log
+        if log is not None and len(log) < _LOG_LIMIT and len(pdu) >= 5:
+            address, quantity = int.from_bytes(pdu[1:3], "big"), int.from_bytes(pdu[3:5], "big")
+            log.append((time.monotonic(), pdu[0], address, quantity))
         late, rule, profile = self.late, self.late_rule, self.profile
         if profile is not None and late is not None and not broadcast:
             self._answer_in_time(pdu, profile, late)
@@ -385,6 +396,11 @@ def _parser() -> argparse.ArgumentParser:
         help="this unit falls silent on SIGUSR1",
     )  # fmt: skip
     parser.add_argument(
+        "--log-requests",
+        action="store_true",
+        help="keep every request executed, with its arrival time, and print them at the end",
+    )
+    parser.add_argument(
         "--response-time", action="append", type=_response_profile, default=[],
         metavar="UNITS:PHASES",
         help="one device answering UNITS (1,2,3,4) after a response time drawn by phase: "
@@ -458,6 +474,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if len(set(args.unit)) != len(args.unit):
         parser.error("a unit is given twice")
     slaves = {unit: BenchSlave(unit) for unit in args.unit}
+    if args.log_requests:
+        for slave in slaves.values():
+            slave.log = []
     profiled = [unit for profile in args.response_time for unit in profile.units]
     for unit in [*args.silent, *(u for u, _ in args.crc_error_rate), *args.die_on_signal,
                  *(rule.unit for rule in args.late), *profiled]:  # fmt: skip
@@ -523,6 +542,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         stats["late"] = dataclasses.asdict(late.stats)
         stats["response_time"] = [profile.stats() for profile in args.response_time]
         stats["died_at_monotonic"] = died_at
+        if args.log_requests:
+            stats["requests_log"] = {str(unit): slave.log for unit, slave in slaves.items()}
         print(json.dumps(stats), flush=True)
     return 0
 
