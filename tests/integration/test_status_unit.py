@@ -13,17 +13,21 @@ from typing import Any
 
 from gateway.config import build_config
 from gateway.sim import UnitFaults, open_pty_pair, plc
+from gateway.sim.pki import Pki
 from tests.helpers import (
     GatewayFactory,
     RawClient,
     RunningGateway,
     SimBus,
     SimFactory,
+    client_context,
     h,
     read,
     wait_until,
 )
 from tests.integration.test_rtu_over_tcp_listener import RtuClient, listener_address
+from tests.integration.test_security import listener_address as tls_address
+from tests.integration.test_security import tls_listener
 from tests.integration.test_serial_slave import RtuMaster
 
 STATUS = 250
@@ -189,3 +193,26 @@ def test_serial_masters_read_the_status_unit_through_a_serial_slave_listener(
         assert master.request(STATUS, read(6, 1, 4), 2) == h("84 02")
     finally:
         pair.close()
+
+
+def test_tls_masters_read_the_status_unit_as_their_role_allows(
+    make_sim: SimFactory, make_gateway: GatewayFactory, pki: Pki
+) -> None:
+    # Operators may read unit 1; viewers unit 1 and the status unit.
+    rules = [
+        {"role": "operator", "units": [1]},
+        {"role": "viewer", "units": [1, STATUS], "access": "read"},
+    ]
+    listener = tls_listener(pki, policy="plant")
+    _sim, gateway = start(
+        make_sim, make_gateway, listeners=[listener], policies={"plant": {"rules": rules}}
+    )
+    address = tls_address(gateway, "tls")
+    with (
+        RawClient(address, context=client_context(pki, "viewer")) as viewer,
+        RawClient(address, context=client_context(pki, "operator")) as operator,
+    ):
+        wait_until(lambda: status(viewer)[1] == 0, "block 0 fresh, read over TLS")
+        assert viewer.request(STATUS, h("06 0000 0001")) == h("86 01")  # its rule: reads only
+        assert operator.request(STATUS, read(0, 2)) == h("83 01")  # no rule names it
+        assert operator.request(1, read(0))[:2] == h("03 02")
