@@ -396,3 +396,14 @@ def test_a_plan_that_needs_the_whole_line_alternates_with_the_masters() -> None:
     assert all(line.answer_of(request)[1] is Outcome.OK for request in requests)
     to_two = [i for i, frame in enumerate(line.frames) if frame[0] == 2]
     assert all(later - earlier == 2 for earlier, later in itertools.pairwise(to_two))
+
+
+def test_a_stopped_line_polls_no_more_and_falls_idle() -> None:
+    line = RegisterLine((block(count=10, every=0.2),), initial_timeout=1.0)
+    line.silent.add(1)  # each poll waits out its timeout, longer than the period
+    line.run(0.5)
+    line.core.stop(line.now)
+    sent = len(line.frames)
+    line.run(5.0)
+    assert len(line.frames) == sent  # the poll on the wire ended; no other went
+    assert line.core.idle and line.core.get_timer() is None

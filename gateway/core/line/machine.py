@@ -457,6 +457,7 @@ class LineCore:
     def stop(self, now: float) -> None:
         """Take no more requests; answer the queue 0x0A; the attempt on the wire finishes."""
         self._stopping = True
+        self.plan.stop()  # the plan's own polls end with the line's
         self._fail_all(ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
 
     def abandon(self, now: float) -> None:

@@ -150,6 +150,7 @@ class PollPlan:
         self.blocks: list[PollBlock] = []
         self.by_slave: dict[int, list[PollBlock]] = {}
         self.next_due = INFINITY
+        self.stopped = False  # the line stops: no more polls (``stop``)
         self.configure(specs, now)
 
     def configure(self, specs: Sequence[PollBlockPolicy], now: float) -> None:
@@ -206,9 +207,17 @@ class PollPlan:
         self._update_due()
 
     def _update_due(self) -> None:
+        if self.stopped:
+            self.next_due = INFINITY
+            return
         self.next_due = min(
             (block.due for block in self.blocks if block.poll is None), default=INFINITY
         )
+
+    def stop(self) -> None:
+        """The line stops: nothing more is polled (what is on the wire finishes)."""
+        self.stopped = True
+        self.next_due = INFINITY
 
     # -- masters' requests ---------------------------------------------------------------
 
