@@ -15,6 +15,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
 import site
 import socket
@@ -25,7 +26,7 @@ import sys
 import threading
 import time
 import venv
-from collections.abc import Callable, Coroutine, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -430,6 +431,79 @@ def environment_with_our_dependencies(env_dir: Path, wheel: Path) -> Path:
         check=True, timeout=120,
     )  # fmt: skip
     return python
+
+
+# --------------------------------------------------------------------------- processes
+
+
+class LoggedProcess:
+    """``python -m gateway ARGS`` in a subprocess, its log (stderr, or stdout and stderr
+    together) collected line by line by a thread; ``wait_for`` waits on what it logs."""
+
+    def __init__(self, *args: str, merge_stdout: bool = False) -> None:
+        self.lines: list[str] = []
+        self._eof = False
+        self._changed = threading.Condition()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "gateway", *args],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE if merge_stdout else subprocess.DEVNULL,
+            stderr=subprocess.STDOUT if merge_stdout else subprocess.PIPE,
+            text=True,
+        )
+        pipe = self.proc.stdout if merge_stdout else self.proc.stderr
+        assert pipe is not None
+        self._reader = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self._reader.start()
+
+    def _read(self, pipe: Iterable[str]) -> None:
+        for line in pipe:
+            with self._changed:
+                self.lines.append(line.rstrip("\n"))
+                self._changed.notify_all()
+        with self._changed:
+            self._eof = True
+            self._changed.notify_all()
+
+    @property
+    def log(self) -> str:
+        """Everything logged so far."""
+        with self._changed:
+            return "\n".join(self.lines)
+
+    def mark(self) -> int:
+        """A position in the log: ``wait_for(..., start=mark)`` looks only at later lines."""
+        with self._changed:
+            return len(self.lines)
+
+    def wait_for(self, pattern: str, start: int = 0, timeout: float = DEADLINE_S) -> re.Match[str]:
+        """The first log line from ``start`` on that matches ``pattern``, waiting for it."""
+        regex = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        index = start
+        with self._changed:
+            while True:
+                while index < len(self.lines):
+                    match = regex.search(self.lines[index])
+                    index += 1
+                    if match is not None:
+                        return match
+                remaining = deadline - time.monotonic()
+                if self._eof or remaining <= 0:
+                    why = "the gateway exited" if self._eof else f"{timeout} s passed"
+                    log = "\n".join(self.lines)
+                    raise AssertionError(f"{why} before a log line matching {pattern!r}:\n{log}")
+                self._changed.wait(remaining)
+
+    def count(self, pattern: str) -> int:
+        """Log lines matching ``pattern`` so far."""
+        regex = re.compile(pattern)
+        with self._changed:
+            return sum(1 for line in self.lines if regex.search(line))
+
+    def release(self) -> None:
+        """Wait for the process (it must be ending), its log's last line and its pipes."""
+        release(self.proc, self._reader)
 
 
 # ----------------------------------------------------------------- bytes and configurations

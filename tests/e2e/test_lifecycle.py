@@ -18,11 +18,9 @@ from __future__ import annotations
 import asyncio
 import http.client
 import os
-import re
 import signal
 import socket
 import struct
-import subprocess
 import sys
 import threading
 import time
@@ -36,7 +34,7 @@ import pytest
 from gateway.config import build_config
 from gateway.io.serial_port import SerialLink, SerialPortError, open_serial
 from gateway.sim import PtyPair, SimulatedLine, open_pty_pair, plc
-from tests.helpers import mbap, release, wait_until
+from tests.helpers import LoggedProcess, mbap, wait_until
 
 DEADLINE_S = 10.0
 READ_10 = bytes([0x03, 0x00, 0x00, 0x00, 0x0A])  # read holding registers 0..9
@@ -94,79 +92,21 @@ def write_text(path: Path, text: str) -> None:
 # --------------------------------------------------------------------------- the gateway process
 
 
-class GatewayProcess:
+class GatewayProcess(LoggedProcess):
     """``python -m gateway`` in a subprocess; its stderr log is collected line by line."""
 
     def __init__(self, config: Path, *, grace: float = 5.0, metrics: bool = False) -> None:
-        command = [
-            sys.executable, "-m", "gateway", "--config", str(config),
-            "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0" if metrics else "off",
+        super().__init__(
+            "--config", str(config), "--listen", "127.0.0.1:0",
+            "--metrics", "127.0.0.1:0" if metrics else "off",
             "--grace", str(grace), *os.environ.get("LIFECYCLE_GATEWAY_ARGS", "").split(),
-        ]  # fmt: skip
-        self.lines: list[str] = []
-        self._eof = False
-        self._changed = threading.Condition()
-        self.proc = subprocess.Popen(
-            command,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        self._reader = threading.Thread(target=self._read, name="gateway-log", daemon=True)
-        self._reader.start()
+        )  # fmt: skip
         match = self.wait_for(r"listening on ([\d.]+):(\d+) \(Modbus TCP\)")
         self.address = (match[1], int(match[2]))
         self.metrics_address: tuple[str, int] | None = None
         if metrics:
             match = self.wait_for(r"metrics on http://([\d.]+):(\d+)/metrics")
             self.metrics_address = (match[1], int(match[2]))
-
-    def _read(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            with self._changed:
-                self.lines.append(line.rstrip("\n"))
-                self._changed.notify_all()
-        with self._changed:
-            self._eof = True
-            self._changed.notify_all()
-
-    @property
-    def log(self) -> str:
-        """Everything logged so far."""
-        with self._changed:
-            return "\n".join(self.lines)
-
-    def mark(self) -> int:
-        """A position in the log: ``wait_for(..., start=mark)`` looks only at later lines."""
-        with self._changed:
-            return len(self.lines)
-
-    def wait_for(self, pattern: str, start: int = 0, timeout: float = DEADLINE_S) -> re.Match[str]:
-        """The first log line from ``start`` on that matches ``pattern``, waiting for it."""
-        regex = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        index = start
-        with self._changed:
-            while True:
-                while index < len(self.lines):
-                    match = regex.search(self.lines[index])
-                    index += 1
-                    if match is not None:
-                        return match
-                remaining = deadline - time.monotonic()
-                if self._eof or remaining <= 0:
-                    why = "the gateway exited" if self._eof else f"{timeout} s passed"
-                    log = "\n".join(self.lines)
-                    raise AssertionError(f"{why} before a log line matching {pattern!r}:\n{log}")
-                self._changed.wait(remaining)
-
-    def count(self, pattern: str) -> int:
-        """Log lines matching ``pattern`` so far."""
-        regex = re.compile(pattern)
-        with self._changed:
-            return sum(1 for line in self.lines if regex.search(line))
 
     def signal(self, signum: int) -> float:
         """Send ``signum``; return the monotonic time just before it was sent."""
@@ -194,7 +134,7 @@ class GatewayProcess:
         """Kill the process if it still runs; collect the rest of its log."""
         if self.proc.poll() is None:
             self.proc.kill()
-        release(self.proc, self._reader)
+        self.release()
 
 
 # --------------------------------------------------------------------------- masters

@@ -17,8 +17,6 @@ import ssl
 import struct
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,62 +26,23 @@ from cryptography.hazmat.primitives.serialization import Encoding
 
 from gateway.io.tls import role_from_certificate
 from gateway.sim.pki import DAY, Pki
-from tests.helpers import mbap, release, require_tool
+from tests.helpers import LoggedProcess, mbap, require_tool
 
 DEADLINE_S = 10.0
 READ = bytes.fromhex("03 0000 0001")
 
 
-class Gateway:
-    """``python -m gateway ARGS`` with its log collected line by line."""
+class Gateway(LoggedProcess):
+    """``python -m gateway ARGS`` with its log (stdout and stderr) collected line by line."""
 
     def __init__(self, *args: str) -> None:
-        command = [sys.executable, "-m", "gateway", *args]
-        self.lines: list[str] = []
-        self._eof = False
-        self._changed = threading.Condition()
-        self.proc = subprocess.Popen(
-            command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            text=True,
-        )  # fmt: skip
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with self._changed:
-                self.lines.append(line.rstrip("\n"))
-                self._changed.notify_all()
-        with self._changed:
-            self._eof = True
-            self._changed.notify_all()
-
-    def mark(self) -> int:
-        with self._changed:
-            return len(self.lines)
-
-    def wait_for(self, pattern: str, start: int = 0) -> re.Match[str]:
-        regex = re.compile(pattern)
-        deadline = time.monotonic() + DEADLINE_S
-        index = start
-        with self._changed:
-            while True:
-                while index < len(self.lines):
-                    match = regex.search(self.lines[index])
-                    index += 1
-                    if match is not None:
-                        return match
-                remaining = deadline - time.monotonic()
-                if self._eof or remaining <= 0:
-                    raise AssertionError(f"no line matching {pattern!r}:\n" + "\n".join(self.lines))
-                self._changed.wait(remaining)
+        super().__init__(*args, merge_stdout=True)
 
     def close(self) -> int:
         """SIGTERM if it still runs; close its pipe; the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
-        release(self.proc, self._reader)
+        self.release()
         return self.proc.returncode
 
 
