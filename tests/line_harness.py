@@ -17,7 +17,7 @@ from typing import Any
 
 from gateway.config import LineConfig
 from gateway.core.framing import RTU, Framing
-from gateway.core.line import LineCore, LineRequest, Note, new_line_core
+from gateway.core.line import LineCore, LineRequest, Note, Transmit, new_line_core
 from gateway.core.outcome import LineEvent, Outcome
 
 Reply = Callable[[bytes, Outcome], None]
@@ -167,6 +167,7 @@ class DeafWhileBusyLine(SimulatedTime):
         self.outcomes: list[tuple[Hashable, LineRequest, Outcome, bytes]] = []
         self.wrong = 0  # answers whose data is another request's
         self.on_answer: Callable[[LineRequest, Outcome], None] = lambda _r, _o: None
+        self.on_transmit: Callable[[Transmit], None] = lambda _t: None
         core.port_opened(-1.0)
 
     def submit(self, master: Hashable, slave: int, pdu: bytes) -> LineRequest:
@@ -181,6 +182,7 @@ class DeafWhileBusyLine(SimulatedTime):
             transmits, core.transmits = core.transmits, []
             for transmit in transmits:
                 self.sent.append(transmit.frame)
+                self.on_transmit(transmit)
                 self._hear(transmit.frame)
             deliveries, core.deliveries = core.deliveries, []
             for request, pdu, outcome, _wire in deliveries:

@@ -22,32 +22,47 @@ The machine runs once per framing: RTU (``TestLineCore``) and ASCII
 an RTU line whose adapter echoes every frame the gateway sends (``TestEchoLineCore``);
 and on a Modbus TCP line with ``max_in_flight`` 3 whose slaves answer in any order
 (``TestPipelinedLineCore``, with invariants of its own: see its docstring).
+
+Two machines check what the line promises the masters rather than the wire, each at the
+line's defaults on a simulated 19200-baud line: ``FairLineMachine`` (masters polling flat
+out take their turns in rounds; a master polling now and then goes next after the
+transaction on the wire) and ``AbsentBesideLineMachine`` (scans of absent addresses do not
+take a periodic master's turn). See their docstrings.
 """
 
 from __future__ import annotations
 
 import os
+import random
 import struct
 from dataclasses import dataclass, field, replace
 
 import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
-from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    precondition,
+    rule,
+)
 
-from gateway.config import CacheRule, LineConfig
+from gateway.config import CacheRule, LineConfig, build_config
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
-from gateway.core.line import LineCore, LineRequest
+from gateway.core.line import INFINITY, LineCore, LineRequest, Transmit
+from gateway.core.line.fair_queue import REST_S
 from gateway.core.line.flights import FlightWire
 from gateway.core.line.records import Attempt
 from gateway.core.line.response_timing import FLOOR_S, NETWORK_FLOOR_S, answer_pdu_length
+from gateway.core.line.wire import SerialWire
 from gateway.core.mbap import encode_mbap
 from gateway.core.outcome import LineEvent, Outcome
 from gateway.core.rtu import MAX_RTU_FRAME, encode_rtu
 from gateway.core.timing import character_time
-from tests.line_harness import LineHarness, new_core
+from tests.line_harness import DeafWhileBusyLine, LineHarness, new_core
 
 BAUD = 19200
 TIMEOUT = 0.1
@@ -1126,6 +1141,12 @@ class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
         super().__init__()
         #: The slaves' turnarounds while the connection is silent (empty: it answers).
         self.silenced: dict[int, float | None] = {}
+        #: The connection watched for silence: its core, the bytes read when it was opened
+        #: and when last seen, and the timeouts in a row since anything was read.
+        self.watched: LineCore | None = None
+        self.read_at_open = 0
+        self.read_seen = 0
+        self.missed = 0
 
     @rule()
     def connection_goes_silent(self) -> None:
@@ -1142,7 +1163,35 @@ class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
             for unit, delay in self.silenced.items():  # the new connection answers
                 self.slaves[unit] = replace(self.slaves[unit], delay=delay)
             self.silenced = {}
+        self.check_silence(reconnect)
         super().pump()
+
+    def check_silence(self, reconnect: bool) -> None:
+        """A connection that answered before and then let ``reconnect_after`` attempts in
+        a row time out, nothing read meanwhile, is made again (at the last of them)."""
+        core = self.core
+        read = core.stats.bytes_read
+        if core is not self.watched:  # a reopened line's new connection
+            self.watched, self.read_at_open, self.read_seen, self.missed = core, read, read, 0
+        if read != self.read_seen:
+            self.read_seen, self.missed = read, 0
+        self.missed += sum(note.event is LineEvent.TIMEOUT for note in core.notes)
+        if reconnect:
+            self.read_at_open, self.missed = read, 0
+        limit = self.config.reconnect_after
+        if limit and self.missed > limit and read > self.read_at_open:
+            self.problems.append(
+                f"{self.missed} timeouts in a row on a connection that answered before, "
+                f"nothing read since, and no reconnect (reconnect_after {limit})"
+            )
+            self.missed = 0
+
+    @precondition(lambda self: self.core.up)
+    @rule()
+    def lose_port(self) -> None:
+        super().lose_port()
+        self.read_at_open = self.read_seen = self.core.stats.bytes_read  # a new connection
+        self.missed = 0
 
     def deadline_of(self, request: LineRequest, frame: bytes) -> float:
         """The core's own deadline: the learned one (checked by ``check_deadline``)."""
@@ -1152,6 +1201,505 @@ class LearnedPipelinedLineMachine(LearnedLineMachine, PipelinedLineMachine):
 
 LearnedPipelinedLineMachine.TestCase.settings = LineMachine.TestCase.settings
 TestLearnedPipelinedLineCore = pytest.mark.slow(LearnedPipelinedLineMachine.TestCase)
+
+
+# -- fairness: closed-loop masters, periodic masters, absent slaves ------------------------
+
+#: The fairness machines' line: the defaults (learned timeouts) at 19200 baud, where a read
+#: of 10 registers holds the line about 21 ms (request, 2 ms turnaround, answer, gap).
+FAIR_BAUD = 19200
+FAIR_CHAR = character_time(FAIR_BAUD, 8, "N", 1)
+#: Slaves that always answer in 2 ms, and slaves that may stop answering or change pace.
+LIVE = (1, 2, 3, 4, 5)
+FLAKY = (6, 7, 8, 9, 10)
+#: Flat-out masters ask again within this of their answer: less than any rest the fair
+#: queue allows once it has seen a few transactions (``REST_S``, or the round of waiting
+#: requests, at least one typical transaction of >= 11 ms here).
+FLAT_OUT = 0.003
+#: The fairness checks begin once the line has carried this many transactions: the typical
+#: transaction is a moving mean from zero (``TYPICAL_WEIGHT``), so at first every master
+#: comes back rested.
+WARM_UP = 40
+#: A master answered 0x0B asks again this much later (at once would spin: no wire time).
+REFUSED_PAUSE = 0.05
+
+
+def fair_line_config() -> LineConfig:
+    """The line at its defaults: learned timeouts, ``probe_share``, ``max_queue_wait``..."""
+    return build_config({"lines": {"a": {"device": "/dev/null", "baudrate": FAIR_BAUD}}}).lines[0]
+
+
+@dataclass
+class Polling:
+    """One master: a closed loop (asks again ``think`` after each answer) or periodic."""
+
+    kind: str  # "loop" (live slaves), "flaky" (slaves that may stop answering), "periodic"
+    think: float = 0.0
+    period: float = 0.0
+    quantity: int = 10
+    slave: int = 0  # periodic: the slave it polls
+    outstanding: LineRequest | None = None
+    answered_at: float | None = None
+    gone: bool = False
+    due: bool = False  # periodic: its tick came while its last poll was unanswered
+    last_send: int = -1  # the index of its latest send (``FairLineMachine.sends``)
+
+
+@dataclass
+class Asked:
+    """A request as the fairness machine submitted it."""
+
+    request: LineRequest
+    since: int  # sends before it came
+    flat_out: bool  # its master was answered before and asked again within FLAT_OUT
+    previous: int  # its master's send before it (-1: none), when that too was flat out
+    next_in_line: bool  # a periodic master's poll, rested and light: it goes next
+
+
+@dataclass
+class FairSend:
+    at: float
+    turn: str  # whose turn: its master, "lane" (the isolated slaves' share), "proof"
+    request: LineRequest
+    asked: Asked | None
+
+
+class FairLineMachine(RuleBasedStateMachine):
+    """Masters that poll flat out beside masters that poll now and then, at the defaults.
+
+    Closed-loop masters keep one read of 10 registers outstanding and ask again at once
+    (or within ``FLAT_OUT``): "loop" masters read slaves that always answer, "flaky" ones
+    slaves that change pace, stop answering (timeouts, suspect, down) and come back.
+    Periodic masters read one slave every 0.2-2 s. Masters come and go. The slaves
+    answer each its request, carrying its data: an answer delivered to another request
+    is seen (``DeafWhileBusyLine.wrong``). Checked as each request goes on the wire:
+
+    * **A round.** A flat-out master's read waits at most one turn of each other flat-out
+      master, beyond the transaction on the wire when it came. Start-time fair queuing
+      puts it at most its own last transaction ahead of the line's virtual time (``w``),
+      and every master that waits at the virtual time or later; so another master goes
+      again before it only while that master's turns so far sum to less than ``w``
+      (equal accounts: the one that asked first goes first). With equal transactions:
+      the wait is at most the number of active masters x the typical transaction, plus
+      the one on the wire. Not counted in the round: the isolated slaves' lane on its
+      share (``probe_share``), proof reads and retries (they go first by rule), and masters
+      that came back rested (periodic ones, new connections, after a 0x0B pause): rested
+      and light they go first, which the next invariant checks.
+    * **Next after the wire.** A periodic master's poll, idle ``REST_S`` or more and light
+      (its account, read from the fair queue, neither ahead of every waiting master's nor
+      more than two typical transactions ahead of the virtual time: ``light``) goes
+      before every flat-out master's read: only the lane, proofs, retries and other rested
+      masters' requests go first (those that came before it; or came after, where its
+      account is ahead of theirs).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.delays: dict[int, float | None] = dict.fromkeys((*LIVE, *FLAKY), 0.002)
+        self.line = DeafWhileBusyLine(
+            new_core(fair_line_config(), -1.0), FAIR_CHAR, self.turnaround
+        )
+        self.line.on_answer = self.answered
+        self.line.on_transmit = self.transmitted
+        self.masters: dict[str, Polling] = {}
+        self.draw = random.Random(0)
+        self.sends: list[FairSend] = []
+        self.asked: dict[int, Asked] = {}
+        self.problems: list[str] = []
+
+    def turnaround(self, slave: int, _pdu: bytes, _now: float) -> float | None:
+        return self.delays.get(slave)
+
+    # -- the masters -----------------------------------------------------------------------
+
+    def present(self) -> int:
+        return sum(1 for master in self.masters.values() if not master.gone)
+
+    def ask(self, name: str) -> None:
+        master = self.masters[name]
+        if master.gone or master.outstanding is not None:
+            return
+        now = self.line.now
+        answered_at = master.answered_at
+        idle = INFINITY if answered_at is None else now - answered_at
+        warm = len(self.sends) >= WARM_UP
+        flat_out = warm and idle <= FLAT_OUT + 1e-9
+        previous = master.last_send
+        if previous < 0 or self.sends[previous].asked is None:
+            previous = -1
+        else:
+            before = self.sends[previous].asked
+            previous = previous if before is not None and before.flat_out else -1
+        if master.kind == "periodic":
+            slave = master.slave
+            next_in_line = warm and self.light(name) and answered_at is not None and idle >= REST_S
+        else:
+            slave = self.draw.choice(FLAKY if master.kind == "flaky" else LIVE)
+            next_in_line = False
+        pdu = struct.pack(">BHH", 3, self.draw.randrange(0, 60000), master.quantity)
+        request = LineRequest(slave, pdu, name, lambda _pdu, _outcome: None)
+        master.outstanding = request
+        flat = flat_out and master.kind != "periodic"
+        self.asked[id(request)] = Asked(request, len(self.sends), flat, previous, next_in_line)
+        self.line.core.submit(request, now)
+        self.line._pump()
+
+    def light(self, name: str) -> bool:
+        """``name``'s account, as the fair queue keeps it, is not ahead of every waiting
+        master's, nor more than two typical transactions ahead of the virtual time: the
+        account says it used less than its share (``FairQueue.enqueue``)."""
+        queue = self.line.core.queue
+        account = queue.masters.get(name)
+        vtime = max(account.vtime if account is not None else 0.0, queue.vclock)
+        return vtime <= queue.vmax and vtime <= queue.vclock + 2 * queue.typical
+
+    def tick(self, name: str) -> None:
+        master = self.masters[name]
+        if master.gone:
+            return
+        self.line.at(self.line.now + master.period, lambda: self.tick(name))
+        if master.outstanding is None:
+            self.ask(name)
+        else:
+            master.due = True  # a poll cycle: the next poll goes when this one is answered
+
+    def answered(self, request: LineRequest, outcome: Outcome) -> None:
+        name = str(request.master)
+        master = self.masters[name]
+        self.check_wait(request, None)
+        if master.outstanding is not request:
+            return
+        master.outstanding = None
+        master.answered_at = self.line.now
+        if master.gone:
+            return
+        if master.kind == "periodic":
+            if master.due:
+                master.due = False
+                self.line.at(self.line.now, lambda: self.ask(name))
+            return
+        pause = master.think if outcome is Outcome.OK else REFUSED_PAUSE
+        self.line.at(self.line.now + pause, lambda: self.ask(name))
+
+    def transmitted(self, transmit: Transmit) -> None:
+        request = transmit.request
+        wire = self.line.core.wire
+        assert isinstance(wire, SerialWire) and wire.attempt is not None
+        if request.proof:
+            turn = "proof"
+        elif wire.attempt.from_credit:
+            turn = "lane"
+        else:
+            turn = str(request.master)
+        asked = self.asked.get(id(request))
+        self.sends.append(FairSend(self.line.now, turn, request, asked))
+        master = self.masters.get(str(request.master))
+        if master is not None and not request.proof:
+            master.last_send = len(self.sends) - 1
+        self.check_wait(request, len(self.sends) - 1)
+
+    # -- the checks ----------------------------------------------------------------------
+
+    def interval(self, index: int, end: float) -> float:
+        """How long the send at ``index`` held the line: until the next send, or ``end``."""
+        following = self.sends[index + 1].at if index + 1 < len(self.sends) else end
+        return following - self.sends[index].at
+
+    def check_wait(self, request: LineRequest, index: int | None) -> None:
+        """``request`` went on the wire (its send: ``index``) or was answered unsent."""
+        asked = self.asked.pop(id(request), None)
+        if asked is None or request.single:  # the lane's requests have rules of their own
+            return
+        now = self.line.now
+        end = index if index is not None else len(self.sends)
+        if asked.flat_out and asked.previous >= 0:
+            self.check_round(asked, end, now)
+        if asked.next_in_line:
+            for position in range(asked.since, end):
+                send = self.sends[position]
+                if send.turn in ("lane", "proof") or send.request.attempts > 1:
+                    continue  # the lane's share, a proof read, a retry: first by rule
+                came = send.asked
+                if came is not None and not came.flat_out:
+                    continue  # another rested master's request
+                self.problems.append(
+                    f"{request.master}'s poll (idle since its answer, light) at "
+                    f"{request.enqueued_at:.4f} waited behind {send.request.master}'s read "
+                    f"sent at {send.at:.4f}"
+                )
+                return
+
+    def check_round(self, asked: Asked, end: int, now: float) -> None:
+        """At most one turn of each other flat-out master (see the class docstring)."""
+        request = asked.request
+        ahead = self.interval(asked.previous, now)  # its own account ahead of the clock
+        turns: dict[str, dict[int, float]] = {}
+        for position in range(asked.since, end):
+            send = self.sends[position]
+            came = send.asked
+            if send.turn in ("lane", "proof") or came is None or not came.flat_out:
+                continue
+            held = turns.setdefault(send.turn, {})  # a retry is its request's turn still
+            key = id(send.request)
+            held[key] = held.get(key, 0.0) + self.interval(position, now)
+        for master, held in turns.items():
+            before_last = sum(held.values()) - list(held.values())[-1]
+            if before_last > 0.0 and before_last >= ahead - 1e-6:
+                self.problems.append(
+                    f"{request.master}'s read at {request.enqueued_at:.4f} (its last "
+                    f"transaction {ahead * 1e3:.2f} ms) waited {now - request.enqueued_at:.4f} "
+                    f"s while {master} had {len(held)} turns "
+                    f"({[round(t * 1e3, 2) for t in held.values()]} ms)"
+                )
+
+    # -- rules ---------------------------------------------------------------------------
+
+    @initialize(seed=st.integers(0, 2**32 - 1))
+    def seed(self, seed: int) -> None:
+        """The slaves and addresses the closed loops draw."""
+        self.draw = random.Random(seed)
+
+    @precondition(lambda self: sum(m.kind != "periodic" for m in self.masters.values()) < 30)
+    @rule(
+        count=st.integers(1, 10),
+        think=st.sampled_from((0.0, 0.0005, FLAT_OUT)),
+        flaky=st.booleans(),
+    )
+    def closed_loops(self, count: int, think: float, flaky: bool) -> None:
+        """``count`` masters that poll flat out join."""
+        for _ in range(count):
+            name = f"{'flaky' if flaky else 'loop'}{len(self.masters)}"
+            self.masters[name] = Polling("flaky" if flaky else "loop", think=think)
+            self.line.at(self.line.now, lambda name=name: self.ask(name))  # type: ignore[misc]
+
+    @precondition(lambda self: sum(m.kind == "periodic" for m in self.masters.values()) < 3)
+    @rule(
+        period=st.sampled_from((0.2, 0.35, 0.5, 1.0, 2.0)),
+        quantity=st.sampled_from((1, 10)),
+        slave=st.sampled_from(LIVE),
+    )
+    def periodic(self, period: float, quantity: int, slave: int) -> None:
+        """A master that polls one slave every ``period`` joins."""
+        name = f"periodic{len(self.masters)}"
+        self.masters[name] = Polling("periodic", period=period, quantity=quantity, slave=slave)
+        self.line.at(self.line.now + 0.01, lambda: self.tick(name))
+
+    @precondition(lambda self: any(not m.gone for m in self.masters.values()))
+    @rule(index=st.integers(0, 40))
+    def leave(self, index: int) -> None:
+        """A master's connection closes: what it had waiting is dropped."""
+        present = [name for name, master in self.masters.items() if not master.gone]
+        name = present[index % len(present)]
+        self.masters[name].gone = True
+        self.line.core.cancel(name, self.line.now)
+        self.line._pump()
+
+    @rule(
+        slave=st.sampled_from(FLAKY),
+        delay=st.sampled_from((None, None, 0.001, 0.002, 0.005, 0.010)),
+    )
+    def flaky_pace(self, slave: int, delay: float | None) -> None:
+        """A flaky slave stops answering (``None``) or answers again at another pace."""
+        self.delays[slave] = delay
+
+    @rule(step=st.sampled_from((0.05, 0.2, 0.5, 1.0)))
+    def run(self, step: float) -> None:
+        self.line.run(self.line.now + step)
+
+    @invariant()
+    def fair(self) -> None:
+        assert not self.problems, self.problems[:3]
+        assert self.line.wrong == 0
+
+
+FairLineMachine.TestCase.settings = settings(
+    # Each example runs many seconds of line time with up to 33 masters: 100 examples here
+    # take about as long as 200 of the other machines'.
+    max_examples=int(os.environ.get("LINE_MACHINE_EXAMPLES", "100")),
+    stateful_step_count=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+TestFairLineCore = pytest.mark.slow(FairLineMachine.TestCase)
+
+
+#: Unit ids routed to the line with no slave behind them.
+ABSENT = tuple(range(100, 248))
+#: A probe of an absent address holds the line this long: ``initial_timeout`` (1 s at the
+#: defaults) and two longest frames (``ResponseTiming.longest_attempt``).
+PROBE_HOLD = 1.0 + 2 * MAX_RTU_FRAME * FAIR_CHAR
+#: Polls a periodic master makes before its median is held against the bound.
+MEDIAN_AFTER = 20
+
+
+class AbsentBesideLineMachine(RuleBasedStateMachine):
+    """Connections that scan unit ids with no slave behind them, beside periodic masters.
+
+    A scanner keeps 1-4 reads in flight to random absent unit ids (each a first contact
+    that holds the line up to ``PROBE_HOLD`` for nothing), asking again 1 ms after each
+    answer; periodic masters poll a live slave every 0.2-0.9 s (a poll cycle: the next poll
+    at its tick, or at the answer if later), at the line's defaults. Checked:
+
+    * **One probe per poll at most.** While a periodic poll waits, at most one probe of an
+      absent address holds the line (the one on the wire when it came, or one that went
+      first from the lane: once an address is known absent, first contacts wait there).
+      A probe goes on the lane's share (``probe_share`` of the line's time, at most one
+      second's share banked: one probe spends it for ``PROBE_HOLD / probe_share``, about
+      26 s), or free, only when nothing else waits (``LineCore._pick``).
+    * **The periodic master's median.** Once it has polled ``MEDIAN_AFTER`` times, its
+      median wait (submission to answer) is within max(10 x its quiet wait, 100 ms): a free
+      probe waits out ``PROBE_HOLD`` of quiet while a master that used the line less polls
+      (``LineCore._lighter_master_polls``), so it never goes in the gaps of one that polls
+      more often than that; only the share's probes, and the free ones when the periodic
+      master has used more of the line than the scanners, meet its polls. Its poll rate
+      stays at least half its quiet one. (Its first poll of a slave never heard from, beside
+    absent addresses, is a first contact: a probe in the lane itself, not checked.)
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.line = DeafWhileBusyLine(
+            new_core(fair_line_config(), -1.0), FAIR_CHAR, self.turnaround
+        )
+        self.line.on_answer = self.answered
+        self.line.on_transmit = self.transmitted
+        self.draw = random.Random(0)
+        self.masters: dict[str, Polling] = {}
+        self.scanners: dict[str, bool] = {}  # name -> still scanning
+        self.waits: dict[str, list[float]] = {}  # periodic master -> its polls' waits
+        self.started: dict[str, float] = {}  # periodic master -> its first tick
+        #: Probes of absent addresses: when each went on the wire and when the next send came.
+        self.probes: list[float] = []
+        self.probe_ends: dict[int, float] = {}
+        self.waiting: dict[int, int] = {}  # id(poll) -> probes sent before it came
+        self.on_wire_probe: dict[int, bool] = {}  # id(poll) -> a probe held the line then
+        self.problems: list[str] = []
+
+    @staticmethod
+    def turnaround(slave: int, _pdu: bytes, _now: float) -> float | None:
+        return None if slave in ABSENT else 0.002
+
+    @initialize(seed=st.integers(0, 2**32 - 1))
+    def seed(self, seed: int) -> None:
+        self.draw = random.Random(seed)
+
+    # -- the masters ---------------------------------------------------------------------
+
+    def poll(self, name: str) -> None:
+        master = self.masters[name]
+        if master.gone or master.outstanding is not None:
+            return
+        pdu = struct.pack(">BHH", 3, self.draw.randrange(0, 100), master.quantity)
+        request = LineRequest(master.slave, pdu, name, lambda _pdu, _outcome: None)
+        master.outstanding = request
+        self.waiting[id(request)] = len(self.probes)
+        core = self.line.core
+        on_wire = core.wire_busy and core.wire.requests()[0].slave in ABSENT
+        self.on_wire_probe[id(request)] = on_wire
+        core.submit(request, self.line.now)
+        self.line._pump()
+
+    def tick(self, name: str) -> None:
+        master = self.masters[name]
+        if master.gone:
+            return
+        self.line.at(self.line.now + master.period, lambda: self.tick(name))
+        if master.outstanding is None:
+            self.poll(name)
+        else:
+            master.due = True
+
+    def scan(self, name: str) -> None:
+        if not self.scanners[name]:
+            return
+        slave = self.draw.choice(ABSENT)
+        request = LineRequest(slave, struct.pack(">BHH", 3, 0, 10), name, lambda _p, _o: None)
+        self.line.core.submit(request, self.line.now)
+        self.line._pump()
+
+    def answered(self, request: LineRequest, _outcome: Outcome) -> None:
+        name = str(request.master)
+        if name in self.scanners:
+            self.line.at(self.line.now + 0.001, lambda: self.scan(name))
+            return
+        master = self.masters[name]
+        if master.outstanding is not request:
+            return
+        master.outstanding = None
+        if not request.single:  # a first contact with its slave was a probe itself
+            self.waits[name].append(self.line.now - request.enqueued_at)
+            self.check_probes(request)
+        if master.due and not master.gone:
+            master.due = False
+            self.line.at(self.line.now, lambda: self.poll(name))
+
+    def transmitted(self, transmit: Transmit) -> None:
+        if transmit.request.slave in ABSENT and transmit.request.single:
+            self.probes.append(self.line.now)  # a probe from the lane (absent slaves known)
+
+    def check_probes(self, request: LineRequest) -> None:
+        since = self.waiting.pop(id(request))
+        during = len(self.probes) - since + self.on_wire_probe.pop(id(request))
+        if during > 1:
+            self.problems.append(
+                f"{request.master}'s poll at {request.enqueued_at:.4f} waited "
+                f"{self.line.now - request.enqueued_at:.3f} s through {during} probes"
+            )
+
+    # -- rules ---------------------------------------------------------------------------
+
+    @precondition(lambda self: len(self.masters) < 3)
+    @rule(
+        period=st.sampled_from((0.2, 0.3, 0.5, 0.9)),
+        quantity=st.sampled_from((1, 10)),
+        slave=st.sampled_from(LIVE),
+    )
+    def periodic(self, period: float, quantity: int, slave: int) -> None:
+        """A master that polls a live slave every ``period`` joins."""
+        name = f"periodic{len(self.masters)}"
+        self.masters[name] = Polling("periodic", period=period, quantity=quantity, slave=slave)
+        self.waits[name] = []
+        self.started[name] = self.line.now + 0.01
+        self.line.at(self.line.now + 0.01, lambda: self.tick(name))
+
+    @precondition(lambda self: len(self.scanners) < 2)
+    @rule(depth=st.integers(1, 4))
+    def scanner(self, depth: int) -> None:
+        """A connection that keeps ``depth`` reads in flight to absent unit ids joins."""
+        name = f"scanner{len(self.scanners)}"
+        self.scanners[name] = True
+        for _ in range(depth):
+            self.line.at(self.line.now, lambda: self.scan(name))
+
+    @precondition(lambda self: any(self.scanners.values()))
+    @rule()
+    def scanner_leaves(self) -> None:
+        name = next(name for name, scanning in self.scanners.items() if scanning)
+        self.scanners[name] = False
+        self.line.core.cancel(name, self.line.now)
+        self.line._pump()
+
+    @rule(step=st.sampled_from((0.2, 1.0, 3.0)))
+    def run(self, step: float) -> None:
+        self.line.run(self.line.now + step)
+
+    @invariant()
+    def periodic_masters_keep_their_pace(self) -> None:
+        assert not self.problems, self.problems[:3]
+        assert self.line.wrong == 0
+        for name, waits in self.waits.items():
+            if len(waits) < MEDIAN_AFTER:
+                continue
+            master = self.masters[name]
+            quiet = (8 + 5 + 2 * master.quantity) * FAIR_CHAR + 0.002
+            median = sorted(waits)[len(waits) // 2]
+            assert median <= max(10 * quiet, 0.1), (name, median, sorted(waits)[-5:])
+            ticks = (self.line.now - self.started[name]) / master.period
+            assert len(waits) >= ticks / 2 - 1, (name, len(waits), ticks)
+
+
+AbsentBesideLineMachine.TestCase.settings = FairLineMachine.TestCase.settings
+TestAbsentBesideLineCore = pytest.mark.slow(AbsentBesideLineMachine.TestCase)
 
 
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:

@@ -230,7 +230,9 @@ class FairQueue:
         if charged:
             master.vtime += wire - charged
         else:
-            master.vtime = max(master.vtime, self.vclock) + wire
+            # To the nanosecond: masters whose transactions took the same time have equal
+            # accounts, not accounts a rounding error apart, and go in the order they asked.
+            master.vtime = round(max(master.vtime, self.vclock) + wire, 9)
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 
