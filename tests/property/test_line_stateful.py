@@ -1412,6 +1412,8 @@ class FairLineMachine(RuleBasedStateMachine):
             return
         now = self.line.now
         end = index if index is not None else len(self.sends)
+        while index is None and end > asked.since and self.sends[end - 1].at >= now:
+            end -= 1  # sent as it was answered: the core answers first, then sends
         if asked.flat_out and asked.previous >= 0:
             self.check_round(asked, end, now)
         if asked.next_in_line:

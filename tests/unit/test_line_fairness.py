@@ -354,3 +354,35 @@ def test_closed_loops_whose_transactions_take_the_same_time_go_in_the_order_they
     assert max(waits) <= len(masters) * per + 1e-3, (max(waits), per)
     following = [str(request.master) for request in wire.sent[len(masters) :]]
     assert following == [masters[index % 8] for index in range(len(following))]
+
+
+def test_a_master_answered_through_a_joined_read_that_asks_again_at_once_takes_its_turn() -> None:
+    """Found by the closed-loop machine: a master whose read joined another master's
+    identical queued read was answered with it, asked again at once, and went to the head
+    of the line as if it had been idle since its last transaction of its own: it passed
+    the masters that had waited their turn. A joined read's answer is an answer too."""
+    wire = Wire(baud=19200, turnaround=0.002)
+    loops = [f"m{index}" for index in range(4)]
+    joined: list[LineRequest] = []
+
+    def again(request: LineRequest, outcome: str) -> None:
+        assert outcome == Outcome.OK
+        master = str(request.master)
+        if master == "f":
+            if len(joined) == 1:
+                joined.append(wire.submit("f", read(9000, 10)))  # at once, a read of its own
+            return
+        if master == "m1" and wire.now > 1.0 and not joined:
+            # m2's read waits now: f asks the same, and joins it
+            joined.append(wire.submit("f", read(2, 10)))
+        wire.submit(master, request.pdu)
+
+    wire.on_answer = again
+    for index, master in enumerate(loops):
+        wire.submit(master, read(index, 10))
+    wire.run(2.0)
+    assert len(joined) == 2 and id(joined[0]) not in map(id, wire.sent)  # it joined m2's
+    after_m2 = [str(request.master) for request in wire.sent if request.enqueued_at > 1.0]
+    index = after_m2.index("f")
+    # m3 waited at the same account since before f asked again: it goes first.
+    assert after_m2[index - 1] == "m3", after_m2[: index + 2]

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Callable, Container, Hashable, Iterator
+from collections.abc import Callable, Container, Hashable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -223,6 +223,14 @@ class FairQueue:
         self.typical += (wire - self.typical) * TYPICAL_WEIGHT
         if master is not None:
             master.answered_at = now
+
+    def answered(self, requests: Iterable[LineRequest], now: float) -> None:
+        """``requests`` (reads that joined another) were answered at ``now``: their masters
+        were answered as much as by a transaction of their own (``enqueue``'s rest)."""
+        for request in requests:
+            master = self.masters.get(request.master)
+            if master is not None:
+                master.answered_at = now
 
     def charge(self, master: Master, wire: float, charged: float) -> None:
         """``master``'s transaction took ``wire`` seconds, of which ``charged`` were charged

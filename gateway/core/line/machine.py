@@ -1075,6 +1075,8 @@ class LineCore:
             outcome = Outcome.OK
         else:
             outcome = Outcome.OK
+        if request.followers:  # answered now too: asking again at once, they are not rested
+            self.queue.answered(request.followers, now)
         self._deliver(request, response, outcome, wire)
 
     def _proof_ended(self, slave: int, response: bytes, now: float) -> bool | None:
