@@ -120,6 +120,15 @@ def serving(gw: RunningGateway) -> int:
     return gw.call(count)
 
 
+def failing(gw: RunningGateway) -> int:
+    """How many of the line's blocks are failing (their last poll got no normal answer)."""
+
+    def count() -> int:
+        return sum(1 for block in gw.gateway.buses["a"]._core.plan.blocks if block.failing)
+
+    return gw.call(count)
+
+
 @pytest.fixture
 def agent(make_sim: SimFactory, make_gateway: GatewayFactory) -> Iterator[AgentFactory]:
     """``agent(polls, line={...})`` → (slave, sim, gateway, raw tables), the slave paced at
@@ -257,6 +266,56 @@ def test_a_write_through_another_unit_id_of_the_same_slave_invalidates(agent: Ag
     with gw.connect() as client:
         assert client.request(9, h("06 001E 4242")) == h("06 001E 4242")
         assert client.request(UNIT, read(30, 1)) == b"\x03\x02\x42\x42"
+
+
+def test_a_broadcast_write_and_a_function_the_gateway_cannot_place_invalidate(
+    agent: AgentFactory,
+) -> None:
+    """A broadcast write reaches the slave and the next read sees it; a vendor function
+    may change anything, so the next read goes to the wire too. A write outside every block
+    leaves memory serving."""
+    slave, _, gw, _ = agent([{**REGISTERS, **QUIET}])
+    with gw.connect() as client:
+        # Each change sent with a read right behind it, the read submitted before the
+        # change has ended: the read goes to the wire (the block may be polled again
+        # before it: a due poll goes first).
+        for change, answer in (
+            (mbap(1, 0, h("06 0019 0B0B")), None),
+            (mbap(1, UNIT, h("41 0001")), h("C1 01")),
+        ):  # a vendor's own
+            heard = len(slave.requests())
+            client.send_raw(change + mbap(2, UNIT, read(25, 1)))
+            replies = [client.receive() for _ in range(1 if answer is None else 2)]
+            assert {reply.transaction_id: reply.pdu for reply in replies} == (
+                {2: b"\x03\x02\x0b\x0b"} | ({} if answer is None else {1: answer})
+            )
+            wait_until(lambda: serving(gw) == 1, "the block polled again after the change")
+            after = slave.requests()[heard:]
+            assert after[0] == change[7:] and sorted(after[1:]) == [
+                block_pdu(REGISTERS),
+                read(25, 1),
+            ]
+        heard = len(slave.requests())
+        assert client.request(UNIT, h("06 0096 0001")) == h("06 0096 0001")  # register 150
+        assert client.request(UNIT, read(25, 1)) == b"\x03\x02\x0b\x0b"
+        assert slave.requests()[heard:] == [h("06 0096 0001")]
+
+
+def test_an_exception_is_never_kept(agent: AgentFactory) -> None:
+    """A block the slave answers with an exception (its range runs past the slave's map)
+    serves nothing: every read inside it goes to the wire, and gets what the slave says."""
+    beyond = {"unit": UNIT, "function": 3, "address": 190, "count": 20, **QUIET}
+    slave, _, gw, raw = agent([{**REGISTERS, **QUIET}])
+    config = build_config({**raw, "poll": [{**REGISTERS, **QUIET}, beyond]}, "<reloaded>")
+    gw.run(gw.gateway.reload(config))
+    wait_until(lambda: block_pdu(beyond) in slave.requests(), "the block polled")
+    wait_until(lambda: failing(gw) == 1, "the block failing")
+    heard = len(slave.requests())
+    with gw.connect() as client:
+        for _ in range(2):
+            assert client.request(UNIT, read(195, 2)) == registers(slave, 195, 2)
+            assert client.request(UNIT, read(195, 10)) == h("83 02")
+    assert slave.requests()[heard:] == [read(195, 2), read(195, 10)] * 2
 
 
 def test_a_silent_slave_ages_out_of_memory_then_gets_0x0b(agent: AgentFactory) -> None:
