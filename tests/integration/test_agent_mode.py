@@ -9,6 +9,7 @@ byte for byte against the slave's own tables.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import random
 import socket
 import struct
@@ -44,6 +45,10 @@ UNIT = 1
 #: The holding-register block the tests read (its addresses 10..59) and the coil block.
 REGISTERS = {"unit": UNIT, "function": 3, "address": 10, "count": 50}
 COILS = {"unit": UNIT, "function": 1, "address": 5, "count": 37}
+#: How long a flood runs at most, and what the other masters and the poller may wait meanwhile
+#: (generous: the machine runs other work).
+FLOOD_S = 2.0
+HONEST_BOUND_S = 0.5
 #: Long enough that no second poll comes during a test: every frame after the first polls
 #: is a master's.
 QUIET = {"every": 60.0, "max_age": 120.0}
@@ -316,6 +321,53 @@ def test_an_exception_is_never_kept(agent: AgentFactory) -> None:
             assert client.request(UNIT, read(195, 2)) == registers(slave, 195, 2)
             assert client.request(UNIT, read(195, 10)) == h("83 02")
     assert slave.requests()[heard:] == [read(195, 2), read(195, 10)] * 2
+
+
+def test_a_flood_of_reads_from_memory_starves_neither_masters_nor_the_poller(
+    agent: AgentFactory,
+) -> None:
+    """One master pipelines reads from memory as fast as it can (reading its answers), for
+    at most ``FLOOD_S``; another master's reads from memory stay within ``HONEST_BOUND_S``
+    and the block is still polled at its period."""
+    every = 0.2
+    slave, _, gw, _ = agent([{**REGISTERS, "every": every, "max_age": 1.0}])
+    flood = b"".join(mbap(tid, UNIT, read(10 + tid % 50, 1)) for tid in range(2048))
+    attacker = socket.create_connection(gw.address, timeout=DEADLINE_S)
+    answered = 0
+    stop = threading.Event()
+
+    def drain() -> None:
+        nonlocal answered
+        with attacker.makefile("rb") as stream:
+            while not stop.is_set():
+                header = stream.read(7)
+                if len(header) < 7:
+                    return
+                stream.read(struct.unpack(">H", header[4:6])[0] - 1)
+                answered += 1
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    waits: list[float] = []
+    expected = registers(slave, 30, 5)
+    started = time.monotonic()
+    try:
+        with gw.connect() as honest:
+            while time.monotonic() - started < FLOOD_S:
+                attacker.sendall(flood)
+                sent = time.monotonic()
+                assert honest.request(UNIT, read(30, 5)) == expected
+                waits.append(time.monotonic() - sent)
+    finally:
+        stop.set()
+        attacker.shutdown(socket.SHUT_RDWR)
+        attacker.close()
+        reader.join(DEADLINE_S)
+    assert answered > 2048  # the flood was served too
+    assert max(waits) <= HONEST_BOUND_S, max(waits)
+    polls = [t for t in slave.arrivals(block_pdu(REGISTERS)) if t >= started]
+    gaps = [later - earlier for earlier, later in itertools.pairwise(polls)]
+    assert len(polls) >= FLOOD_S / every / 2 and max(gaps) <= every + HONEST_BOUND_S, gaps
 
 
 def test_a_silent_slave_ages_out_of_memory_then_gets_0x0b(agent: AgentFactory) -> None:
