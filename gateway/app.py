@@ -43,9 +43,10 @@ from .io.http_guard import RouteAccess
 from .io.rtu_listener import rtu_over_tcp_server
 from .io.serial_port import check_devices_usable
 from .io.serial_slave import SerialSlave
+from .io.spine import LineTarget, Router
 from .io.status_unit import StatusUnit
 from .io.systemd import SystemdNotifier
-from .io.tcp import LineTarget, ModbusTcpServer, Router
+from .io.tcp import ModbusTcpServer
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
 from .live import LiveView
 from .metrics import GatewayMetrics

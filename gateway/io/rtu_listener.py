@@ -22,7 +22,8 @@ from ..core.outcome import Outcome
 from ..core.policy import IPAddress, Policy
 from ..core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
 from ..metrics import GatewayMetrics
-from .tcp import MasterConnection, ModbusTcpServer, Router
+from .spine import Router
+from .tcp import MasterConnection, ModbusTcpServer
 
 #: Quiet time that ends a request whose length its function code does not tell.
 SILENCE_S = 0.05

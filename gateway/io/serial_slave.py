@@ -44,13 +44,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
 
 from ..config import ListenerConfig
-from ..core import pdu as fc
 from ..core.admission import AnswerLocally, Broadcast, Submit
 from ..core.ascii import encode_ascii
-from ..core.line import LineRequest, no_reply
+from ..core.line import LineRequest
 from ..core.outcome import Outcome
 from ..core.policy import Policy, Principal
 from ..core.routes import Target
@@ -59,13 +57,14 @@ from ..core.rtu_stream import encode_rtu_reply, heard_request
 from ..core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
 from ..core.timing import character_time, t35
 from ..logs import RateLimitedLogger
-from ..metrics import UNIT_LABELS, GatewayMetrics
+from ..metrics import GatewayMetrics
 from ..status import MasterStatus
 from ..trace import FrameTrace
+from . import spine
 from .audit import AuditLog, AuditTicket
 from .clock import PreciseClock
 from .serial_port import SerialLink, SerialPortError, open_serial
-from .tcp import Router, count_local_answer
+from .spine import Router
 
 log = logging.getLogger("gateway.serial_slave")
 
@@ -94,7 +93,7 @@ class SerialSlave:
         self.router = router  #: replaced as a whole on reload
         self.policy = policy  #: replaced as a whole on reload
         self._serial = listener.serial
-        self._metrics = metrics
+        self.metrics = metrics
         self._loop = loop
         serial = self._serial
         self._t35 = t35(serial.baudrate, serial.data_bits, serial.parity, serial.stop_bits)
@@ -291,12 +290,8 @@ class SerialSlave:
         unit, pdu = heard
         # A new request: whatever the master asked before, it no longer waits for.
         self._drop_pending()
-        result = self.router.admitter.admit(_NO_ONE, unit, pdu, self.policy, self._serves)
-        audit = self.audit  # the audit log: None unless configured
         device = self._serial.device
-        ticket = (
-            None if audit is None else audit.admitted(self.name, device, None, unit, pdu, result)
-        )
+        result, ticket = spine.admit(self, _NO_ONE, device, None, unit, pdu, self._serves)
         if unit == 0:  # executed or not, a broadcast is never answered
             if isinstance(result, Broadcast):
                 self._broadcast(pdu, result, ticket)
@@ -314,47 +309,40 @@ class SerialSlave:
         if isinstance(result, Submit):
             self._submit(number, unit, pdu, result.target, ticket)
         elif isinstance(result, AnswerLocally):
-            function = pdu[0]
             if result.outcome is Outcome.DENIED:
                 self.denied += 1
-            self._answer(number, unit, fc.exception_pdu(function, result.code), result.outcome)
-            count_local_answer(self._metrics, self.name, self.policy, None, function, result)
+            refusal = spine.answer_locally(self, None, pdu, result)
+            self._answer(number, unit, refusal, result.outcome)
 
     def _submit(
         self, number: int, unit: int, pdu: bytes, target: Target, ticket: AuditTicket | None
     ) -> None:
         """Queue the request on its line; only the latest request of the master is answered."""
         peer = self._serial.device
-        function = pdu[0]
-        line, unit_label = target.line, UNIT_LABELS[target.slave]
+        line = self.router.bus(target.line)
 
-        def reply(response: bytes, outcome: Outcome) -> None:
-            if ticket is not None:  # an audited write: what became of it
-                ticket.settle(request.sent, response, outcome)
-            if self._pending is request:
-                self._pending = None
-                self._answer(number, unit, response, outcome)
-            else:
-                outcome = Outcome.DROPPED  # the master gave up on it: a newer request came
+        def deliver(request: LineRequest, response: bytes, outcome: Outcome) -> Outcome:
+            if self._pending is not request:  # the master gave up on it: a newer request came
                 if self.tracer.active:
-                    self.tracer.dropped(peer, number, unit, function)
-            self._metrics.count_request(line, unit_label, function, outcome)
+                    self.tracer.dropped(peer, number, unit, pdu[0])
+                return Outcome.DROPPED
+            self._pending = None
+            self._answer(number, unit, response, outcome)
+            return outcome
 
-        request = LineRequest(target.slave, pdu, self, reply)
+        request = spine.line_request(self, line, target.slave, pdu, self, ticket, deliver)
         self._pending = request
-        self.router.bus(line).submit(request)
+        line.submit(request)
 
     def _broadcast(self, pdu: bytes, result: Broadcast, ticket: AuditTicket | None) -> None:
-        """Executed on every line that takes broadcasts and is up; never answered."""
+        """Executed on every line that takes broadcasts and is up (``spine.broadcast``);
+        never answered."""
         if self.tracer.active:
             number = self._sequence
             self._sequence = (number + 1) & 0xFFFF
             self.tracer.request(self._serial.device, number, 0, pdu, self.name)
-        reply = no_reply if ticket is None else _settle_once(ticket)
-        for line in result.lines:
-            bus = self.router.bus(line)
-            if bus.up:
-                bus.submit(LineRequest(0, pdu, self, reply, broadcast=True))
+        lines = [self.router.bus(line) for line in result.lines]
+        spine.broadcast(self, lines, pdu, self, ticket, _unanswered)
 
     def _answer(self, number: int, unit: int, pdu: bytes, outcome: Outcome) -> None:
         """Write the answer, no sooner than the turnaround after the last byte on the line."""
@@ -393,22 +381,13 @@ class SerialSlave:
     def _damaged(self, fault: FrameFault, what: str | None = None) -> None:
         """A damaged frame: ignored in silence, counted, logged at a bounded rate."""
         self.ignored += 1
-        self._metrics.protocol_errors.labels(fault.value).inc()
+        self.metrics.protocol_errors.labels(fault.value).inc()
         detail = what if what is not None else _FAULT_TEXT[fault]
         self._faults.note(f"listener {self.name}", "ignored frame", detail, level=logging.INFO)
 
 
-def _settle_once(ticket: AuditTicket) -> Callable[[bytes, str], None]:
-    """A broadcast's reply callback: its first line to send it settles the audit record."""
-    settled = False
-
-    def reply(response: bytes, outcome: str) -> None:
-        nonlocal settled
-        if not settled and outcome == Outcome.BROADCAST:
-            settled = True
-            ticket.settle(True, response, outcome)
-
-    return reply
+def _unanswered(_outcome: Outcome) -> None:
+    """A broadcast on a serial line is never answered."""
 
 
 #: What the log says about a damaged ASCII frame.

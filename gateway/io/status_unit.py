@@ -1,6 +1,6 @@
 """The status unit as listeners see it: a line of its own that answers at once.
 
-The routing table (``tcp.Router``) routes ``polling.status_unit`` to this object as it
+The routing table (``spine.Router``) routes ``polling.status_unit`` to this object as it
 routes a unit to a ``Bus``, so every listener's admission and submit path (Modbus TCP,
 TLS, RTU over TCP, serial slave) serves it unchanged: the access rules, the gateway's
 refusals, validation, the audit log, the trace and ``requests_total`` (under line

@@ -123,7 +123,7 @@ def test_masters_on_the_serial_line_reach_the_routed_slaves(reverse: Any) -> Non
 def test_silence_for_other_units_bad_crcs_broadcasts_and_answers_of_other_slaves(
     reverse: Any,
 ) -> None:
-    sim, _, master = reverse()
+    sim, gateway, master = reverse()
     quiet = 0.1  # far longer than t3.5 and than the simulated line's answer
     master.send(9, h("03 0000 0001"))  # not routed: another slave on this line may answer
     master.silent_for(quiet)
@@ -139,6 +139,15 @@ def test_silence_for_other_units_bad_crcs_broadcasts_and_answers_of_other_slaves
     master.silent_for(quiet)
     assert master.request(1, h("03 0007 0001"), 4) == h("03 02 0077")
     assert sim.stats().broadcasts == 1
+    # Counted as on every listener (``spine.broadcast``): once, under line "broadcast".
+    labels = {"line": "broadcast", "unit": "0", "function": "write_single_register"}
+    registry = gateway.gateway.metrics.registry
+    sent = gateway.call(
+        lambda: registry.get_sample_value(
+            "modbus_gateway_requests_total", {**labels, "outcome": "broadcast"}
+        )
+    )
+    assert sent == 1
 
 
 def test_a_babbling_line_is_bounded_and_the_next_request_is_answered(reverse: Any) -> None:
