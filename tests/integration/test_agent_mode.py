@@ -68,16 +68,24 @@ class LoggingSlave(SimulatedDevice):
             input_registers=DataBank(200, inputs),
         )
         self.heard: list[tuple[float, bytes]] = []  # (arrival, PDU)
+        self.mute = False  # hears (and logs) every request, answers none: a dead device
         self._lock = threading.Lock()
 
     def handle(self, pdu: bytes, *, broadcast: bool = False) -> bytes | None:
         with self._lock:
             self.heard.append((time.monotonic(), bytes(pdu)))
+        if self.mute:
+            return None
         return super().handle(pdu, broadcast=broadcast)
 
     def requests(self) -> list[bytes]:
         with self._lock:
             return [pdu for _, pdu in self.heard]
+
+    def heard_since(self, moment: float) -> list[tuple[float, bytes]]:
+        """(arrival, PDU) of every request the slave executed after ``moment``."""
+        with self._lock:
+            return [(arrived, pdu) for arrived, pdu in self.heard if arrived > moment]
 
     def arrivals(self, pdu: bytes) -> list[float]:
         """When each ``pdu`` the slave executed arrived."""
@@ -421,6 +429,32 @@ def test_a_silent_slave_ages_out_of_memory_then_gets_0x0b(agent: AgentFactory) -
             "memory serving again",
             timeout=DEADLINE_S,
         )
+
+
+@pytest.mark.slow  # the back-off's doublings, 1.5 s, after the isolation
+def test_a_dead_slaves_block_is_polled_at_the_probe_back_off(agent: AgentFactory) -> None:
+    """Once its slave is isolated as dead, a block is polled (or its slave proved) at the
+    probe back-off, ``probe_interval`` doubling, not every period: a dead slave's polls do
+    not hold the line for a timeout every ``every``."""
+    every, probe = 0.1, 0.1
+    slave, _, gw, _ = agent(
+        [{**REGISTERS, "every": every, "max_age": 0.3}],
+        line={"timeout": 0.1, "probe_interval": probe, "probe_max_interval": 10.0},
+    )
+
+    def health() -> tuple[str, float]:
+        record = gw.gateway.buses["a"]._core.health.slaves.get(UNIT)
+        return ("", 0.0) if record is None else (record.state.value, record.backoff)
+
+    slave.mute = True
+    wait_until(lambda: gw.call(health)[0] == "down", "the slave isolated as dead")
+    down_at = time.monotonic()
+    # Each probe without an answer doubles the back-off: 0.1 + 0.2 + 0.4 + 0.8 s of probes
+    # before it reaches 1.6 s (at the pace of every period, 4 x 0.2 s).
+    wait_until(lambda: gw.call(health)[1] >= 16 * probe, "the back-off at 1.6 s")
+    took = time.monotonic() - down_at
+    heard = [round(t - down_at, 3) for t, _ in slave.heard_since(down_at)]
+    assert took >= 0.9 * (1 + 2 + 4 + 8) * probe, (took, heard)
 
 
 def test_a_reload_that_keeps_a_block_keeps_its_data(agent: AgentFactory) -> None:

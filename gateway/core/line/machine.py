@@ -695,8 +695,14 @@ class LineCore:
             self.polls.append(poll)
             return
         lane = self.lane
-        if slave in lane.requests or self.wire.on_wire_to(slave):
-            self.plan.skipped(block, now)  # its slave's one lane place is taken
+        if (
+            slave in lane.requests
+            or self.wire.on_wire_to(slave)
+            or self.health.refused_at_once(record, now)
+        ):
+            # Its slave's one lane place is taken, or its next probe is not due (a dead
+            # slave is probed at the back-off, its blocks too).
+            self.plan.skipped(block, now)
             return
         self.plan.poll_made(block, poll, now)
         self._lane_put(poll, now)
