@@ -1336,12 +1336,16 @@ class FairLineMachine(RuleBasedStateMachine):
         else:
             slave = self.draw.choice(FLAKY if master.kind == "flaky" else LIVE)
             next_in_line = False
-        pdu = struct.pack(">BHH", 3, self.draw.randrange(0, 60000), master.quantity)
+        # Addresses from a short list: masters asking the same read at once join each other.
+        pdu = struct.pack(">BHH", 3, self.draw.randrange(0, 50), master.quantity)
         request = LineRequest(slave, pdu, name, lambda _pdu, _outcome: None)
         master.outstanding = request
         flat = flat_out and master.kind != "periodic"
         self.asked[id(request)] = Asked(request, len(self.sends), flat, previous, next_in_line)
         self.line.core.submit(request, now)
+        leader = self.line.core.sharing.open_reads.get((slave, pdu))
+        if leader is not None and leader is not request:  # it joined an identical read
+            del self.asked[id(request)]  # and waits as long as that one: checked there
         self.line._pump()
 
     def light(self, name: str) -> bool:
