@@ -474,6 +474,7 @@ def answers(request: bytes, frame: bytes) -> bool:
 
 @settings(max_examples=200, deadline=None)
 @example(requests=[(4, 1, 0, 1), (4, 1, 672, 13)], cuts=[])  # a CRC that passes both ways
+@example(requests=[(3, 1, 0, 1), (3, 1, 16383, 16)], cuts=[])  # as long as that answer
 @given(
     requests=st.lists(
         st.tuples(

@@ -137,7 +137,12 @@ def _answer_length(request: bytes, buffer: bytearray) -> int | None:
     if len(buffer) >= 2 and buffer[1] == request[0]:
         expected = answer_pdu_length(request)
         if expected is not None:
-            return 3 + expected  # unit, PDU, CRC
+            if request[0] in fc.ECHOED_WRITES:
+                return 3 + expected  # unit, PDU, CRC
+            if len(buffer) < 3:
+                return NEED_MORE
+            # A read's answer says its byte count: another count is not this answer.
+            return 3 + expected if buffer[2] == expected - 2 else None
     return response_length(request, buffer)
 
 
