@@ -13,13 +13,14 @@ import functools
 import itertools
 import random
 from collections.abc import Hashable
+from dataclasses import replace
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.config import LineConfig, PollConfig
-from gateway.core.line import LineCore, LineRequest
+from gateway.core.line import INFINITY, LineCore, LineRequest
 from gateway.core.line.polling import AGE_NEVER, PollPlan, changed_range
 from gateway.core.outcome import BlockState, Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
@@ -407,3 +408,73 @@ def test_a_stopped_line_polls_no_more_and_falls_idle() -> None:
     line.run(5.0)
     assert len(line.frames) == sent  # the poll on the wire ended; no other went
     assert line.core.idle and line.core.get_timer() is None
+
+
+def test_a_due_poll_goes_when_the_masters_turn_finds_only_the_lane_waiting() -> None:
+    """Found by the polled line machine: a poll went first, so the next turn was the
+    masters'; but all that waited was a silent slave's block poll in the isolated slaves'
+    lane, off its credit. Nothing went, and the core asked for its timer at the other
+    block's due time again and again (a spin) until the lane's credit came back."""
+    line = RegisterLine(
+        (block(slave=2, address=77, count=15, every=0.1), block(address=48, every=0.64)),
+        timeout=0.2, retries=1, dead_after=3, probe_interval=0.5, probe_max_interval=1.0,
+    )  # fmt: skip
+    line.silent.add(2)
+    line.submit(2, read(89, 6))
+    line.submit(2, read(79, 3))
+    stalled = 0
+    while line.now < 2.0:
+        timer = line.core.get_timer()
+        event_at = line._events[0][0] if line._events else INFINITY
+        when = min(INFINITY if timer is None else timer, event_at)
+        stalled = stalled + 1 if when <= line.now else 0
+        assert stalled < 50, f"the core asks for its timer at {when} again and again"
+        line.now = max(line.now, when)
+        if event_at <= line.now:
+            line._heap.heappop(line._events)[2]()
+        else:
+            line.core.handle_timer(line.now)
+        line._pump()
+    assert [frame for frame in line.polls() if frame[0] == 1][:3] == [
+        encode_rtu(1, read(48, 10))
+    ] * 3  # polled on time at 0, 0.64 and 1.28 s
+
+
+def test_a_reload_keeps_an_unchanged_blocks_schedule_even_while_it_fails() -> None:
+    """Found by the polled line machine: a reload made an unchanged block due a period
+    after its last good answer, so a failing block (no good answer) was polled again at
+    once, and one whose poll was waiting twice in a row. Its schedule is kept; only a
+    changed period moves it, counted from the last poll."""
+    line = RegisterLine((block(count=10, every=1.0),))
+    line.exceptions.add(1)
+    line.run(0.5)
+    config = LineConfig(name="t", device="/dev/null", baudrate=19200, polls=(block(count=10),))
+    line.core.reconfigure(config, line.now)
+    line._pump()
+    line.run(0.99)
+    assert len(line.polls()) == 1  # the one at 0 s; the next is due at 1 s
+    faster = replace(config, polls=(block(count=10, every=0.2),))
+    line.core.reconfigure(faster, line.now)
+    line._pump()
+    assert len(line.polls()) == 2  # due 0.2 s after the last poll: at once
+
+
+def test_a_block_a_reload_adds_counts_the_writes_still_outstanding() -> None:
+    """Found by the polled line machine: a write waited while a reload added a block over
+    its register; the new block's first poll went before the write and was kept, and
+    another master's read got the value from before the write, from memory."""
+    line = RegisterLine((block(slave=2, count=10),))
+    line.turnaround = 0.2
+    line.run(0.5)
+    line.submit(1, read(50), master="busy")  # holds the line 0.2 s
+    line.submit(1, write(3, 777), master="writer")
+    config = LineConfig(
+        name="t", device="/dev/null", baudrate=19200, polls=(block(slave=2, count=10), block())
+    )
+    line.core.reconfigure(config, line.now)
+    line._pump()
+    line.run(0.95)  # the new block's poll went and was answered; the write is on the wire
+    reader = line.submit(1, read(3), master="reader")
+    line.run(2.0)
+    pdu, outcome = line.answer_of(reader)
+    assert pdu == bytes((3, 2)) + (777).to_bytes(2, "big"), (pdu.hex(), outcome)

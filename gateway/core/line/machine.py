@@ -296,14 +296,14 @@ class LineCore:
             self._answer(request, ExceptionCode.GATEWAY_PATH_UNAVAILABLE, Outcome.NO_ROUTE)
             return
         plan = self.plan
-        if plan.blocks:
-            if request.pdu[0] in fc.READ_FUNCTIONS and not request.broadcast:
+        if request.pdu[0] in fc.READ_FUNCTIONS and not request.broadcast:
+            if plan.blocks:
                 answer = plan.serve(request.slave, request.pdu, now)
                 if answer is not None:
                     self._deliver(request, answer, Outcome.MEMORY, -1.0)
                     return
-            elif plan.change_submitted(request):
-                request.counted_change = True  # until it ends (``_deliver``)
+        elif plan.change_submitted(request):  # also without blocks: a reload may add some
+            request.counted_change = True  # until it ends (``_deliver``)
         if self._noisy:
             self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
             return
@@ -655,6 +655,12 @@ class LineCore:
         if picked is not None:
             self._poll_went_first = False
             return picked[0], picked[1], False
+        if self._poll_went_first and (self.polls or self.plan.next_due <= now):
+            # The masters' turn, but none of theirs may go now (what waits is in the lane,
+            # off its credit): the plan's due poll goes rather than the line idling.
+            poll = self._due_poll(now)
+            if poll is not None:
+                return poll, None, False
         if self.late.wanted:  # the queue's requests were held: a proof lets them go
             waiting = self.queue.queued - len(self.lane.requests) - len(self.retries)
             proof = self._proof(now, free=waiting <= 0)

@@ -151,6 +151,8 @@ class PollPlan:
         self.by_slave: dict[int, list[PollBlock]] = {}
         self.next_due = INFINITY
         self.stopped = False  # the line stops: no more polls (``stop``)
+        #: Changes submitted that have not ended, by id: a block added meanwhile counts them.
+        self.changes: dict[int, LineRequest] = {}
         self.configure(specs, now)
 
     def configure(self, specs: Sequence[PollBlockPolicy], now: float) -> None:
@@ -163,9 +165,19 @@ class PollPlan:
             block = old.pop(key, None)
             if block is None:
                 block = PollBlock(spec, _READ_TABLE[spec.function], now)
+                for change in self.changes.values():  # outstanding: it proves nothing yet
+                    if change.broadcast or (
+                        change.slave == spec.slave
+                        and block.touched_by(*(changed_range(change.pdu) or ("", 0, 0)))
+                    ):
+                        block.generation += 1
+                        block.pending += 1
             else:
+                if spec.every != block.spec.every:  # a new period applies from the last poll
+                    waiting = block.poll is not None  # then ``due`` is already the next one's
+                    last = block.due - block.spec.every if waiting else block.sent_at
+                    block.due = min(block.due, last + spec.every)
                 block.spec = spec
-                block.due = min(block.due, block.polled_at + spec.every)
             blocks.append(block)
         self.blocks = blocks
         self.by_slave = {}
@@ -236,17 +248,18 @@ class PollPlan:
         return None
 
     def change_submitted(self, request: LineRequest) -> bool:
-        """Count ``request`` against the blocks it may touch; ``True`` when it touches any
-        (then ``change_ended`` must follow when it ends)."""
-        touched = self._touched(request)
-        for block in touched:
+        """Count ``request`` (not a plain read) against the blocks it may touch, and
+        against blocks a reload adds before it ends; ``change_ended`` must follow."""
+        for block in self._touched(request):
             block.generation += 1
             block.pending += 1
-        return bool(touched)
+        self.changes[id(request)] = request
+        return True
 
     def change_ended(self, request: LineRequest) -> None:
         """A change counted by ``change_submitted`` ended: once none is outstanding, the
         block is polled again at once."""
+        self.changes.pop(id(request), None)
         for block in self._touched(request):
             block.pending -= 1
             if block.pending == 0 and block.poll is None:
