@@ -32,9 +32,11 @@ take a periodic master's turn). See their docstrings.
 
 from __future__ import annotations
 
+import heapq
 import os
 import random
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import pytest
@@ -48,13 +50,14 @@ from hypothesis.stateful import (
     rule,
 )
 
-from gateway.config import CacheRule, LineConfig, build_config
+from gateway.config import CacheRule, LineConfig, PollConfig, build_config
 from gateway.core import pdu as fc
 from gateway.core.ascii import encode_ascii
 from gateway.core.framing import ASCII, RTU, Framing, mbap_framing
 from gateway.core.line import INFINITY, LineCore, LineRequest, Transmit
 from gateway.core.line.fair_queue import REST_S
 from gateway.core.line.flights import FlightWire
+from gateway.core.line.polling import changed_range
 from gateway.core.line.records import Attempt
 from gateway.core.line.response_timing import FLOOR_S, NETWORK_FLOOR_S, answer_pdu_length
 from gateway.core.line.wire import SerialWire
@@ -1706,6 +1709,636 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
 
 AbsentBesideLineMachine.TestCase.settings = FairLineMachine.TestCase.settings
 TestAbsentBesideLineCore = pytest.mark.slow(AbsentBesideLineMachine.TestCase)
+
+
+# -- agent mode: poll blocks answered from memory ------------------------------------------
+
+#: The polled machine's slaves: each holds 100 holding registers and 100 coils.
+POLLED_SLAVES = (1, 2, 3)
+POLLED_CHAR = character_time(BAUD, 8, "N", 1)
+POLLED_TIMEOUT = 0.2
+#: The slaves' own logic changes these addresses of each table every ``TICK`` seconds.
+TICKING = range(0, 100, 7)
+TICK = 0.05
+#: Tables by read function, and what a read of each answers.
+POLLED_TABLE = {fc.READ_COILS: "coils", fc.READ_HOLDING_REGISTERS: "holding_registers"}
+
+
+def polled_answer(function: int, values: tuple[int, ...]) -> bytes:
+    """The slave's normal answer to a read of ``values`` (registers, or coils 0/1)."""
+    if function == fc.READ_COILS:
+        bits = bytearray((len(values) + 7) // 8)
+        for index, value in enumerate(values):
+            if value:
+                bits[index >> 3] |= 1 << (index & 7)
+        return bytes((function, len(bits))) + bytes(bits)
+    return bytes((function, 2 * len(values))) + struct.pack(f">{len(values)}H", *values)
+
+
+@dataclass
+class TableHistory:
+    """What one table of one slave held, and since when (``(since, values)``, in order)."""
+
+    versions: list[tuple[float, tuple[int, ...]]]
+
+    def set(self, at: float, changes: dict[int, int]) -> None:
+        values = list(self.versions[-1][1])
+        for address, value in changes.items():
+            values[address] = value
+        self.versions.append((at, tuple(values)))
+
+    def held(self, function: int, address: int, count: int, answer: bytes, low: float,
+             high: float) -> bool:  # fmt: skip
+        """True when ``answer`` is what a read of the range answered at some moment in
+        ``[low, high]``."""
+        versions = self.versions
+        until = INFINITY
+        for since, values in reversed(versions):
+            if until < low - 1e-9:
+                break
+            if since <= high + 1e-9 and (
+                polled_answer(function, values[address : address + count]) == answer
+            ):
+                return True
+            until = since
+        return False
+
+
+@dataclass
+class Change:
+    """A write (or broadcast) a master submitted: what it may change, when it ended."""
+
+    request: LineRequest
+    slaves: tuple[int, ...]
+    table: str
+    first: int
+    count: int
+    submitted: float
+    applied: float | None = None  # when the slave(s) applied it (its frame's end)
+    ended: float | None = None  # when it was answered
+
+    def touches(self, slave: int, table: str, first: int, count: int) -> bool:
+        """True when it may change ``count`` items of ``table`` from ``first`` of ``slave``
+        (a broadcast counts against every block of the line, whatever it writes)."""
+        if self.request.broadcast:
+            return True
+        return (
+            slave in self.slaves
+            and table == self.table
+            and first < self.first + self.count
+            and self.first < first + count
+        )
+
+    def done_at(self) -> float | None:
+        """From when a read may not see the table as it was before: the write applied,
+        or (never applied: refused, an exception, a silent slave) answered."""
+        return self.applied if self.applied is not None else self.ended
+
+
+@dataclass
+class PolledSlave:
+    mode: str = "ok"  # "ok", "silent" (hears nothing), "exception" (answers 04, applies none)
+    turnaround: float = 0.003
+    busy_until: float = 0.0
+
+
+class PolledLineMachine(RuleBasedStateMachine):
+    """A line in agent mode: one to three poll blocks (FC 3 and FC 1) on slaves that hold
+    registers and coils, masters reading inside, across and outside the blocks, writing
+    (FC 5, 6, 15, 16, broadcasts) into them and elsewhere, slaves going silent, answering
+    exceptions, changing values on their own (what the gateway cannot see: some each
+    ``TICK``, others now and then), reloads with
+    blocks changed, removed and added, and a stop. Literal times; checked on every step:
+
+    1. **Memory is the slave's, young enough and after every change.** A read answered
+       from memory is byte for byte what a read of that range answered at some moment no
+       earlier than the covering block's ``max_age`` before the answer, and no earlier than
+       the end of every write to that slave, table and range submitted before the read (by
+       any master); none of those may still be outstanding.
+    2. **Exactly once.** Every request is answered at most once, and at the end once.
+    3. **Read after write.** A master's read of a slave (from memory or the wire) sees the
+       table as it was after that master's earlier writes to it ended, and before its later
+       writes to it were applied.
+    4. **Pace.** A block is not polled again within its ``every`` unless a write that may
+       touch it ended, or a reload came, since its last poll; a stopped line sends nothing
+       new (only the attempt on the wire may finish, with its retries).
+    5. **No spin.** The core's timer never stays in the past without progress.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.slaves = {unit: PolledSlave() for unit in POLLED_SLAVES}
+        self.tables = {
+            (unit, table): TableHistory([(0.0, tuple((unit * 1000 + a) & 0xFFFF for a in
+                                                     range(100)) if table ==
+                                          "holding_registers" else tuple(a % 2 for a in
+                                                                         range(100)))])
+            for unit in POLLED_SLAVES
+            for table in POLLED_TABLE.values()
+        }  # fmt: skip
+        self.counter = 1  # values written: each write's own
+        self.events: list[tuple[float, int, Callable[[], None]]] = []
+        self.seq = 0
+        self.config: LineConfig | None = None
+        self.core: LineCore | None = None
+        self.requests: list[LineRequest] = []
+        self.answers: dict[int, int] = {}  # id(request) -> times answered
+        self.changes: list[Change] = []
+        self.change_of: dict[int, Change] = {}
+        self.reads: list[tuple[LineRequest, float]] = []  # (read, submitted)
+        #: By block: the earliest its next poll may go and its last poll (``check_pace``),
+        #: and its period.
+        self.pace: dict[tuple[int, int, int, int], tuple[float, float | None]] = {}
+        self.every: dict[tuple[int, int, int, int], float] = {}
+        self.sent_requests: list[LineRequest] = []  # kept: their ids stay theirs
+        self.stopped = False
+        self.sent_before_stop: set[int] = set()
+        self.transmitted: set[int] = set()
+        self.problems: list[str] = []
+
+    # -- set-up --------------------------------------------------------------------------
+
+    @initialize(data=st.data())
+    def start(self, data: st.DataObject) -> None:
+        blocks = data.draw(self.blocks_strategy(), label="blocks")
+        self.config = LineConfig(
+            name="t", device="/dev/null", baudrate=BAUD, timeout=POLLED_TIMEOUT, retries=1,
+            dead_after=3, probe_interval=0.5, probe_max_interval=1.0, polls=blocks,
+        )  # fmt: skip
+        self.plan_changed(blocks)
+        self.at(TICK, self.tick)
+        self.core = new_core(self.config, 0.0)
+        self.core.port_opened(0.0)
+        self.pump()
+
+    @staticmethod
+    def blocks_strategy() -> st.SearchStrategy[tuple[PollConfig, ...]]:
+        one = st.builds(
+            PolledLineMachine.one_block,
+            slave=st.sampled_from(POLLED_SLAVES),
+            function=st.sampled_from(tuple(POLLED_TABLE)),
+            address=st.integers(0, 80),
+            count=st.integers(1, 20),
+            every=st.floats(0.05, 1.0),
+            age=st.floats(1.0, 3.0),
+        )
+        return st.lists(one, min_size=1, max_size=3).map(PolledLineMachine.disjoint)
+
+    @staticmethod
+    def one_block(slave: int, function: int, address: int, count: int, every: float,
+                  age: float) -> PollConfig:  # fmt: skip
+        return PollConfig(slave, function, address, count, every, every * age, "t", slave)
+
+    @staticmethod
+    def disjoint(blocks: list[PollConfig]) -> tuple[PollConfig, ...]:
+        """The blocks ``check-config`` accepts: no two of one slave and function overlap."""
+        kept: list[PollConfig] = []
+        for block in blocks:
+            if not any(
+                other.slave == block.slave
+                and other.function == block.function
+                and other.address < block.address + block.count
+                and block.address < other.address + other.count
+                for other in kept
+            ):
+                kept.append(replace(block, index=len(kept)))
+        return tuple(kept)
+
+    # -- the line and its slaves ---------------------------------------------------------
+
+    def tick(self) -> None:
+        """Every slave's own logic counts some registers up and toggles some coils."""
+        for unit in POLLED_SLAVES:
+            for table in POLLED_TABLE.values():
+                history = self.tables[unit, table]
+                values = history.versions[-1][1]
+                mask = 1 if table == "coils" else 0xFFFF
+                history.set(self.now, {a: (values[a] + 1) & mask for a in TICKING})
+        self.at(self.now + TICK, self.tick)
+
+    def at(self, when: float, act: Callable[[], None]) -> None:
+        self.seq += 1
+        heapq.heappush(self.events, (when, self.seq, act))
+
+    def pump(self) -> None:
+        core = self.core
+        assert core is not None
+        while core.transmits or core.deliveries:
+            deliveries, core.deliveries = core.deliveries, []
+            transmits, core.transmits = core.transmits, []
+            for delivery in deliveries:
+                request = delivery.request
+                if not request.poll:
+                    self.answered(request, delivery.pdu, delivery.outcome)
+            for transmit in transmits:
+                self.sent(transmit)
+
+    def sent(self, transmit: Transmit) -> None:
+        request = transmit.request
+        key = id(request)
+        if self.stopped and key not in self.sent_before_stop:
+            self.problems.append(f"{request.slave}:{request.pdu.hex()} sent by a stopped line")
+        self.transmitted.add(key)
+        self.sent_requests.append(request)
+        if request.poll and request.attempts <= 1:
+            self.check_pace(request)
+        end = self.now + len(transmit.frame) * POLLED_CHAR
+        self.at(end, lambda: self.slave_hears(request, end))
+
+    def check_pace(self, poll: LineRequest) -> None:
+        """4. The plan keeps its pace (a poll that went late does not delay the next one's
+        due time) but never goes faster: each poll goes no earlier than its due time, and
+        the next is due a period later. Kept here as a lower bound of the core's: a block
+        is due when it enters the plan; a write that may touch it ended since its last poll
+        makes it due from that end; a reload that changes a kept block's period makes it
+        due a new period after its last poll (or the poll waiting), if that is sooner."""
+        pdu = poll.pdu
+        address, count = struct.unpack(">HH", pdu[1:5])
+        key = (poll.slave, pdu[0], address, count)
+        every = self.every.get(key)
+        if every is None:  # its block left the plan on the way
+            return
+        due, previous = self.pace[key]
+        if previous is not None:
+            table = POLLED_TABLE[pdu[0]]
+            ends = [
+                change.ended
+                for change in self.changes
+                if change.ended is not None
+                and change.ended >= previous - 1e-9
+                and change.touches(poll.slave, table, address, count)
+            ]
+            if ends:  # due again at once from the end (if its next poll was not yet made)
+                due = min(due, *ends)
+        if self.now < due - 1e-6:
+            self.problems.append(
+                f"block {key} polled at {self.now:.4f}, due at {due:.4f} at the earliest "
+                f"(every {every:.4f}; its last poll at {previous})"
+            )
+        self.pace[key] = (due + every, self.now)
+
+    def plan_changed(self, polls: tuple[PollConfig, ...]) -> None:
+        """The pace model of the blocks of a new plan (``check_pace``)."""
+        pace: dict[tuple[int, int, int, int], tuple[float, float | None]] = {}
+        every, self.every = self.every, {}
+        for block in polls:
+            key = (block.slave, block.function, block.address, block.count)
+            self.every[key] = block.every
+            old = self.pace.get(key)
+            if old is None:
+                pace[key] = (self.now, None)
+                continue
+            due, previous = old
+            was = every.get(key, block.every)
+            if block.every != was:  # the new period from the last poll, or the one waiting
+                last = -INFINITY if previous is None else previous
+                due = min(due, due - was + block.every, last + block.every)
+            pace[key] = (due, previous)
+        self.pace = pace
+
+    def slave_hears(self, request: LineRequest, end: float) -> None:
+        """The request's frame ended: the slave (every slave, for a broadcast) applies a
+        write and reads what it answers now."""
+        pdu = request.pdu
+        units = POLLED_SLAVES if request.broadcast else (request.slave,)
+        answer: bytes | None = None
+        for unit in units:
+            slave = self.slaves.get(unit)
+            if slave is None or slave.mode == "silent":
+                continue
+            if slave.mode == "exception":
+                answer = bytes((pdu[0] | 0x80, 4))
+                continue
+            function = pdu[0]
+            if function in POLLED_TABLE:
+                address, count = struct.unpack(">HH", pdu[1:5])
+                values = self.tables[unit, POLLED_TABLE[function]].versions[-1][1]
+                answer = polled_answer(function, values[address : address + count])
+            else:
+                self.apply(unit, pdu, end)
+                answer = fc.write_response(pdu)
+        change = self.change_of.get(id(request))
+        if change is not None and answer is not None and answer[0] < 0x80:
+            change.applied = end
+        if request.broadcast or answer is None:
+            return
+        slave = self.slaves[request.slave]
+        frame = encode_rtu(request.slave, answer)
+        arrives = max(end + slave.turnaround, slave.busy_until) + len(frame) * POLLED_CHAR
+        slave.busy_until = arrives
+        core = self.core
+        assert core is not None
+
+        def arrive() -> None:
+            core.receive(frame, self.now)
+
+        self.at(arrives, arrive)
+
+    def apply(self, unit: int, pdu: bytes, at: float) -> None:
+        function = pdu[0]
+        address = (pdu[1] << 8) | pdu[2]
+        if function == fc.WRITE_SINGLE_REGISTER:
+            self.tables[unit, "holding_registers"].set(at, {address: (pdu[3] << 8) | pdu[4]})
+        elif function == fc.WRITE_MULTIPLE_REGISTERS:
+            count = (pdu[3] << 8) | pdu[4]
+            values = struct.unpack(f">{count}H", pdu[6 : 6 + 2 * count])
+            changes = {address + i: value for i, value in enumerate(values)}
+            self.tables[unit, "holding_registers"].set(at, changes)
+        elif function == fc.WRITE_SINGLE_COIL:
+            self.tables[unit, "coils"].set(at, {address: int(pdu[3] == 0xFF)})
+        elif function == fc.WRITE_MULTIPLE_COILS:
+            count = (pdu[3] << 8) | pdu[4]
+            bits = pdu[6:]
+            changes = {address + i: (bits[i >> 3] >> (i & 7)) & 1 for i in range(count)}
+            self.tables[unit, "coils"].set(at, changes)
+
+    def advance_to(self, target: float) -> None:
+        """5. Fire the core's timer and the slaves' acts in time order until ``target``."""
+        core = self.core
+        assert core is not None
+        stalled = 0
+        for _ in range(200_000):
+            timer = core.get_timer()
+            event_at = self.events[0][0] if self.events else INFINITY
+            when = min(INFINITY if timer is None else timer, event_at)
+            if when > target:
+                break
+            stalled = stalled + 1 if when <= self.now else 0
+            assert stalled < 50, f"the core asks for its timer at {when} again and again"
+            self.now = max(self.now, when)
+            if event_at <= self.now:
+                _, _, act = heapq.heappop(self.events)
+                act()
+            else:
+                core.handle_timer(self.now)
+            self.pump()
+        self.now = max(self.now, target)
+
+    # -- the masters' side ----------------------------------------------------------------
+
+    def submit(self, master: str, slave: int, pdu: bytes) -> LineRequest:
+        assert self.core is not None
+        request = LineRequest(slave, pdu, master, lambda _pdu, _outcome: None, slave == 0)
+        self.requests.append(request)
+        changed = changed_range(pdu)
+        if changed is not None:
+            table, first, count = changed
+            slaves = POLLED_SLAVES if slave == 0 else (slave,)
+            change = Change(request, slaves, table, first, count, self.now)
+            self.changes.append(change)
+            self.change_of[id(request)] = change
+        else:
+            self.reads.append((request, self.now))
+        self.core.submit(request, self.now)
+        self.pump()
+        return request
+
+    def answered(self, request: LineRequest, pdu: bytes, outcome: Outcome) -> None:
+        key = id(request)
+        self.answers[key] = self.answers.get(key, 0) + 1
+        if self.answers[key] > 1:
+            self.problems.append(f"{request.slave}:{request.pdu.hex()} answered twice")
+        change = self.change_of.get(key)
+        if change is not None:
+            change.ended = self.now
+            return
+        if outcome is Outcome.MEMORY:
+            self.check_memory(request, pdu)
+        if outcome in (Outcome.MEMORY, Outcome.OK):
+            self.check_order(request, pdu)
+
+    def read_range(self, request: LineRequest) -> tuple[str, int, int]:
+        address, count = struct.unpack(">HH", request.pdu[1:5])
+        return POLLED_TABLE[request.pdu[0]], address, count
+
+    def check_memory(self, read: LineRequest, answer: bytes) -> None:
+        """1. From memory: what the slave held within ``max_age``, after every change to
+        that range submitted before the read."""
+        assert self.config is not None
+        table, address, count = self.read_range(read)
+        covering = [
+            b for b in self.config.polls
+            if b.slave == read.slave and b.function == read.pdu[0]
+            and b.address <= address and address + count <= b.address + b.count
+        ]  # fmt: skip
+        if not covering:
+            self.problems.append(f"{read.slave}:{read.pdu.hex()} from memory, no block covers")
+            return
+        low = self.now - max(b.max_age for b in covering)
+        for change in self.changes:
+            if change.request is read or change.submitted > read.enqueued_at:
+                continue
+            if not change.touches(read.slave, table, address, count):
+                continue
+            if change.request.order > read.order:
+                continue
+            done = change.done_at()
+            if done is None or change.ended is None:
+                self.problems.append(
+                    f"{read.slave}:{read.pdu.hex()} from memory at {self.now:.4f} while "
+                    f"{change.request.slave}:{change.request.pdu.hex()} (submitted "
+                    f"{change.submitted:.4f}) is outstanding"
+                )
+                return
+            low = max(low, done)
+        history = self.tables[read.slave, table]
+        if not history.held(read.pdu[0], address, count, answer, low, self.now):
+            self.problems.append(
+                f"{read.slave}:{read.pdu.hex()} from memory at {self.now:.4f}: "
+                f"{answer.hex()} is not what the slave held since {low:.4f}"
+            )
+
+    def check_order(self, read: LineRequest, answer: bytes) -> None:
+        """3. What the read's master's earlier writes to that slave left, none of its later."""
+        table, address, count = self.read_range(read)
+        low, high = -INFINITY, self.now
+        for change in self.changes:
+            if change.request.master != read.master or not change.touches(
+                read.slave, table, address, count
+            ):
+                continue
+            if change.request.order < read.order:
+                done = change.done_at()
+                if done is None:
+                    self.problems.append(
+                        f"{read.master}'s read {read.slave}:{read.pdu.hex()} answered before "
+                        f"its earlier write {change.request.pdu.hex()} ended"
+                    )
+                    return
+                low = max(low, done)
+            elif change.applied is not None:
+                high = min(high, change.applied)
+        history = self.tables[read.slave, table]
+        if not history.held(read.pdu[0], address, count, answer, low, high):
+            self.problems.append(
+                f"{read.master}'s read {read.slave}:{read.pdu.hex()} answered "
+                f"{answer.hex()} at {self.now:.4f}: not what the slave held between its "
+                f"master's writes ({low:.4f} to {high:.4f})"
+            )
+
+    # -- rules ---------------------------------------------------------------------------
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        which=st.integers(0, 5),
+        where=st.sampled_from(("inside", "inside", "inside", "across", "outside")),
+        offset=st.integers(0, 30),
+        count=st.integers(1, 12),
+    )
+    def read(self, master: str, which: int, where: str, offset: int, count: int) -> None:
+        """A master reads inside a block, across its end, or elsewhere."""
+        assert self.config is not None
+        polls = self.config.polls
+        if polls and where != "outside":
+            block = polls[which % len(polls)]
+            slave, function = block.slave, block.function
+            if where == "inside":
+                address = block.address + offset % block.count
+                count = 1 + (count - 1) % (block.address + block.count - address)
+            else:
+                address = block.address + offset % block.count
+                count = block.address + block.count - address + 1 + count % 5
+        else:
+            slave = POLLED_SLAVES[which % len(POLLED_SLAVES)]
+            function = tuple(POLLED_TABLE)[offset % 2]
+            address = (offset * 3) % 90
+        count = min(count, 100 - address)
+        self.submit(master, slave, fc.read_request(function, address, count))
+
+    @rule(
+        master=st.sampled_from(MASTERS),
+        which=st.integers(0, 5),
+        kind=st.sampled_from((5, 6, 15, 16)),
+        where=st.sampled_from(("block", "block", "elsewhere", "broadcast")),
+        offset=st.integers(0, 30),
+        count=st.integers(1, 4),
+    )
+    def write(self, master: str, which: int, kind: int, where: str, offset: int,
+              count: int) -> None:  # fmt: skip
+        """A master writes into a block's range, elsewhere, or to every slave."""
+        assert self.config is not None
+        polls = self.config.polls
+        slave = POLLED_SLAVES[which % len(POLLED_SLAVES)]
+        address = (offset * 3) % 90
+        if polls and where == "block":
+            block = polls[which % len(polls)]
+            slave = block.slave
+            kind = {fc.READ_COILS: (5, 15), fc.READ_HOLDING_REGISTERS: (6, 16)}[block.function][
+                kind in (15, 16)
+            ]
+            address = block.address + offset % block.count
+        if where == "broadcast":
+            slave, kind = 0, (5 if kind in (5, 15) else 6)
+        count = min(count, 100 - address)
+        value = self.counter
+        self.counter += 1
+        if kind == 5:
+            pdu = struct.pack(">BHH", 5, address, 0xFF00 if value & 1 else 0)
+        elif kind == 6:
+            pdu = struct.pack(">BHH", 6, address, value & 0xFFFF)
+        elif kind == 15:
+            bits = bytearray((count + 7) // 8)
+            for i in range(count):
+                if (value >> i) & 1:
+                    bits[i >> 3] |= 1 << (i & 7)
+            pdu = struct.pack(">BHHB", 15, address, count, len(bits)) + bytes(bits)
+        else:
+            values = [(value + i * 7919) & 0xFFFF for i in range(count)]
+            pdu = struct.pack(f">BHHB{count}H", 16, address, count, 2 * count, *values)
+        self.submit(master, slave, pdu)
+
+    @rule(
+        which=st.integers(0, 5),
+        offset=st.integers(0, 99),
+        elsewhere=st.booleans(),
+    )
+    def drift(self, which: int, offset: int, elsewhere: bool) -> None:
+        """The slave's own logic changes a value, in a block or elsewhere: what the gateway
+        cannot see (memory may serve the old value until ``max_age``)."""
+        assert self.config is not None
+        polls = self.config.polls
+        slave = POLLED_SLAVES[which % len(POLLED_SLAVES)]
+        table = tuple(POLLED_TABLE.values())[offset % 2]
+        address = offset
+        if polls and not elsewhere:
+            block = polls[which % len(polls)]
+            slave, table = block.slave, POLLED_TABLE[block.function]
+            address = block.address + offset % block.count
+        value = self.counter
+        self.counter += 1
+        self.tables[slave, table].set(
+            self.now, {address: value & (1 if table == "coils" else 0xFFFF)}
+        )
+
+    @rule(step=st.sampled_from((0.001, 0.01, 0.03, 0.1, 0.3, 1.0)))
+    def wait(self, step: float) -> None:
+        self.advance_to(self.now + step)
+
+    @rule(
+        slave=st.sampled_from(POLLED_SLAVES),
+        mode=st.sampled_from(("ok", "ok", "silent", "exception")),
+        turnaround=st.sampled_from((0.001, 0.005, 0.02, 0.06)),
+    )
+    def behave(self, slave: int, mode: str, turnaround: float) -> None:
+        """A slave answers at another pace, goes silent, comes back, or answers 04."""
+        self.slaves[slave].mode = mode
+        self.slaves[slave].turnaround = turnaround
+
+    @rule(data=st.data(), keep=st.lists(st.booleans(), min_size=3, max_size=3),
+          faster=st.floats(0.5, 2.0))  # fmt: skip
+    def reload(self, data: st.DataObject, keep: list[bool], faster: float) -> None:
+        """A reload: blocks kept as they are, kept with a new pace, removed, added."""
+        assert self.config is not None and self.core is not None
+        blocks: list[PollConfig] = []
+        for block, kept in zip(self.config.polls, keep, strict=False):
+            if kept:
+                blocks.append(block)
+            elif faster < 1.2:
+                every = min(1.0, max(0.05, block.every * faster))
+                blocks.append(replace(block, every=every, max_age=every * 2))
+        added = data.draw(st.lists(self.blocks_strategy(), max_size=1), label="added")
+        for more in added:
+            blocks.extend(more)
+        self.config = replace(self.config, polls=self.disjoint(blocks))
+        self.plan_changed(self.config.polls)
+        self.core.reconfigure(self.config, self.now)
+        self.pump()
+
+    @precondition(lambda self: not self.stopped and len(self.requests) > 10)
+    @rule()
+    def stop(self) -> None:
+        """The gateway stops: the attempt on the wire may finish; nothing new goes."""
+        assert self.core is not None
+        self.sent_before_stop = set(self.transmitted)
+        self.stopped = True
+        self.core.stop(self.now)
+        self.pump()
+
+    # -- invariants ----------------------------------------------------------------------
+
+    @invariant()
+    def nothing_went_wrong(self) -> None:
+        assert not self.problems, self.problems[:3]
+
+    def teardown(self) -> None:
+        if self.core is None:
+            return
+        for slave in self.slaves.values():
+            slave.mode = "ok"
+        self.advance_to(self.now + 5.0)
+        assert not self.problems, self.problems[:3]
+        unanswered = [r.pdu.hex() for r in self.requests if self.answers.get(id(r), 0) != 1]
+        assert not unanswered, f"answered other than once: {unanswered}"
+
+
+PolledLineMachine.TestCase.settings = settings(
+    max_examples=int(os.environ.get("LINE_MACHINE_EXAMPLES", "200")),
+    stateful_step_count=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+TestPolledLineCore = pytest.mark.slow(PolledLineMachine.TestCase)
 
 
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
