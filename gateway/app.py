@@ -36,19 +36,19 @@ from .core.line import Handover, LineRequest
 from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
-from .io.bus import Alone, Bus, PlannedBlock, PollBlockView, poll_block_status
 from .io.clock import PreciseClock
-from .io.http import HttpEndpoint, role_route, start_http
-from .io.http_guard import RouteAccess
-from .io.rtu_listener import rtu_over_tcp_server
-from .io.serial_port import check_devices_usable
-from .io.serial_slave import SerialSlave
-from .io.spine import LineTarget, Router
-from .io.status_unit import StatusUnit
+from .io.http.endpoint import HttpEndpoint, role_route, start_http
+from .io.http.guard import RouteAccess
+from .io.http.live import LiveView
+from .io.line.bus import Alone, Bus, PlannedBlock, PollBlockView, poll_block_status
+from .io.links.serial_port import check_devices_usable
+from .io.listeners.rtu_over_tcp import rtu_over_tcp_server
+from .io.listeners.serial_slave import SerialSlave
+from .io.listeners.spine import LineTarget, Router
+from .io.listeners.status_unit import StatusUnit
+from .io.listeners.tcp import ModbusTcpServer
 from .io.systemd import SystemdNotifier
-from .io.tcp import ModbusTcpServer
 from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
-from .live import LiveView
 from .metrics import GatewayMetrics
 from .reload_summary import summarize
 from .restart_keys import keep_restart_settings

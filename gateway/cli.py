@@ -23,8 +23,8 @@ from .config import (
     read_config_file,
 )
 from .core.framing import is_mbap
-from .io.http import endpoint_tls
-from .io.link import DeviceUnusableError, ListenerDeviceUnusableError
+from .io.http.endpoint import endpoint_tls
+from .io.links.link import DeviceUnusableError, ListenerDeviceUnusableError
 from .io.tls import TlsSetupError, client_context, server_context
 from .logs import setup_logging
 from .schema import Key, Scope, Table, Type

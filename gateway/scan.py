@@ -33,7 +33,7 @@ from .core import pdu as fc
 from .core.errors import ResponseError
 from .core.framing import framing_for
 from .core.timing import character_time
-from .io.serial_port import DeviceBusyError, SerialPortError, open_serial
+from .io.links.serial_port import DeviceBusyError, SerialPortError, open_serial
 from .io.tls import TlsSetupError, client_context
 
 #: Baud rates ``--baudrate auto`` tries, the most common on Modbus lines first.

@@ -12,7 +12,7 @@ the chain its handshake verified (``peer_chain``), and a reload judges that
 chain against the CAs read again (``certificate_facts``, with ``cryptography``)
 through ``core.connection_admission``.
 
-The TCP server (``gateway.io.tcp``) accepts on a ``tls`` listener itself: it
+The TCP server (``gateway.io.listeners.tcp``) accepts on a ``tls`` listener itself: it
 screens the source address (allow list) and admits the connection before a
 single byte is read, runs the handshake (``server.tls_handshake_timeout``) so that a
 failure can be counted by reason (``handshake_failure_reason``), and only then

@@ -150,7 +150,7 @@ def from_the_venv(install: CompiledInstall) -> dict[str, str]:
 
 def test_every_listed_module_is_compiled_and_says_so(compiled: CompiledInstall) -> None:
     modules = compiled_modules()
-    assert "gateway.core.line" in modules and "gateway.io.tcp" in modules
+    assert "gateway.core.line" in modules and "gateway.io.listeners.tcp" in modules
     probe = (
         "import importlib, sys, gateway\n"
         "for name in sys.argv[1:]:\n"

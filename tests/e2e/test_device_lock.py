@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 
 from gateway.config import build_config
-from gateway.io.serial_port import DeviceBusyError
+from gateway.io.links.serial_port import DeviceBusyError
 from gateway.sim import plc
 from tests.e2e.test_cli import GatewayProcess, RunGateway, gateway_command
 from tests.helpers import (

@@ -32,7 +32,7 @@ from typing import Any
 import pytest
 
 from gateway.config import build_config
-from gateway.io.serial_port import SerialLink, SerialPortError, open_serial
+from gateway.io.links.serial_port import SerialLink, SerialPortError, open_serial
 from gateway.sim import PtyPair, SimulatedLine, open_pty_pair, plc
 from tests.helpers import LoggedProcess, mbap, wait_until
 

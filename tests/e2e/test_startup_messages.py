@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.io.serial_port import PERMISSION_SETTLE_S
+from gateway.io.links.serial_port import PERMISSION_SETTLE_S
 from gateway.sim import PtyPair, open_pty_pair
 from tests.helpers import DEADLINE_S, release
 

@@ -23,8 +23,8 @@ from prometheus_client import CollectorRegistry
 
 from gateway.config import MetricsConfig, build_config
 from gateway.core.redundancy import Role
-from gateway.io.http import HttpEndpoint, respond, start_http
-from gateway.io.http_guard import RouteAccess
+from gateway.io.http.endpoint import HttpEndpoint, respond, start_http
+from gateway.io.http.guard import RouteAccess
 from gateway.io.pair.channel import role_body
 from gateway.sim import DataBank, SimulatedDevice
 from gateway.sim.device import pack_bits, pack_registers

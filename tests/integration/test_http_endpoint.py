@@ -20,9 +20,9 @@ from typing import Any
 
 import pytest
 
-from gateway import live
-from gateway.io.http import HttpEndpoint
-from gateway.live import MAX_FILTER_VALUES, LiveView
+from gateway.io.http import live
+from gateway.io.http.endpoint import HttpEndpoint
+from gateway.io.http.live import MAX_FILTER_VALUES, LiveView
 from gateway.sim import plc
 from gateway.sim.pki import make_pki
 from tests.helpers import (

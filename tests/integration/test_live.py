@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from gateway import live
-from gateway.live import QUEUE_LIMIT
+from gateway.io.http import live
+from gateway.io.http.live import QUEUE_LIMIT
 from gateway.sim import plc
 from gateway.sim.pki import make_pki
 from tests.helpers import (

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 
 from gateway.config import build_config
 from gateway.core.rtu import RtuFrame, RtuResponseDecoder, encode_rtu
-from gateway.io.serial_port import open_serial
+from gateway.io.links.serial_port import open_serial
 from gateway.sim import BusStats, BusTimeline, MultidropBus, plc
 from tests.helpers import DEADLINE_S, GatewayFactory
 

@@ -18,8 +18,8 @@ from gateway.config import MetricsConfig, build_config
 from gateway.core.line import LineRequest
 from gateway.core.outcome import Outcome
 from gateway.core.redundancy import Role
-from gateway.io.http import HttpEndpoint, respond, start_http
-from gateway.io.http_guard import RouteAccess
+from gateway.io.http.endpoint import HttpEndpoint, respond, start_http
+from gateway.io.http.guard import RouteAccess
 from gateway.io.pair.channel import (
     PeerPoller,
     PeerRole,

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from gateway.config import build_config
-from gateway.io.serial_port import (
+from gateway.io.links.serial_port import (
     DeviceUnusableError,
     SerialPortError,
     check_device_usable,

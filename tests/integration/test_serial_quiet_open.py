@@ -16,7 +16,7 @@ import select
 import pytest
 
 from gateway.config import LineConfig, build_config
-from gateway.io.serial_port import (
+from gateway.io.links.serial_port import (
     SerialPortError,
     check_device_usable,
     open_serial,

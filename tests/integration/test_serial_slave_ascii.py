@@ -25,7 +25,7 @@ import pytest
 from gateway.config import build_config
 from gateway.core.ascii import MAX_ASCII_FRAME, decode_ascii, encode_ascii
 from gateway.core.crc import append_crc, check_crc
-from gateway.io.serial_slave import SerialSlave
+from gateway.io.listeners.serial_slave import SerialSlave
 from gateway.sim import open_pty_pair, plc, zl69x
 from tests.helpers import (
     DEADLINE_S,

@@ -17,7 +17,7 @@ from gateway.config import (
     policy_warnings,
 )
 from gateway.core.policy import Access, Policy, Principal
-from gateway.io.access import peer_address_of
+from gateway.io.listeners.access import peer_address_of
 from tests.helpers import problems
 
 LINE = {"a": {"device": "/dev/null", "units": [1, 2]}}

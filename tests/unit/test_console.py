@@ -14,9 +14,9 @@ from prometheus_client import generate_latest
 from gateway.answer_values import answer_values, exception_name
 from gateway.config import ConfigError, build_config
 from gateway.core.outcome import Outcome
-from gateway.io.tally import LineTally
-from gateway.io.uart import UartError, uart_errors
-from gateway.live import HISTORY_S, LATENCY_WINDOW_S, LatencyWindow, UtilisationHistory
+from gateway.io.http.live import HISTORY_S, LATENCY_WINDOW_S, LatencyWindow, UtilisationHistory
+from gateway.io.line.tally import LineTally
+from gateway.io.links.uart import UartError, uart_errors
 from gateway.metrics import GatewayMetrics
 
 

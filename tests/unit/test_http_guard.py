@@ -7,7 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.config import MetricsConfig, is_loopback
-from gateway.io.http_guard import Guard, HttpRefusal, RouteAccess, host_name
+from gateway.io.http.guard import Guard, HttpRefusal, RouteAccess, host_name
 
 STATUS = "s" * 20
 TRACE = "t" * 20

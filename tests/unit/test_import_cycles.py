@@ -156,11 +156,11 @@ def _every_import(module: str) -> set[str]:
 
 def test_status_and_trace_do_not_know_the_application() -> None:
     """They read the narrow ``GatewayView`` the app provides, not the app, even for types."""
-    for module in ("gateway.live", "gateway.status", "gateway.trace", "gateway.metrics"):
+    for module in ("gateway.io.http.live", "gateway.status", "gateway.trace", "gateway.metrics"):
         assert "gateway.app" not in _every_import(module), module
 
 
-DRIVER = "gateway.io.bus"
+DRIVER = "gateway.io.line.bus"
 PAIR = "gateway.io.pair"
 
 

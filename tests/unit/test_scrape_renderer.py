@@ -13,7 +13,7 @@ from prometheus_client.openmetrics.exposition import generate_latest as generate
 
 from gateway.core.outcome import CloseReason, MasterFault, Outcome, RejectReason
 from gateway.core.slave_side import FrameFault
-from gateway.io.http import SAMPLES_PER_TURN, ScrapeRenderer
+from gateway.io.http.endpoint import SAMPLES_PER_TURN, ScrapeRenderer
 from gateway.metrics import (
     BROADCAST_OUTCOMES,
     LINE_OUTCOMES,

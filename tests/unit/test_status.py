@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.live import TraceEvent, TraceFilter
+from gateway.io.http.live import TraceEvent, TraceFilter
 from gateway.pcap import ip_tcp_segment
 from gateway.status import (
     GatewayStatus,

@@ -10,7 +10,7 @@ import pytest
 
 from gateway.cli import build_parser
 from gateway.core.outcome import Outcome
-from gateway.live import TraceFilter, TraceHub, TraceStream
+from gateway.io.http.live import TraceFilter, TraceHub, TraceStream
 from gateway.logs import JsonFormatter
 from gateway.metrics import GatewayMetrics
 from gateway.status import LineStatus, MasterStatus, PairStatus

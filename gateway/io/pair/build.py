@@ -16,7 +16,7 @@ from .role import Pair
 
 if TYPE_CHECKING:
     from ...metrics import GatewayMetrics
-    from ..bus import Bus
+    from ..line.bus import Bus
 
 
 def build_pair(config: GatewayConfig, buses: Mapping[str, Bus], metrics: GatewayMetrics) -> Pair:

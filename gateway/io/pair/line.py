@@ -13,7 +13,7 @@ from collections.abc import Hashable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ..bus import Bus
+    from ..line.bus import Bus
     from .role import Pair
 
 

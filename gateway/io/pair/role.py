@@ -34,7 +34,7 @@ from ...core.outcome import Outcome
 from ...core.redundancy import HEARING_DELAY_S, ChangeReason, Role, RoleMachine
 from ...core.routes import RouteTable
 from ...status import PairStatus
-from ..bus import Bus
+from ..line.bus import Bus
 from .channel import PeerPoller, PeerRole, peer_tls, role_body
 from .line import PairedLine, keepalive_slave
 

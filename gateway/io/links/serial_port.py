@@ -44,7 +44,7 @@ from typing import Any
 import serial
 import serial.rs485
 
-from ..config import GatewayConfig, LineConfig, ListenerConfig
+from ...config import GatewayConfig, LineConfig, ListenerConfig
 from .link import (
     DeviceBusyError,
     DeviceUnusableError,

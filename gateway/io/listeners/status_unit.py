@@ -13,11 +13,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Hashable, Sequence
 
-from ..core.line import LineRequest, no_reply
-from ..core.outcome import Outcome
-from ..core.pdu import EXCEPTION_FLAG
-from ..core.status_unit import STATUS_LINE, BlockFreshness, status_answer
-from ..metrics import GatewayMetrics
+from ...core.line import LineRequest, no_reply
+from ...core.outcome import Outcome
+from ...core.pdu import EXCEPTION_FLAG
+from ...core.status_unit import STATUS_LINE, BlockFreshness, status_answer
+from ...metrics import GatewayMetrics
 
 
 class StatusUnit:

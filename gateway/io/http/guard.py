@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from urllib.parse import parse_qs
 
-from ..config import MetricsConfig, is_loopback
+from ...config import MetricsConfig, is_loopback
 
 
 class RouteAccess(enum.Enum):

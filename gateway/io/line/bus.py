@@ -34,21 +34,21 @@ import time
 from collections.abc import Callable, Hashable, Iterable, Mapping
 from typing import NamedTuple, Protocol
 
-from ..config import LineConfig, PollConfig
-from ..core import pdu as fc
-from ..core.errors import ExceptionCode
-from ..core.framing import framing_for
-from ..core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
-from ..core.outcome import BlockState, Outcome, SlaveState
-from ..metrics import GatewayMetrics
-from ..status import LineState, LineStatus, PollBlockStatus, SlaveStatus
-from .clock import PreciseClock, wait_until
-from .line_notes import LineNotes
-from .line_port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
-from .link import Link, LinkError, TlsLink
-from .serial_port import SerialLink
+from ...config import LineConfig, PollConfig
+from ...core import pdu as fc
+from ...core.errors import ExceptionCode
+from ...core.framing import framing_for
+from ...core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
+from ...core.outcome import BlockState, Outcome, SlaveState
+from ...metrics import GatewayMetrics
+from ...status import LineState, LineStatus, PollBlockStatus, SlaveStatus
+from ..clock import PreciseClock, wait_until
+from ..links.link import Link, LinkError, TlsLink
+from ..links.serial_port import SerialLink
+from ..tls import LineTlsFailure
+from .notes import LineNotes
+from .port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .tally import LineTally, wall_clock
-from .tls import LineTlsFailure
 
 log = logging.getLogger("gateway.bus")
 _OK = Outcome.OK  # a module global: read once per answer

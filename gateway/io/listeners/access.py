@@ -16,13 +16,13 @@ import logging
 from collections.abc import Sequence
 from typing import Protocol
 
-from ..core.audit_record import RefusedAt
-from ..core.connection_admission import Door, NotAdmitted
-from ..core.policy import IPAddress, IPNetwork, Principal
-from ..logs import RateLimitedLogger
-from ..metrics import GatewayMetrics
-from .audit import AuditLog
-from .tls import HandshakeFailure, leaf_subject
+from ...core.audit_record import RefusedAt
+from ...core.connection_admission import Door, NotAdmitted
+from ...core.policy import IPAddress, IPNetwork, Principal
+from ...logs import RateLimitedLogger
+from ...metrics import GatewayMetrics
+from ..audit import AuditLog
+from ..tls import HandshakeFailure, leaf_subject
 
 log = logging.getLogger("gateway.access")
 

@@ -61,11 +61,11 @@ import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Final, Protocol, cast
 
-from ..config import ListenerConfig, ServerConfig
-from ..core import pdu as fc
-from ..core.admission import AnswerLocally, Broadcast, Submit
-from ..core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
-from ..core.connection_share import (
+from ...config import ListenerConfig, ServerConfig
+from ...core import pdu as fc
+from ...core.admission import AnswerLocally, Broadcast, Submit
+from ...core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
+from ...core.connection_share import (
     Evict,
     OpenConnection,
     Refusal,
@@ -74,21 +74,18 @@ from ..core.connection_share import (
     admit_connection,
     has_free_slot,
 )
-from ..core.errors import ExceptionCode, FramingError
-from ..core.line import LineRequest, no_reply
-from ..core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
-from ..core.outcome import Outcome
-from ..core.policy import IPAddress, Policy, Principal
-from ..core.reasons import CloseReason, RejectReason
-from ..logs import EventSummary, RateLimitedLogger
-from ..metrics import UNIT_LABELS, GatewayMetrics
-from ..status import MasterStatus
-from ..trace import FrameTrace
-from . import spine
-from .access import SourceScreen, peer_address_of
-from .audit import AuditLog, AuditTicket
-from .spine import LineService, Router
-from .tls import (
+from ...core.errors import ExceptionCode, FramingError
+from ...core.line import LineRequest, no_reply
+from ...core.mbap import MAX_ADU, MbapDecoder, MbapFrame, encode_mbap
+from ...core.outcome import Outcome
+from ...core.policy import IPAddress, Policy, Principal
+from ...core.reasons import CloseReason, RejectReason
+from ...logs import EventSummary, RateLimitedLogger
+from ...metrics import UNIT_LABELS, GatewayMetrics
+from ...status import MasterStatus
+from ...trace import FrameTrace
+from ..audit import AuditLog, AuditTicket
+from ..tls import (
     HandshakeFailure,
     HandshakeNote,
     ServerTls,
@@ -98,6 +95,9 @@ from .tls import (
     peer_chain,
     role_of,
 )
+from . import spine
+from .access import SourceScreen, peer_address_of
+from .spine import LineService, Router
 
 if TYPE_CHECKING:  # only TLS listeners hold certificates
     from cryptography import x509

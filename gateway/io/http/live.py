@@ -44,15 +44,15 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs
 
-from . import __version__
-from .answer_values import answer_values
-from .core import pdu as fc
-from .core.outcome import Outcome
-from .io.http import GuardedRoute, PacedRenderer, extra_headers, respond
-from .io.http_guard import RouteAccess
-from .metrics import NO_LINE, GatewayMetrics
-from .status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
-from .trace import FrameTrace, parse_function, reply_outcome
+from ... import __version__
+from ...answer_values import answer_values
+from ...core import pdu as fc
+from ...core.outcome import Outcome
+from ...metrics import NO_LINE, GatewayMetrics
+from ...status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
+from ...trace import FrameTrace, parse_function, reply_outcome
+from .endpoint import GuardedRoute, PacedRenderer, extra_headers, respond
+from .guard import RouteAccess
 
 log = logging.getLogger("gateway.live")
 

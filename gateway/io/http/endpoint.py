@@ -3,7 +3,7 @@
 A deliberately small asyncio HTTP/1.0-style server (one request per
 connection, GET and HEAD only, bounded request head) on the gateway's own
 loop, so that scraping needs no thread and no web framework. Other modules
-add paths (``routes``, ``HttpEndpoint.add_route``: ``gateway.live``'s trace
+add paths (``routes``, ``HttpEndpoint.add_route``: ``gateway.io.http.live``'s trace
 stream and status page); every route is served under the same limits:
 
 - at most ``max_connections`` connections at once, streams included; at the
@@ -57,10 +57,10 @@ from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import Metric
 from prometheus_client.registry import Collector
 
-from ..config import MetricsConfig
-from ..logs import RateLimitedLogger
-from .http_guard import Guard, HttpRefusal, RouteAccess
-from .tls import check_chain, cipher_string, load_authorities, load_key_pair
+from ...config import MetricsConfig
+from ...logs import RateLimitedLogger
+from ..tls import check_chain, cipher_string, load_authorities, load_key_pair
+from .guard import Guard, HttpRefusal, RouteAccess
 
 log = logging.getLogger("gateway.http")
 

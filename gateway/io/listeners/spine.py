@@ -17,19 +17,19 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
-from ..core import pdu as fc
-from ..core.admission import Admission, Admitter, AnswerLocally
-from ..core.errors import ExceptionCode
-from ..core.line import LineRequest
-from ..core.outcome import Outcome
-from ..core.policy import Policy, Principal
-from ..core.routes import Target
-from ..metrics import UNIT_LABELS, GatewayMetrics, LoopHistogram
-from ..trace import FrameTrace
-from .audit import AuditLog, AuditTicket
+from ...core import pdu as fc
+from ...core.admission import Admission, Admitter, AnswerLocally
+from ...core.errors import ExceptionCode
+from ...core.line import LineRequest
+from ...core.outcome import Outcome
+from ...core.policy import Policy, Principal
+from ...core.routes import Target
+from ...metrics import UNIT_LABELS, GatewayMetrics, LoopHistogram
+from ...trace import FrameTrace
+from ..audit import AuditLog, AuditTicket
 
 if TYPE_CHECKING:
-    from .bus import Bus
+    from ..line.bus import Bus
 
 
 class LineService(Protocol):

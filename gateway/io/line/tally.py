@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from ..core.outcome import Outcome
+from ...core.outcome import Outcome
 
 
 class SlaveTally:

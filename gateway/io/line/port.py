@@ -15,10 +15,10 @@ import logging
 import socket
 from typing import TYPE_CHECKING
 
-from ..metrics import GatewayMetrics
-from .link import TcpLink, TlsLink, connect_tcp, connect_tls
-from .serial_port import SerialLink, SerialPortError, open_serial
-from .tls import line_failure_message, line_failure_reason
+from ...metrics import GatewayMetrics
+from ..links.link import TcpLink, TlsLink, connect_tcp, connect_tls
+from ..links.serial_port import SerialLink, SerialPortError, open_serial
+from ..tls import line_failure_message, line_failure_reason
 
 if TYPE_CHECKING:
     from .bus import Bus

@@ -17,11 +17,11 @@ from __future__ import annotations
 import asyncio
 import ssl
 
-from ..config import ListenerConfig, ServerConfig
-from ..core.outcome import Outcome
-from ..core.policy import IPAddress, Policy
-from ..core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
-from ..metrics import GatewayMetrics
+from ...config import ListenerConfig, ServerConfig
+from ...core.outcome import Outcome
+from ...core.policy import IPAddress, Policy
+from ...core.rtu_stream import RtuStreamDecoder, encode_rtu_reply
+from ...metrics import GatewayMetrics
 from .spine import Router
 from .tcp import MasterConnection, ModbusTcpServer
 

@@ -45,25 +45,25 @@ import asyncio
 import logging
 import time
 
-from ..config import ListenerConfig
-from ..core.admission import AnswerLocally, Broadcast, Submit
-from ..core.ascii import encode_ascii
-from ..core.line import LineRequest
-from ..core.outcome import Outcome
-from ..core.policy import Policy, Principal
-from ..core.routes import Target
-from ..core.rtu import MAX_RTU_FRAME
-from ..core.rtu_stream import encode_rtu_reply, heard_request
-from ..core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
-from ..core.timing import character_time, t35
-from ..logs import RateLimitedLogger
-from ..metrics import GatewayMetrics
-from ..status import MasterStatus
-from ..trace import FrameTrace
+from ...config import ListenerConfig
+from ...core.admission import AnswerLocally, Broadcast, Submit
+from ...core.ascii import encode_ascii
+from ...core.line import LineRequest
+from ...core.outcome import Outcome
+from ...core.policy import Policy, Principal
+from ...core.routes import Target
+from ...core.rtu import MAX_RTU_FRAME
+from ...core.rtu_stream import encode_rtu_reply, heard_request
+from ...core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, heard_ascii_request
+from ...core.timing import character_time, t35
+from ...logs import RateLimitedLogger
+from ...metrics import GatewayMetrics
+from ...status import MasterStatus
+from ...trace import FrameTrace
+from ..audit import AuditLog, AuditTicket
+from ..clock import PreciseClock
+from ..links.serial_port import SerialLink, SerialPortError, open_serial
 from . import spine
-from .audit import AuditLog, AuditTicket
-from .clock import PreciseClock
-from .serial_port import SerialLink, SerialPortError, open_serial
 from .spine import Router
 
 log = logging.getLogger("gateway.serial_slave")

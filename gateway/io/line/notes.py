@@ -11,11 +11,11 @@ import asyncio
 import logging
 from typing import TYPE_CHECKING
 
-from ..core.line import Note
-from ..core.line.foreign import SHARED_FOR_S
-from ..core.outcome import LineEvent, ReconnectReason, SlaveState
-from ..logs import RateLimitedLogger
-from ..metrics import UNIT_LABELS, GatewayMetrics
+from ...core.line import Note
+from ...core.line.foreign import SHARED_FOR_S
+from ...core.outcome import LineEvent, ReconnectReason, SlaveState
+from ...logs import RateLimitedLogger
+from ...metrics import UNIT_LABELS, GatewayMetrics
 
 if TYPE_CHECKING:
     from .bus import Bus
