@@ -201,3 +201,17 @@ def test_the_line_machine_and_its_parts_import_each_other_in_no_cycle() -> None:
     assert find_cycles(line) == []
     for strategy in ("wire", "flights"):
         assert f"{LINE}.machine" not in line[f"{LINE}.{strategy}"]
+
+
+def test_no_import_cycle_of_any_kind_inside_the_package() -> None:
+    """Every import counts: type-only ones, those inside functions, and the ``__init__`` of
+    each package an import passes through, except the importer's own packages (a module
+    inside a package runs that package's ``__init__`` whatever it imports). Collaborators
+    that need something of the module that holds them get a Protocol of their own
+    (``io/line/port.PortOwner``, ``io/line/notes.NotedLine``, ``io/pair/line.PairSide``)."""
+    graph = import_graph(every_import=True)
+    outward = {
+        module: {target for target in targets if not module.startswith(target + ".")}
+        for module, targets in graph.items()
+    }
+    assert find_cycles(outward) == []

@@ -16,8 +16,8 @@ the core answers 0x0A, whatever the kind. A TLS failure is counted by reason and
 logged once per reason until the line works again.
 
 Two collaborators keep ``Bus`` to the pump, the masters' side and the hand-over:
-``LinePort`` (``line_port.py``) opens and reopens the link, and ``LineNotes``
-(``line_notes.py``) turns the core's notes into metrics and log lines.
+``LinePort`` (``port.py``) opens and reopens the link, and ``LineNotes``
+(``notes.py``) turns the core's notes into metrics and log lines.
 
 The driver holds its gateway's role (``LineRole``): asked before every frame, told what
 the line hears. A gateway alone plays ``Alone``; a redundancy pair plays its own
@@ -374,6 +374,11 @@ class Bus:
             )
 
     # -- events from the port and the clock ----------------------------------------------
+
+    @property
+    def quiet_open(self) -> bool:
+        """Open the serial port without a glitch (the role says: a pair's standby)."""
+        return self.role.quiet_open
 
     def on_data(self, data: bytes) -> None:
         """Bytes read from the link: the core takes them, then the role its evidence."""

@@ -9,16 +9,15 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import Protocol
 
+from ...config import LineConfig
 from ...core.line import Note
 from ...core.line.foreign import SHARED_FOR_S
 from ...core.outcome import LineEvent, ReconnectReason, SlaveState
 from ...logs import RateLimitedLogger
 from ...metrics import UNIT_LABELS, GatewayMetrics
-
-if TYPE_CHECKING:
-    from .bus import Bus
 
 log = logging.getLogger("gateway.bus")
 #: The notes of a line that another master shares (``LineNotes._shared_line``).
@@ -27,17 +26,32 @@ _SHARED_LINE_EVENTS = frozenset(
 )
 
 
+class NotedLine(Protocol):
+    """What the event side needs of its driver (``bus.Bus``), defined here so that this
+    module does not import the driver."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def config(self) -> LineConfig: ...
+    def slave_states(self) -> Mapping[int, SlaveState]: ...
+    def reconnect(self, why: str) -> None: ...
+
+
 class LineNotes:
     """One bus's notes, counted and logged."""
 
-    def __init__(self, bus: Bus, metrics: GatewayMetrics, loop: asyncio.AbstractEventLoop):
+    def __init__(
+        self, bus: NotedLine, metrics: GatewayMetrics, loop: asyncio.AbstractEventLoop
+    ) -> None:
         self._bus = bus
+        name = self._name = bus.name
         self._metrics = metrics
         self._loop = loop
-        self._m_coalesced = metrics.coalesced.labels(bus.name)
-        self._m_noisy = metrics.line_noisy.labels(bus.name)
+        self._m_coalesced = metrics.coalesced.labels(name)
+        self._m_noisy = metrics.line_noisy.labels(name)
         self._m_noisy.set(0)
-        self._m_foreign = metrics.foreign_master_frames.labels(bus.name)
+        self._m_foreign = metrics.foreign_master_frames.labels(name)
         self.fault_log = RateLimitedLogger(log, loop)  # first fault at once, then counts
 
     def flush(self) -> None:
@@ -52,30 +66,30 @@ class LineNotes:
             return
         metrics = self._metrics
         unit = UNIT_LABELS[note.slave]
-        subject = f"unit {unit} on line {self._bus.name}"
+        subject = f"unit {unit} on line {self._name}"
         if event is LineEvent.TIMEOUT:
-            metrics.timeouts.labels(self._bus.name, unit).inc()
+            metrics.timeouts.labels(self._name, unit).inc()
             self.fault_log.note(subject, "timeout", note.detail)
         elif event is LineEvent.CRC_ERROR:
-            metrics.crc_errors.labels(self._bus.name, unit).inc()
+            metrics.crc_errors.labels(self._name, unit).inc()
             self.fault_log.note(subject, "CRC error", note.detail)
         elif event is LineEvent.GARBLED:
             self.fault_log.note(subject, "garbled answer", note.detail)
         elif event is LineEvent.RETRY:
-            metrics.retries.labels(self._bus.name, unit).inc()
+            metrics.retries.labels(self._name, unit).inc()
         elif event is LineEvent.DISCARDED:
-            metrics.discarded_frames.labels(self._bus.name, note.detail).inc()
+            metrics.discarded_frames.labels(self._name, note.detail).inc()
             self.fault_log.note(
-                f"line {self._bus.name}",
+                f"line {self._name}",
                 "discarded input",
                 f"{note.amount} {note.detail} byte(s) or frame(s)",
                 level=logging.INFO,
             )
         elif event is LineEvent.LATE_WINDOW:
-            metrics.late_windows.labels(self._bus.name).inc()
+            metrics.late_windows.labels(self._name).inc()
         elif event is LineEvent.RECONNECT:
             reason = ReconnectReason(note.detail)
-            metrics.line_reconnects.labels(self._bus.name, reason).inc()
+            metrics.line_reconnects.labels(self._name, reason).inc()
             why = (
                 f"{note.amount} answers missed in a row, nothing heard on it from any slave"
                 if reason is ReconnectReason.SILENT
@@ -83,20 +97,20 @@ class LineNotes:
             )
             self._loop.call_soon(self._bus.reconnect, why)
         elif event is LineEvent.PROOF_READ:
-            metrics.proof_reads.labels(self._bus.name, unit).inc()
+            metrics.proof_reads.labels(self._name, unit).inc()
         elif event is LineEvent.SLAVE_STATE:
             self._slave_state(note)
         elif event is LineEvent.LINE_NOISY:
             self._m_noisy.set(1)
-            metrics.line_noisy_total.labels(self._bus.name).inc()
+            metrics.line_noisy_total.labels(self._name).inc()
             self.fault_log.note(
-                f"line {self._bus.name}",
+                f"line {self._name}",
                 "noisy line",
                 f"{note.detail}; waiting requests answered 0x0B until a gap appears",
             )
         elif event is LineEvent.LINE_QUIET:
             self._m_noisy.set(0)
-            log.info("line %s: quiet again, serving requests", self._bus.name)
+            log.info("line %s: quiet again, serving requests", self._name)
         elif event in _SHARED_LINE_EVENTS:
             self._shared_line(note, unit, subject)
 
@@ -106,7 +120,7 @@ class LineNotes:
         if event is LineEvent.FOREIGN_MASTER:
             self._m_foreign.inc()
             self.fault_log.note(
-                f"line {self._bus.name}",
+                f"line {self._name}",
                 "foreign master frame",
                 f"a request to unit {unit} ({note.detail}) this gateway did not send: the line "
                 "is shared; answers that may be the other master's are not delivered",
@@ -120,7 +134,7 @@ class LineNotes:
                 plural="answers not delivered",
             )
         else:
-            log.info("line %s: no other master heard for %g s", self._bus.name, SHARED_FOR_S)
+            log.info("line %s: no other master heard for %g s", self._name, SHARED_FOR_S)
 
     def _slave_state(self, note: Note) -> None:
         unit = UNIT_LABELS[note.slave]
@@ -128,29 +142,29 @@ class LineNotes:
         metrics = self._metrics
         states = list(self._bus.slave_states().values())
         for counted in (SlaveState.SUSPECT, SlaveState.DOWN):
-            metrics.slaves_isolated.labels(self._bus.name, counted.value).set(states.count(counted))
+            metrics.slaves_isolated.labels(self._name, counted.value).set(states.count(counted))
         # Per-slave series only for slaves that have answered: a scan of every routed
         # address (all 247 with --serial) must not add two series per absent unit.
-        if metrics.heard(self._bus.name, unit):
-            metrics.slave_up.labels(self._bus.name, unit).set(0 if state is SlaveState.DOWN else 1)
-            metrics.slave_suspect.labels(self._bus.name, unit).set(
+        if metrics.heard(self._name, unit):
+            metrics.slave_up.labels(self._name, unit).set(0 if state is SlaveState.DOWN else 1)
+            metrics.slave_suspect.labels(self._name, unit).set(
                 1 if state is SlaveState.SUSPECT else 0
             )
         if state is SlaveState.DOWN:
             log.warning(
                 "line %s: slave %d silent %d times in a row; answering 0x0B at once, "
                 "probing every %.1f s or more",
-                self._bus.name,
+                self._name,
                 note.slave,
                 note.amount,
                 self._bus.config.probe_interval,
             )
         elif state is SlaveState.SUSPECT:
             self.fault_log.note(
-                f"unit {unit} on line {self._bus.name}",
+                f"unit {unit} on line {self._name}",
                 "suspect slave",
                 "missed an answer; its requests wait behind the others, one at a time",
                 level=logging.INFO,
             )
         else:
-            log.info("line %s: slave %d answers again", self._bus.name, note.slave)
+            log.info("line %s: slave %d answers again", self._name, note.slave)

@@ -13,15 +13,14 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
-from typing import TYPE_CHECKING
+import ssl
+from typing import Protocol
 
+from ...config import LineConfig
 from ...metrics import GatewayMetrics
-from ..links.link import TcpLink, TlsLink, connect_tcp, connect_tls
+from ..links.link import Link, TcpLink, TlsLink, connect_tcp, connect_tls
 from ..links.serial_port import SerialLink, SerialPortError, open_serial
 from ..tls import line_failure_message, line_failure_reason
-
-if TYPE_CHECKING:
-    from .bus import Bus
 
 log = logging.getLogger("gateway.bus")
 
@@ -29,10 +28,32 @@ REOPEN_FIRST_DELAY = 0.05
 REOPEN_MAX_DELAY = 0.5
 
 
+class PortOwner(Protocol):
+    """What the port side needs of the driver it opens links for (``bus.Bus``), defined
+    here so that this module does not import the driver."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def config(self) -> LineConfig: ...
+    @property
+    def tls_context(self) -> ssl.SSLContext | None: ...
+    @property
+    def quiet_open(self) -> bool:
+        """Open the serial port without a glitch on its lines (a pair's standby)."""
+        ...
+
+    def on_data(self, data: bytes) -> None: ...
+    def on_lost(self, error: OSError) -> None: ...
+    def attach(self, link: Link) -> None: ...
+
+
 class LinePort:
     """Opens and reopens one bus's link (see the module docstring)."""
 
-    def __init__(self, bus: Bus, metrics: GatewayMetrics, loop: asyncio.AbstractEventLoop):
+    def __init__(
+        self, bus: PortOwner, metrics: GatewayMetrics, loop: asyncio.AbstractEventLoop
+    ) -> None:
         self._bus = bus
         self._metrics = metrics
         self._loop = loop
@@ -62,7 +83,7 @@ class LinePort:
     def _try_open(self) -> bool:
         bus = self._bus
         try:
-            port = open_serial(bus.config, quiet=bus.role.quiet_open)
+            port = open_serial(bus.config, quiet=bus.quiet_open)
         except SerialPortError as error:
             self._failed(str(error))
             return False

@@ -10,11 +10,25 @@ down). The pair, in turn, stands the line by or activates it (``Bus.stand_by``,
 from __future__ import annotations
 
 from collections.abc import Hashable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
     from ..line.bus import Bus
-    from .role import Pair
+
+
+class Forwarding(Protocol):
+    def cancel(self, master: Hashable) -> None: ...
+
+
+class PairSide(Protocol):
+    """What a line's role asks of the pair (``role.Pair``), defined here so that this
+    module does not import the role machine's module, which imports it."""
+
+    @property
+    def forwarder(self) -> Forwarding: ...
+    def may_transmit(self) -> bool: ...
+    def master_frame_heard(self) -> None: ...
+    def frame_heard(self) -> None: ...
 
 
 class PairedLine:
@@ -24,7 +38,7 @@ class PairedLine:
     #: The port opens driving nothing (RTS, DTR, RS485 receive): the bus may be the peer's.
     quiet_open = True
 
-    def __init__(self, pair: Pair) -> None:
+    def __init__(self, pair: PairSide) -> None:
         self._pair = pair
 
     def may_transmit(self) -> bool:
