@@ -153,11 +153,10 @@ def line_request(
     master: Hashable,
     ticket: AuditTicket | None,
     deliver: Callable[[LineRequest, bytes, Outcome], Outcome],
-    then: Callable[[], None] | None = None,
 ) -> LineRequest:
     """The request for ``line`` (the caller submits it). Its answer settles the audit
     record, goes to ``deliver`` (which writes it, or says ``DROPPED`` when the master no
-    longer waits), is counted under the line and slave, and ``then`` runs. The Modbus TCP
+    longer waits), and is counted under the line and slave. The Modbus TCP
     connection writes these same steps out in its own reply (``tcp.MasterConnection``)."""
     metrics = listener.metrics
     function = pdu[0]
@@ -169,8 +168,6 @@ def line_request(
             ticket.settle(request.sent, response, outcome)
         outcome = deliver(request, response, outcome)
         metrics.count_request(name, unit_label, function, outcome)
-        if then is not None:
-            then()
 
     request = LineRequest(slave, pdu, master, reply)
     return request
