@@ -10,6 +10,8 @@ import pytest
 from gateway.config import LineConfig
 from gateway.core.errors import ExceptionCode
 from gateway.core.line import LineCore
+from gateway.core.line.fair_queue import FairQueue
+from gateway.core.line.records import LineRequest, LineStats, no_reply
 from gateway.core.outcome import Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
 from tests.helpers import read
@@ -76,3 +78,19 @@ def test_no_limit_with_zero() -> None:
     line.timer()
     assert line.frames() == [encode_rtu(2, read(1))]
     assert line.unanswered() == [waiting]
+
+
+def test_a_request_back_from_the_lane_keeps_its_patience() -> None:
+    """A request that waited in the lane (its slave suspect) and goes back to the queue when
+    the slave answers is answered 0x0B once ``max_queue_wait`` has passed since its master
+    sent it, like any queued request, not held for ever behind what keeps the line busy."""
+    queue = FairQueue(LineStats())
+    older = LineRequest(2, read(1), "a", no_reply)
+    older.enqueued_at = 0.0
+    newer = LineRequest(3, read(2), "b", no_reply)
+    newer.enqueued_at = 1.0
+    queue.enqueue(queue.master("b"), newer, True, 1.0)
+    queue.queue_at_front(older)  # back from the lane at 1.5
+    assert queue.overdue(0.5) == [older]
+    assert queue.overdue(1.5) == [newer]
+    assert queue.queued == 0

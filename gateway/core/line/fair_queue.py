@@ -133,11 +133,22 @@ class FairQueue:
             if queued.broadcast and queued.order < request.order:
                 place = index + 1
         master.queue.insert(place, request)
+        self._arrived(request)
         master.queued += 1
         self.queued += 1
         self.stats.queue_depth = self.queued
         if master.heap_seq < 0:
             self.push(master)
+
+    def _arrived(self, request: LineRequest) -> None:
+        """Into ``arrivals`` by the time it was first queued: back from the lane, it is as
+        overdue as it was (``max_queue_wait``) and must be found in that order."""
+        arrivals = self.arrivals
+        at = request.enqueued_at
+        place = len(arrivals)
+        while place and arrivals[place - 1].enqueued_at > at:
+            place -= 1
+        arrivals.insert(place, request)
 
     def count_waiting(self, request: LineRequest, delta: int) -> None:
         """A request enters (+1) or leaves (-1) the waiting set outside its master's queue."""
