@@ -58,7 +58,7 @@ from gateway.core.line import INFINITY, LineCore, LineRequest, Transmit
 from gateway.core.line.fair_queue import REST_S
 from gateway.core.line.flights import FlightWire
 from gateway.core.line.polling import changed_range
-from gateway.core.line.records import Attempt
+from gateway.core.line.records import Attempt, answer_signature
 from gateway.core.line.response_timing import FLOOR_S, NETWORK_FLOOR_S, answer_pdu_length
 from gateway.core.line.wire import SerialWire
 from gateway.core.mbap import encode_mbap
@@ -1285,9 +1285,11 @@ class FairLineMachine(RuleBasedStateMachine):
       (equal accounts: the one that asked first goes first). With equal transactions:
       the wait is at most the number of active masters x the typical transaction, plus
       the one on the wire. Not counted in the round: the isolated slaves' lane on its
-      share (``probe_share``), proof reads and retries (they go first by rule), and masters
-      that came back rested (periodic ones, new connections, after a 0x0B pause): rested
-      and light they go first, which the next invariant checks.
+      share (``probe_share``) and its requests sent free, proof reads and retries (they go
+      first by rule), reads a late-answer window held back while others went (released,
+      they take the turn owed from the round they came in; held, a read's own wait is not
+      the round's), and masters that came back rested (periodic ones, new connections,
+      after a 0x0B pause): rested and light they go first, which the next invariant checks.
     * **Next after the wire.** A periodic master's poll, idle ``REST_S`` or more and light
       (its account, read from the fair queue, neither ahead of every waiting master's nor
       more than two typical transactions ahead of the virtual time: ``light``) goes
@@ -1308,6 +1310,9 @@ class FairLineMachine(RuleBasedStateMachine):
         self.draw = random.Random(0)
         self.sends: list[FairSend] = []
         self.asked: dict[int, Asked] = {}
+        #: Requests a late-answer window held back while another went: owed a turn from
+        #: the round they came in, not a turn of the rounds they are released into.
+        self.owed: set[int] = set()
         self.problems: list[str] = []
 
     def turnaround(self, slave: int, _pdu: bytes, _now: float) -> float | None:
@@ -1400,6 +1405,17 @@ class FairLineMachine(RuleBasedStateMachine):
             turn = str(request.master)
         asked = self.asked.get(id(request))
         self.sends.append(FairSend(self.line.now, turn, request, asked))
+        late = self.line.core.late
+        if late.windows:
+            for waiting in self.line.core.queue.waiting():
+                window = late.windows.get(waiting.slave)
+                if (  # ``LateWindows.holds``, without noting that a proof is wanted
+                    window is not None
+                    and self.line.now < window.until
+                    and waiting is not window.owner
+                    and answer_signature(waiting.pdu) in window.signatures
+                ):
+                    self.owed.add(id(waiting))
         master = self.masters.get(str(request.master))
         if master is not None and not request.proof:
             master.last_send = len(self.sends) - 1
@@ -1441,6 +1457,8 @@ class FairLineMachine(RuleBasedStateMachine):
     def check_round(self, asked: Asked, end: int, now: float) -> None:
         """At most one turn of each other flat-out master (see the class docstring)."""
         request = asked.request
+        if id(request) in self.owed:
+            return  # held back by a late-answer window: its wait was not the round's
         ahead = self.interval(asked.previous, now)  # its own account ahead of the clock
         turns: dict[str, dict[int, float]] = {}
         for position in range(asked.since, end):
@@ -1448,6 +1466,8 @@ class FairLineMachine(RuleBasedStateMachine):
             came = send.asked
             if send.turn in ("lane", "proof") or came is None or not came.flat_out:
                 continue
+            if send.request.single or id(send.request) in self.owed:
+                continue  # the lane's, sent free; or a read held back, owed its turn
             held = turns.setdefault(send.turn, {})  # a retry is its request's turn still
             key = id(send.request)
             held[key] = held.get(key, 0.0) + self.interval(position, now)

@@ -19,7 +19,7 @@ import pytest
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
 from gateway.core.line.health import FIRST_CONTACT_QUIET_S
-from gateway.core.outcome import Outcome
+from gateway.core.outcome import Outcome, SlaveState
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
 
@@ -115,6 +115,9 @@ class Plant:
                 self.now = until
                 return
             at, kind = min(events)
+            if at > until:
+                self.now = until
+                return
             self.now = max(self.now, at)
             if kind == 0:
                 master = min(self.due, key=self.due.__getitem__)
@@ -271,3 +274,39 @@ def test_with_isolation_turned_off_first_contacts_are_queued_as_usual_again() ->
     plant.submit("live", LIVE)
     plant.pump()
     assert plant.sent[-1] == (plant.now, LIVE)
+
+
+def test_a_master_waiting_through_a_probe_goes_before_the_next_one() -> None:
+    """A poll that came while a probe held the line goes when it ends, even when the lane's
+    share has paid its debt by then: the share's next probe goes after it (it used to
+    follow at once, and the poll waited through two probes)."""
+    plant = Plant(line_config())
+    plant.submit("live", LIVE)  # the live slave, heard before any address is absent
+    plant.pump()
+    plant.run(0.05)
+    plant.submit("scan", 100)
+    plant.pump()
+    plant.run(1.2)
+    plant.submit("scan", 101)
+    plant.pump()
+    plant.run(4.0)  # both missed: suspect, and the lane's share is in debt
+    core = plant.core
+    assert core.slave_state(100) is core.slave_state(101) is SlaveState.SUSPECT
+    start = core.lane.credit_time() - 0.5  # paid off half a second into the next probe
+
+    def probe(master: str, slave: int, count: int) -> None:
+        # Another count than the lost reads': their late-answer windows do not hold it.
+        pdu = struct.pack(">BHH", 3, 0, count)
+        core.submit(LineRequest(slave, pdu, master, plant.reply(master, plant.now)), plant.now)
+        plant.pump()
+
+    plant.run(start)
+    probe("scan", 100, 3)  # the share in debt, nothing else waits: it goes free
+    assert plant.sent[-1] == (start, 100)
+    plant.run(start + 0.1)
+    probe("scan2", 101, 4)  # waits in the lane for the share
+    plant.run(start + 0.2)
+    plant.submit("live", LIVE)  # a poll, while the probe holds the line
+    plant.pump()
+    plant.run(start + 3.0)
+    assert [slave for _, slave in plant.sent[-3:]] == [100, LIVE, 101]

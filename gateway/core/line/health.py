@@ -18,7 +18,9 @@ answered within twice the probe's hold), as long as the probe would hold the lin
 longest attempt): a lighter master polling a live slave more often than that is never
 held behind a free probe, and one polling less often meets at most one per poll. The
 absent addresses cost the masters that ask them, not the others; a light master's own
-first contact still goes after the short quiet. Among first contacts, the lightest
+first contact still goes after the short quiet. After any probe, a master's request that
+may go goes before the share's next one (``LineCore._pick``): a poll meets one probe, not
+two in a row. Among first contacts, the lightest
 master's goes first, then the slave asked for longest; it waits in the lane until the
 next free chance has passed (the quiet before it and the probe's longest hold), then is
 answered 0x0B unsent.

@@ -115,6 +115,9 @@ class LineCore:
         #: The last transaction was a poll that went before masters' waiting requests: the
         #: next goes to a master (a plan that needs the whole line cannot take it).
         self._poll_went_first = False
+        #: The last request picked came from the lane: a probe, which may have held the line
+        #: for a timeout; the lane's share does not send another before a waiting master's.
+        self._lane_went_last = False
         self.wire: Wire = wire if wire is not None else SerialWire()
         self.order = OrderRules(self.queue, self.lane, self.sharing, self.retries, self.wire)
         self.max_in_flight = self.wire.capacity
@@ -648,12 +651,20 @@ class LineCore:
                 return poll, None, False
         lane = self.lane
         if lane.requests and lane.credit_now(now) >= 0.0:
+            if self._lane_went_last and self.queue.queued > len(lane.requests):
+                # A probe just held the line: a master's request that may go goes before
+                # the next one, so that a poll meets one probe, not two in a row.
+                picked = self.queue.pop(now, self.wire.first_eligible)
+                if picked is not None:
+                    self._poll_went_first = self._lane_went_last = False
+                    return picked[0], picked[1], False
             request = self._lane_candidate(now)
             if request is not None:
+                self._lane_went_last = True
                 return request, None, True
         picked = self.queue.pop(now, self.wire.first_eligible)
         if picked is not None:
-            self._poll_went_first = False
+            self._poll_went_first = self._lane_went_last = False
             return picked[0], picked[1], False
         if self._poll_went_first and (self.polls or self.plan.next_due <= now):
             # The masters' turn, but none of theirs may go now (what waits is in the lane,
@@ -669,6 +680,7 @@ class LineCore:
         if lane.requests:
             request = self._lane_candidate(now, free=True)
             if request is not None:
+                self._lane_went_last = True
                 return request, None, False
         return None
 
