@@ -17,7 +17,6 @@ import signal
 import ssl
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry
@@ -33,7 +32,6 @@ from .config import (
     read_config_file,
 )
 from .core.line import Handover, LineRequest
-from .core.policy import Policy
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
 from .io.clock import PreciseClock
@@ -44,7 +42,7 @@ from .io.line.bus import Alone, Bus, PlannedBlock, PollBlockView, poll_block_sta
 from .io.links.serial_port import check_devices_usable
 from .io.listeners.rtu_over_tcp import rtu_over_tcp_server
 from .io.listeners.serial_slave import SerialSlave
-from .io.listeners.spine import LineTarget, Router
+from .io.listeners.spine import LineTarget, Router, listener_policy
 from .io.listeners.status_unit import StatusUnit
 from .io.listeners.tcp import ModbusTcpServer
 from .io.systemd import SystemdNotifier
@@ -484,35 +482,11 @@ class Gateway:
         self, config: GatewayConfig, router: Router, tls: dict[str, ServerTls]
     ) -> None:
         """New routes, settings, policies, allow lists and certificates for every listener."""
-        by_name = {listener.name: listener for listener in config.listeners}
+        now = time.time()  # one reload, one moment: every open connection is judged at it
         for server in self.servers:
-            server.config = config.server
-            server.router = router
-            listener = by_name.get(server.name)
-            if listener is None or listener.protocol != server.listener.protocol:
-                continue
-            server.listener = replace(
-                listener, host=server.listener.host, port=server.listener.port
-            )
-            server.policy = listener_policy(config, server.listener)
-            server.screen.allow_lists = tuple(
-                tuple(nets) for nets in (config.server.allow, listener.allow) if nets
-            )
-            if server.name in tls:
-                server.ssl_context = tls[server.name].context
-        for server in self.servers:  # open connections: the new allow lists, CAs and dates
-            server.reevaluate(tls.get(server.name), time.time())
+            server.reconfigure(config, router, tls.get(server.name), now)
         for slave in self.serial_slaves:
-            slave.router = router
-            listener = by_name.get(slave.name)
-            if listener is not None and listener.serial == slave.listener.serial:
-                slave.policy = listener_policy(config, listener)
-            else:
-                log.warning(
-                    "reload: serial-slave listener %s: changes to its serial line "
-                    "(device, format, framing, echo) need a restart",
-                    slave.name,
-                )
+            slave.reconfigure(config, router)
 
     # -- helpers -----------------------------------------------------------------------
 
@@ -570,13 +544,6 @@ class Gateway:
         if self.pair is not None:  # a standby forwards by the table the active admits by
             self.pair.reroute(router.admitter.table)
         return router
-
-
-def listener_policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
-    """What a listener's masters may do: its rules, read-only, and the gateway's refusals."""
-    rules = config.policies[listener.policy] if listener.policy is not None else None
-    read_only = listener.read_only or config.server.read_only
-    return Policy(rules, read_only, listener.tls, config.routes, config.server.refuse_functions)
 
 
 def log_listening(

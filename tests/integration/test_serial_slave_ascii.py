@@ -395,3 +395,30 @@ def test_a_reload_applies_the_policy_and_keeps_the_serial_line_until_a_restart(
     finally:
         logger.removeHandler(collector)
         pair.close()
+
+
+def test_a_reload_gives_the_serial_slave_the_new_routes(
+    make_sim: SimFactory, make_gateway: GatewayFactory
+) -> None:
+    """A unit a reload routes is answered on the serial line from then on; before, the
+    listener kept the silence of an absent slave."""
+    sim = make_sim({1: plc(1), 2: plc(2)})
+    pair = open_pty_pair()
+    try:
+        entry = {"name": "field", "protocol": "serial-slave", "device": pair.path,
+                 "baudrate": BAUD, **ASCII_ON_PTY}  # fmt: skip
+        tables: dict[str, Any] = {
+            "server": {"listen": "127.0.0.1:0"}, "metrics": {"listen": "127.0.0.1:0"},
+            "lines": {"a": sim.line_table([1])}, "listeners": [entry],
+        }  # fmt: skip
+        gateway = make_gateway(tables)
+        slave = gateway.gateway.serial_slaves[0]
+        wait_for(gateway, lambda: slave.up)
+        master = LineMaster(pair.sim_fd)
+        master.send(2, h("03 0000 0001"))
+        master.silent_for(0.2)  # no route for unit 2: the silence of an absent slave
+        tables["lines"] = {"a": sim.line_table([1, 2])}
+        gateway.run(gateway.gateway.reload(build_config(tables, "<reload>")))
+        assert master.request(2, h("03 0001 0001")) == h("03 02 0002")
+    finally:
+        pair.close()

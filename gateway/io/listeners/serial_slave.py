@@ -45,7 +45,7 @@ import asyncio
 import logging
 import time
 
-from ...config import ListenerConfig
+from ...config import GatewayConfig, ListenerConfig
 from ...core.admission import AnswerLocally, Broadcast, Submit
 from ...core.ascii import encode_ascii
 from ...core.line import LineRequest
@@ -64,7 +64,7 @@ from ..audit import AuditLog, AuditTicket
 from ..clock import PreciseClock
 from ..links.serial_port import SerialLink, SerialPortError, open_serial
 from . import spine
-from .spine import Router
+from .spine import Router, listener_policy
 
 log = logging.getLogger("gateway.serial_slave")
 
@@ -171,6 +171,20 @@ class SerialSlave:
             self._link.close()
             self._link = None
         self._faults.flush()
+
+    def reconfigure(self, config: GatewayConfig, router: Router) -> None:
+        """Take a reload's routes, and this listener's policy while its serial line is
+        unchanged (a change there needs a restart: warned, the running line stays)."""
+        self.router = router
+        listener = next((lst for lst in config.listeners if lst.name == self.name), None)
+        if listener is not None and listener.serial == self.listener.serial:
+            self.policy = listener_policy(config, listener)
+        else:
+            log.warning(
+                "reload: serial-slave listener %s: changes to its serial line "
+                "(device, format, framing, echo) need a restart",
+                self.name,
+            )
 
     def _try_open(self) -> bool:
         try:

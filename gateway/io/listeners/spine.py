@@ -17,6 +17,7 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
+from ...config import GatewayConfig, ListenerConfig
 from ...core import pdu as fc
 from ...core.admission import Admission, Admitter, AnswerLocally
 from ...core.errors import ExceptionCode
@@ -108,6 +109,13 @@ class Router:
     def bus(self, line: str) -> LineService:
         """The running line called ``line`` (a name from the routing table)."""
         return self.by_line[line]
+
+
+def listener_policy(config: GatewayConfig, listener: ListenerConfig) -> Policy:
+    """What a listener's masters may do: its rules, read-only, and the gateway's refusals."""
+    rules = config.policies[listener.policy] if listener.policy is not None else None
+    read_only = listener.read_only or config.server.read_only
+    return Policy(rules, read_only, listener.tls, config.routes, config.server.refuse_functions)
 
 
 class Listener(Protocol):

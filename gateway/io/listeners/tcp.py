@@ -61,7 +61,7 @@ import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Final, Protocol, cast
 
-from ...config import ListenerConfig, ServerConfig
+from ...config import GatewayConfig, ListenerConfig, ServerConfig
 from ...core import pdu as fc
 from ...core.admission import AnswerLocally, Broadcast, Submit
 from ...core.connection_admission import CertificateFacts, ConnectionFacts, NotAdmitted, admit
@@ -97,7 +97,7 @@ from ..tls import (
 )
 from . import spine
 from .access import SourceScreen, peer_address_of
-from .spine import LineService, Router
+from .spine import LineService, Router, listener_policy
 
 if TYPE_CHECKING:  # only TLS listeners hold certificates
     from cryptography import x509
@@ -903,7 +903,28 @@ class ModbusTcpServer:
             self.events.note("closed", source)
             log.debug("master %s disconnected (%s)", connection.peer, reason)
 
-    # -- reload: every open connection judged again --------------------------------------
+    # -- reload: new settings, and every open connection judged again ---------------------
+
+    def reconfigure(
+        self, config: GatewayConfig, router: Router, tls: ServerTls | None, now: float
+    ) -> int:
+        """Take a reload's settings: the ``[server]`` table and the routes always; this
+        listener's own table (policy, allow lists, certificates) while it keeps its
+        protocol (its address needs a restart); then judge every open connection again
+        (``reevaluate``) and return how many were closed. ``tls`` is this listener's
+        context and CAs read again, ``now`` the wall-clock time of the reload."""
+        self.config = config.server
+        self.router = router
+        listener = next((lst for lst in config.listeners if lst.name == self.name), None)
+        if listener is not None and listener.protocol == self.listener.protocol:
+            self.listener = replace(listener, host=self.listener.host, port=self.listener.port)
+            self.policy = listener_policy(config, self.listener)
+            self.screen.allow_lists = tuple(
+                tuple(nets) for nets in (config.server.allow, listener.allow) if nets
+            )
+            if tls is not None:
+                self.ssl_context = tls.context
+        return self.reevaluate(tls, now)
 
     def reevaluate(self, tls: ServerTls | None, now: float) -> int:
         """Close every connection this listener would no longer admit; return how many.
