@@ -63,8 +63,8 @@ class FairQueue:
         self.vclock = 0.0
         self.vmax = 0.0  # the furthest account of a master that waited (``push``)
         self.queued = 0  # requests waiting for the line, wherever they wait
-        #: The line's typical transaction, the silence after it included (a moving mean of
-        #: what ``ended`` was told): how long a master must have been idle to go first.
+        #: The line's typical transaction, the silence after it included (a moving mean kept
+        #: by ``LineCore._charge``): how long a master must have been idle to go first.
         self.typical = 0.0
         #: Requests queued by ``enqueue``, oldest first; some may have left since (``overdue``).
         self.arrivals: deque[LineRequest] = deque()
@@ -227,13 +227,6 @@ class FairQueue:
         for master, head in skipped:
             self.push(master, head)
         return chosen
-
-    def ended(self, master: Master | None, wire: float, now: float) -> None:
-        """A transaction (``master``'s, if any) ended at ``now``; it held the line ``wire``
-        seconds, the silence after it included."""
-        self.typical += (wire - self.typical) * TYPICAL_WEIGHT
-        if master is not None:
-            master.answered_at = now
 
     def answered(self, requests: Iterable[LineRequest], now: float) -> None:
         """``requests`` (reads that joined another) were answered at ``now``: their masters

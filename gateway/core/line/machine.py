@@ -50,7 +50,7 @@ from ..framing import RTU, Framing, LineKind
 from ..outcome import DiscardReason, LineEvent, Outcome, ReconnectReason, SlaveState
 from ..rtu import RtuFrame
 from ..timing import character_time
-from .fair_queue import FairQueue, Master
+from .fair_queue import TYPICAL_WEIGHT, FairQueue, Master
 from .foreign import ANSWERED_BY_ECHO, ForeignMasters, ForeignRequest, Heard, HeardKind, Own
 from .health import FIRST_CONTACT_QUIET_S, ProbeLane, SlaveHealth, SlaveRecord
 from .late import MAX_INCONCLUSIVE, PROOF_FUNCTIONS, LateWindows, proof_pdu
@@ -76,6 +76,8 @@ from .records import (
 from .response_timing import DECAY_EVERY, EVIDENCE, ResponseTiming
 from .sharing import ReadSharing
 from .wire import Finding, Found, SerialWire, Wire, WireParts
+
+COMPLETE: Final = Found.COMPLETE  # ``receive``'s usual finding, looked up once
 
 #: The master a proof read is charged to when the request that lost its answer is gone.
 PROOF_MASTER: Final = "the line's proof reads"
@@ -510,9 +512,12 @@ class LineCore:
         if wire.quiet_line and now > self.quiet_since:
             self.quiet_since = now
         found = wire.receive(data, now)
-        if found:
-            self._apply(found, now)
-        self.service(now)
+        if found:  # else the answer is not complete yet: nothing changed for ``service``
+            if len(found) == 1 and found[0][0] is COMPLETE:  # the usual: one answer
+                self.complete(found[0][1], found[0][2], now)  # type: ignore[arg-type]
+            else:
+                self._apply(found, now)
+            self.service(now)
 
     def _apply(self, found: list[Finding], now: float) -> None:
         """Apply what the wire found, in the order found (``wire.Found``)."""
@@ -826,7 +831,16 @@ class LineCore:
         wire = self.wire
         slave = request.slave
         pdu = request.pdu
-        frame = self.frame(slave, pdu)
+        frames = self._frames  # ``frame``, inline: once per transaction
+        known = None if frames is None else frames.get((slave, pdu))
+        if known is not None:
+            frame = known
+        elif frames is None:
+            frame = self.encode(slave, pdu)
+        else:
+            frame = frames[slave, pdu] = self.encode(slave, pdu)
+            if len(frames) > FRAME_CACHE_SIZE:
+                frames.clear()  # a bound, not an LRU: polling refills it with what is used
         sent_by = now + len(frame) * self.char_time
         timing = self.timing
         # ``timing.deadline``, inline for a request heard before: once per transaction.
@@ -1302,7 +1316,11 @@ class LineCore:
         wire += self._gap
         queue = self.queue
         master = queue.masters.get(attempt.request.master)
-        queue.ended(master, wire, now)
+        # The line's typical transaction (a moving mean) and when the master was served: the
+        # fair queue's rest rule reads both (``FairQueue.enqueue``).
+        queue.typical += (wire - queue.typical) * TYPICAL_WEIGHT
+        if master is not None:
+            master.answered_at = now
         if attempt.from_credit:
             self.lane.spend(wire, now)
         elif master is not None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Hashable
 from enum import IntEnum
-from typing import NamedTuple
+from typing import Final, NamedTuple
 
 from .. import pdu as fc
 from ..echo import strip_echo
@@ -28,7 +28,7 @@ from .foreign import ForeignMasters, Heard, HeardKind
 from .health import ProbeLane
 from .late import LateWindows
 from .order import OrderRules
-from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest
+from .records import DISCARD_KINDS, INFINITY, Attempt, LineRequest, tuple_new
 from .sharing import ReadSharing
 
 
@@ -61,6 +61,10 @@ class Finding(NamedTuple):
     heard: tuple[Heard, ...] = ()
     sent_at: float = 0.0
     function: int = 0
+
+
+#: The fields of a ``Finding`` after ``frame``, at their defaults.
+_NO_DETAIL: Final = (None, False, None, 0, -1, b"", (), 0.0, 0)
 
 
 def discarded(reason: DiscardReason, count: int, slave: int = 0) -> Finding:
@@ -371,7 +375,9 @@ class SerialWire(Wire):
                 found.append(discarded(DiscardReason.TRAILING_BYTES, len(trailing), slave))
             self.attempt = None  # ``end``, inline: once per transaction
             self.outstanding = 0
-            found.append(Finding(Found.COMPLETE, attempt, frame))
+            # ``Finding(Found.COMPLETE, attempt, frame)`` without its Python-level ``__new__``:
+            # once per transaction.
+            found.append(tuple_new(Finding, (Found.COMPLETE, attempt, frame, *_NO_DETAIL)))
             if trailing and unheard:  # another master's frame right behind the answer?
                 found.append(Finding(Found.HEAR, data=trailing))
             return

@@ -141,6 +141,9 @@ class Bus:
     ) -> None:
         self.config = config
         self.role = role  #: the gateway's role: ``Alone``, or its part in a pair
+        #: A pair's role is asked before each frame and told what the line heard; ``Alone``
+        #: needs neither, and the per-transaction path skips both.
+        self._role_listens = not isinstance(role, Alone)
         #: ``kind = "tls"``: the context of the next handshake (a reload may renew it).
         self.tls_context = tls_context
         self.name = config.name
@@ -384,6 +387,10 @@ class Bus:
         """Bytes read from the link: the core takes them, then the role its evidence."""
         self._heard_at = now = time.monotonic()
         core = self._core
+        if not self._role_listens:
+            core.receive(data, now)
+            self._pump()
+            return
         masters = core.last_master_frame_at
         core.receive(data, now)
         self._pump()
@@ -475,12 +482,12 @@ class Bus:
                         waiter.set_result(None)
 
     def _transmit(self, transmits: list[Transmit]) -> None:
-        may_transmit = self.role.may_transmit
+        may_transmit = self.role.may_transmit if self._role_listens else None
         for frame, _request, queue_wait, retry in transmits:  # unpacked: no field look-ups
             link = self._link
             if link is None or link.closed:
                 return  # the core has been told (port_lost) and answered 0x0A
-            if not may_transmit():  # the frame is not written (see ``refused``)
+            if may_transmit is not None and not may_transmit():  # not written (``refused``)
                 self.refused = True
                 now = time.monotonic()
                 self._core.pause(now)
