@@ -40,13 +40,15 @@ from .io.http.guard import RouteAccess
 from .io.http.live import LiveView
 from .io.line.bus import Alone, Bus, PlannedBlock, PollBlockView, poll_block_status
 from .io.links.serial_port import check_devices_usable
+from .io.links.tls import client_context
 from .io.listeners.rtu_over_tcp import rtu_over_tcp_server
 from .io.listeners.serial_slave import SerialSlave
 from .io.listeners.spine import LineTarget, Router, listener_policy
 from .io.listeners.status_unit import StatusUnit
 from .io.listeners.tcp import ModbusTcpServer
+from .io.listeners.tls import HandshakeFailure, ServerTls, server_context
 from .io.systemd import SystemdNotifier
-from .io.tls import HandshakeFailure, ServerTls, TlsSetupError, client_context, server_context
+from .io.tls_setup import TlsSetupError
 from .metrics import GatewayMetrics
 from .reload_summary import summarize
 from .restart_keys import keep_restart_settings

@@ -25,7 +25,9 @@ from .config import (
 from .core.framing import is_mbap
 from .io.http.endpoint import endpoint_tls
 from .io.links.link import DeviceUnusableError, ListenerDeviceUnusableError
-from .io.tls import TlsSetupError, client_context, server_context
+from .io.links.tls import client_context
+from .io.listeners.tls import server_context
+from .io.tls_setup import TlsSetupError
 from .logs import setup_logging
 from .schema import Key, Scope, Table, Type
 from .trace import Tracer, parse_function

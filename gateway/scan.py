@@ -34,7 +34,8 @@ from .core.errors import ResponseError
 from .core.framing import framing_for
 from .core.timing import character_time
 from .io.links.serial_port import DeviceBusyError, SerialPortError, open_serial
-from .io.tls import TlsSetupError, client_context
+from .io.links.tls import client_context
+from .io.tls_setup import TlsSetupError
 
 #: Baud rates ``--baudrate auto`` tries, the most common on Modbus lines first.
 AUTO_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 4800, 2400, 1200)

@@ -24,7 +24,7 @@ import pytest
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
-from gateway.io.tls import role_from_certificate
+from gateway.io.listeners.tls import role_from_certificate
 from gateway.sim.pki import DAY, Pki
 from tests.helpers import LoggedProcess, mbap, require_tool
 

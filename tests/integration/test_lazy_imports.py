@@ -59,7 +59,7 @@ def _loaded_while_serving() -> set[str]:
 
 def test_a_plain_tcp_gateway_loads_no_tls_library_no_simulator_no_pair_no_pymodbus() -> None:
     loaded = _loaded_while_serving()
-    assert "gateway.io.tls" in loaded and "gateway.metrics" in loaded  # it did start
+    assert "gateway.io.listeners.tls" in loaded and "gateway.metrics" in loaded  # it did start
     unwanted = {name for name in loaded if name.split(".")[0] in ("cryptography", "pymodbus")}
     unwanted |= {name for name in loaded if name.startswith(("gateway.sim", "gateway.io.pair"))}
     assert not unwanted, sorted(unwanted)

@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from gateway.config import build_config
 from gateway.core.crc import append_crc, check_crc
 from gateway.io.audit import verify_files
-from gateway.io.tls import certificate_facts
+from gateway.io.listeners.tls import certificate_facts
 from gateway.sim import plc
 from gateway.sim.line import UnitFaults
 from gateway.sim.pki import Pki

@@ -22,7 +22,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.x509.oid import NameOID
 
 from gateway.config import build_config
-from gateway.io.tls import TlsSetupError, certificate_facts, server_context
+from gateway.io.listeners.tls import certificate_facts, server_context
+from gateway.io.tls_setup import TlsSetupError
 from gateway.sim import plc
 from gateway.sim.pki import DAY, Pki
 from tests.helpers import (

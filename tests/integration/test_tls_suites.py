@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 
 from gateway.config import build_config
-from gateway.io.tls import ListenerContext
+from gateway.io.listeners.tls import ListenerContext
 from gateway.sim import plc
 from gateway.sim.pki import KeyAlgorithm, Pki, make_pki
 from tests.helpers import (

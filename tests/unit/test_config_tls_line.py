@@ -12,13 +12,13 @@ import pytest
 from gateway.cli import apply_overrides, build_parser
 from gateway.config import ConfigError, LineConfig, build_config, config_warnings
 from gateway.core.framing import LineKind, framing_for
-from gateway.io.tls import (
+from gateway.io.links.tls import (
     LineTlsFailure,
-    TlsSetupError,
     client_context,
     line_failure_message,
     line_failure_reason,
 )
+from gateway.io.tls_setup import TlsSetupError
 from gateway.sim.pki import Pki
 from tests.helpers import problems
 

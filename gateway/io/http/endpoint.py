@@ -59,7 +59,7 @@ from prometheus_client.registry import Collector
 
 from ...config import MetricsConfig
 from ...logs import RateLimitedLogger
-from ..tls import check_chain, cipher_string, load_authorities, load_key_pair
+from ..tls_setup import check_chain, cipher_string, load_authorities, load_key_pair
 from .guard import Guard, HttpRefusal, RouteAccess
 
 log = logging.getLogger("gateway.http")

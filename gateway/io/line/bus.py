@@ -45,7 +45,7 @@ from ...status import LineState, LineStatus, PollBlockStatus, SlaveStatus
 from ..clock import PreciseClock, wait_until
 from ..links.link import Link, LinkError, TlsLink
 from ..links.serial_port import SerialLink
-from ..tls import LineTlsFailure
+from ..links.tls import LineTlsFailure
 from .notes import LineNotes
 from .port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .tally import LineTally, wall_clock

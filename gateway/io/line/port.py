@@ -20,7 +20,7 @@ from ...config import LineConfig
 from ...metrics import GatewayMetrics
 from ..links.link import Link, TcpLink, TlsLink, connect_tcp, connect_tls
 from ..links.serial_port import SerialLink, SerialPortError, open_serial
-from ..tls import line_failure_message, line_failure_reason
+from ..links.tls import line_failure_message, line_failure_reason
 
 log = logging.getLogger("gateway.bus")
 

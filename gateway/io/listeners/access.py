@@ -22,7 +22,7 @@ from ...core.policy import IPAddress, IPNetwork, Principal
 from ...logs import RateLimitedLogger
 from ...metrics import GatewayMetrics
 from ..audit import AuditLog
-from ..tls import HandshakeFailure, leaf_subject
+from .tls import HandshakeFailure, leaf_subject
 
 log = logging.getLogger("gateway.access")
 

@@ -85,7 +85,10 @@ from ...metrics import UNIT_LABELS, GatewayMetrics
 from ...status import MasterStatus
 from ...trace import FrameTrace
 from ..audit import AuditLog, AuditTicket
-from ..tls import (
+from . import spine
+from .access import SourceScreen, peer_address_of
+from .spine import LineService, Router, listener_policy
+from .tls import (
     HandshakeFailure,
     HandshakeNote,
     ServerTls,
@@ -95,9 +98,6 @@ from ..tls import (
     peer_chain,
     role_of,
 )
-from . import spine
-from .access import SourceScreen, peer_address_of
-from .spine import LineService, Router, listener_policy
 
 if TYPE_CHECKING:  # only TLS listeners hold certificates
     from cryptography import x509

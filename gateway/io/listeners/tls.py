@@ -1,4 +1,4 @@
-"""Modbus/TCP Security: the server's TLS context, the client's role, and the TLS handshake.
+"""Modbus/TCP Security on a listener: the server's TLS context, the client's role, the handshake.
 
 Theory of operation. ``server_context`` builds an ``ssl.SSLContext`` that speaks
 TLS 1.2 or newer only and requires a client certificate chaining to the
@@ -50,18 +50,25 @@ from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from ..config import LineConfig, ListenerConfig
-from ..core.connection_admission import CertificateFacts
-from ..core.policy import ROLE_OID, decode_role
+from ...config import ListenerConfig
+from ...core.connection_admission import CertificateFacts
+from ...core.policy import ROLE_OID, decode_role
+from ..tls_setup import (
+    EXPIRY_VERIFY_CODES,
+    CertificateInfo,
+    TlsSetupError,
+    check_chain,
+    cipher_string,
+    load_authorities,
+    load_key_pair,
+    read_pem_certificates,
+    subject_of,
+)
 
 if TYPE_CHECKING:  # ``cryptography`` loads with the first certificate: TLS configurations only
     from cryptography import x509
 
 log = logging.getLogger("gateway.tls")
-
-
-class TlsSetupError(Exception):
-    """A listener's certificate, key or CA file cannot be used; the message says which and why."""
 
 
 class HandshakeFailure(enum.StrEnum):
@@ -78,31 +85,13 @@ class HandshakeFailure(enum.StrEnum):
     OTHER = "other"  # anything else (no common cipher, garbage instead of a ClientHello, ...)
 
 
-# OpenSSL's X509_V_ERR_CERT_NOT_YET_VALID and X509_V_ERR_CERT_HAS_EXPIRED.
-_EXPIRY_VERIFY_CODES = frozenset({9, 10})
 _REVOKED_VERIFY_CODE = 23  # X509_V_ERR_CERT_REVOKED
-
-#: The suites with forward secrecy (ECDHE), strongest first; TLS 1.3's own suites come
-#: before them whatever this says. No NULL, anonymous, SHA-1 or CCM suite.
-FORWARD_SECRET_SUITES = "ECDHE+AESGCM:ECDHE+CHACHA20:ECDHE+AES:!aNULL:!eNULL:!SHA1:!AESCCM"
-#: TLS_RSA_WITH_AES_128_CBC_SHA256, the suite MB-TCP-Security v21 R-14 requires: RSA key
-#: exchange (an RSA server certificate), no forward secrecy, so listed last.
-REQUIRED_SUITE = "AES128-SHA256"
-
-
-def cipher_string(forward_secrecy_only: bool) -> str:
-    """The OpenSSL cipher list of a listener (the server's order is the one used)."""
-    return (
-        FORWARD_SECRET_SUITES
-        if forward_secrecy_only
-        else f"{FORWARD_SECRET_SUITES}:{REQUIRED_SUITE}"
-    )
 
 
 def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
     """Map an exception from the handshake to its ``HandshakeFailure``."""
     if isinstance(error, ssl.SSLCertVerificationError):
-        if error.verify_code in _EXPIRY_VERIFY_CODES:
+        if error.verify_code in EXPIRY_VERIFY_CODES:
             return HandshakeFailure.EXPIRED_CERTIFICATE
         if error.verify_code == _REVOKED_VERIFY_CODE:
             return HandshakeFailure.REVOKED_CERTIFICATE
@@ -139,20 +128,6 @@ def handshake_failure_reason(error: BaseException) -> HandshakeFailure:
 
 
 @dataclass(frozen=True, slots=True)
-class CertificateInfo:
-    """One certificate a listener uses, for the expiry metric."""
-
-    listener: str
-    kind: str  #: ``server`` (the leaf), ``chain`` (an intermediate it sends) or ``ca``
-    subject: str
-    not_after: datetime
-
-    def seconds_left(self, now: float | None = None) -> float:
-        """Seconds until ``notAfter`` (negative once expired)."""
-        return self.not_after.timestamp() - (time.time() if now is None else now)
-
-
-@dataclass(frozen=True, slots=True)
 class CrlInfo:
     """One revocation list a listener checks, for the nextUpdate metric: once it passes,
     OpenSSL refuses every new TLS master (``untrusted_certificate``)."""
@@ -164,38 +139,6 @@ class CrlInfo:
     def seconds_left(self, now: float | None = None) -> float:
         """Seconds until ``nextUpdate`` (negative once passed)."""
         return self.next_update.timestamp() - (time.time() if now is None else now)
-
-
-def _subject(certificate: x509.Certificate) -> str:
-    from cryptography.x509.oid import NameOID
-
-    names = certificate.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-    if names:
-        return str(names[0].value)
-    return certificate.subject.rfc4514_string() or "(no subject)"
-
-
-#: The fix of a TLS file the gateway cannot read.
-_READ_FIX = "; check the path, and that the gateway's user may read the file"
-
-
-def _read_pem_certificates(path: str, key: str) -> list[x509.Certificate]:
-    from cryptography import x509
-
-    try:
-        with open(path, "rb") as handle:
-            data = handle.read()
-    except OSError as error:
-        raise TlsSetupError(
-            f"{key} = {path!r}: cannot read: {error.strerror or error}{_READ_FIX}"
-        ) from None
-    try:
-        certificates = x509.load_pem_x509_certificates(data)
-    except ValueError:
-        raise TlsSetupError(
-            f"{key} = {path!r}: no PEM certificate in it (expected -----BEGIN CERTIFICATE-----)"
-        ) from None
-    return certificates
 
 
 def _issuer_name(crl: x509.CertificateRevocationList) -> str:
@@ -273,56 +216,6 @@ class ServerTls:
     crls: tuple[CrlInfo, ...] = ()
 
 
-def check_chain(path: str, key: str, moment: datetime) -> list[x509.Certificate]:
-    """The certificates in the chain file ``path`` (configuration key ``key``), each valid at
-    ``moment``; raise ``TlsSetupError`` naming the key, the file and the fix."""
-    chain = _read_pem_certificates(path, key)
-    for index, certificate in enumerate(chain):
-        kind = "server" if index == 0 else "chain"
-        subject = _subject(certificate)
-        if moment < certificate.not_valid_before_utc:
-            raise TlsSetupError(
-                f"{key} = {path!r}: the {kind} certificate {subject!r} is not valid before "
-                f"{certificate.not_valid_before_utc:%Y-%m-%d %H:%M:%S} UTC; check the clock or "
-                "issue it again"
-            )
-        if moment > certificate.not_valid_after_utc:
-            raise TlsSetupError(
-                f"{key} = {path!r}: the {kind} certificate {subject!r} expired on "
-                f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC; renew it, then reload "
-                "(SIGHUP)"
-            )
-    return chain
-
-
-def load_key_pair(context: ssl.SSLContext, cert: str, key: str, names: tuple[str, str]) -> None:
-    """Load the chain ``cert`` and its private ``key`` (their configuration keys: ``names``)
-    into ``context``; raise ``TlsSetupError`` naming the key, the file and the fix."""
-    cert_name, key_name = names
-    try:
-        context.load_cert_chain(cert, key)
-    except ssl.SSLError as error:
-        raise TlsSetupError(
-            f"{key_name} = {key!r}: cannot be used with {cert_name} = {cert!r} "
-            f"({error.reason or error}); give the private key of the certificate's first "
-            "(leaf) entry, unencrypted PEM"
-        ) from None
-    except OSError as error:
-        raise TlsSetupError(
-            f"{key_name} = {key!r}: cannot read: {error.strerror or error}{_READ_FIX}"
-        ) from None
-
-
-def load_authorities(context: ssl.SSLContext, path: str, key: str) -> None:
-    """Trust the CA certificates in ``path`` (configuration key ``key``) for client
-    certificates; raise ``TlsSetupError`` naming the key and the file."""
-    _read_pem_certificates(path, key)  # a missing file or no PEM: the message with its fix
-    try:
-        context.load_verify_locations(cafile=path)
-    except (ssl.SSLError, OSError) as error:
-        raise TlsSetupError(f"{key} = {path!r}: cannot be used: {error}") from None
-
-
 def server_context(listener: ListenerConfig, now: datetime | None = None) -> ServerTls:
     """Build the TLS context of a ``tls`` listener; raise ``TlsSetupError`` naming the fault."""
     assert listener.cert and listener.key and listener.ca
@@ -333,15 +226,15 @@ def server_context(listener: ListenerConfig, now: datetime | None = None) -> Ser
         CertificateInfo(
             listener.name,
             "server" if index == 0 else "chain",
-            _subject(certificate),
+            subject_of(certificate),
             certificate.not_valid_after_utc,
         )
         for index, certificate in enumerate(chain)
     ]
-    authorities = _read_pem_certificates(listener.ca, f"{prefix}ca")
+    authorities = read_pem_certificates(listener.ca, f"{prefix}ca")
     for authority in authorities:
         info = CertificateInfo(
-            listener.name, "ca", _subject(authority), authority.not_valid_after_utc
+            listener.name, "ca", subject_of(authority), authority.not_valid_after_utc
         )
         if moment > authority.not_valid_after_utc:
             log.warning(
@@ -516,7 +409,7 @@ def certificate_message_subject(message: bytes, tls13: bool) -> str | None:
         length = int.from_bytes(message[offset : offset + 3], "big")
         try:
             der = message[offset + 3 : offset + 3 + length]
-            return _subject(x509.load_der_x509_certificate(der)) if der else None
+            return subject_of(x509.load_der_x509_certificate(der)) if der else None
         except ValueError:
             continue
     return None
@@ -529,7 +422,7 @@ def leaf_subject(chain: Sequence[bytes]) -> str | None:
     from cryptography import x509
 
     try:
-        return _subject(x509.load_der_x509_certificate(chain[0]))
+        return subject_of(x509.load_der_x509_certificate(chain[0]))
     except ValueError:
         return None
 
@@ -666,169 +559,3 @@ def _facts(
         trusted,
         revoked,
     )
-
-
-# --------------------------------------------------------------------------- tls lines (client)
-
-
-class LineTlsFailure(enum.StrEnum):
-    """Why a ``kind = "tls"`` line could not set up TLS with its slave.
-
-    The ``reason`` label of ``line_tls_failures_total``; the line's log says it once.
-    """
-
-    UNTRUSTED_CERTIFICATE = "untrusted_certificate"  # the slave's does not chain to the line's ca
-    EXPIRED_CERTIFICATE = "expired_certificate"  # the slave's expired (or is not yet valid)
-    NAME_MISMATCH = "name_mismatch"  # the slave's certificate is not for server_name
-    CERTIFICATE_REFUSED = "certificate_refused"  # the slave refused the gateway's certificate
-    PROTOCOL_VERSION = "protocol_version"  # no TLS version in common (1.2 and 1.3 only)
-    NOT_TLS = "not_tls"  # the slave answered, but not in TLS (a plain Modbus TCP port?)
-    TIMEOUT = "timeout"  # no complete handshake within tls_handshake_timeout
-    CLOSED = "closed"  # the slave closed the connection during the handshake
-    OTHER = "other"
-
-
-# OpenSSL's X509_V_ERR_HOSTNAME_MISMATCH and X509_V_ERR_IP_ADDRESS_MISMATCH.
-_NAME_VERIFY_CODES = frozenset({62, 64})
-
-
-def line_failure_reason(error: BaseException) -> LineTlsFailure:
-    """Map an error from a tls line's handshake (or its first read) to its ``LineTlsFailure``."""
-    if isinstance(error, ssl.SSLCertVerificationError):
-        if error.verify_code in _NAME_VERIFY_CODES:
-            return LineTlsFailure.NAME_MISMATCH
-        if error.verify_code in _EXPIRY_VERIFY_CODES:
-            return LineTlsFailure.EXPIRED_CERTIFICATE
-        return LineTlsFailure.UNTRUSTED_CERTIFICATE
-    if isinstance(error, ssl.SSLError):
-        reason = (error.reason or "").upper()
-        if reason in ("WRONG_VERSION_NUMBER", "PACKET_LENGTH_TOO_LONG", "RECORD_LAYER_FAILURE"):
-            return LineTlsFailure.NOT_TLS
-        if "VERSION" in reason or "UNSUPPORTED_PROTOCOL" in reason:
-            return LineTlsFailure.PROTOCOL_VERSION
-        if "ALERT" in reason and any(
-            word in reason for word in ("CERTIFICATE", "UNKNOWN_CA", "ACCESS_DENIED")
-        ):  # the slave's verdict on the gateway's certificate (TLS 1.3: after the handshake)
-            return LineTlsFailure.CERTIFICATE_REFUSED
-        if isinstance(error, ssl.SSLEOFError):
-            return LineTlsFailure.CLOSED
-        return LineTlsFailure.OTHER
-    if isinstance(error, TimeoutError) or "longer than" in str(error):
-        return LineTlsFailure.TIMEOUT
-    if isinstance(error, OSError):
-        return LineTlsFailure.CLOSED
-    return LineTlsFailure.OTHER
-
-
-def line_failure_message(line: LineConfig, reason: LineTlsFailure, error: BaseException) -> str:
-    """One line for the log: what failed with the slave, and the fix."""
-    prefix = f"lines.{line.name}."
-    detail = getattr(error, "verify_message", None) or getattr(error, "reason", None) or error
-    where = f"line {line.name!r}: TLS with {line.device}"
-    if reason is LineTlsFailure.UNTRUSTED_CERTIFICATE:
-        return (
-            f"{where}: the slave's certificate does not chain to {prefix}ca = {line.ca!r} "
-            f"({detail}); give the CA that issued the slave's certificate"
-        )
-    if reason is LineTlsFailure.EXPIRED_CERTIFICATE:
-        return (
-            f"{where}: the slave's certificate is expired or not yet valid ({detail}); "
-            "renew the slave's certificate, or check the gateway's clock"
-        )
-    if reason is LineTlsFailure.NAME_MISMATCH:
-        return (
-            f"{where}: the slave's certificate is not for {line.server_name!r} ({detail}); "
-            f"set {prefix}server_name to a name its certificate carries"
-        )
-    if reason is LineTlsFailure.CERTIFICATE_REFUSED:
-        return (
-            f"{where}: the slave refused the gateway's certificate {prefix}cert = "
-            f"{line.cert!r} ({detail}); the slave must trust its CA, and it must be "
-            "valid now"
-        )
-    if reason is LineTlsFailure.PROTOCOL_VERSION:
-        return (
-            f"{where}: no TLS version in common ({detail}); Modbus/TCP Security needs "
-            "TLS 1.2 or newer on the slave"
-        )
-    if reason is LineTlsFailure.NOT_TLS:
-        return (
-            f"{where}: the slave did not answer in TLS ({detail}); is this its Modbus/TCP "
-            'Security port (802)? A plain Modbus TCP slave is kind = "tcp"'
-        )
-    if reason is LineTlsFailure.TIMEOUT:
-        return (
-            f"{where}: no complete handshake within {line.tls_handshake_timeout:g} s "
-            f"({prefix}tls_handshake_timeout)"
-        )
-    if reason is LineTlsFailure.CLOSED:
-        return (
-            f"{where}: the slave closed the connection during the handshake, or after it "
-            f"before answering anything ({detail}); it may refuse the gateway's certificate "
-            f"{prefix}cert = {line.cert!r} or address, or not speak TLS on this port (a "
-            "plain Modbus TCP port closes on the TLS hello)"
-        )
-    return f"{where}: handshake failed: {detail}"
-
-
-@dataclass
-class ClientTls:
-    """A tls line's built TLS context and the certificates it rests on (``listener``: the line)."""
-
-    context: ssl.SSLContext
-    certificates: list[CertificateInfo]
-
-
-def client_context(line: LineConfig, now: datetime | None = None) -> ClientTls:
-    """The TLS context of a ``kind = "tls"`` line; ``TlsSetupError`` names the key and the fix.
-
-    TLS 1.2 or newer, the gateway's client certificate presented, the slave's
-    certificate verified against ``ca`` and, unless ``check_server_name = false``,
-    for ``server_name``.
-    """
-    assert line.cert and line.key and line.ca
-    prefix = f"lines.{line.name}."
-    moment = now or datetime.now(UTC)
-    infos: list[CertificateInfo] = []
-    for index, certificate in enumerate(_read_pem_certificates(line.cert, f"{prefix}cert")):
-        kind = "client" if index == 0 else "chain"
-        subject = _subject(certificate)
-        infos.append(CertificateInfo(line.name, kind, subject, certificate.not_valid_after_utc))
-        if moment < certificate.not_valid_before_utc:
-            raise TlsSetupError(
-                f"{prefix}cert = {line.cert!r}: the {kind} certificate {subject!r} is not valid "
-                f"before {certificate.not_valid_before_utc:%Y-%m-%d %H:%M:%S} UTC; check the "
-                "clock or issue it again"
-            )
-        if moment > certificate.not_valid_after_utc:
-            raise TlsSetupError(
-                f"{prefix}cert = {line.cert!r}: the {kind} certificate {subject!r} expired on "
-                f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC; renew it, then reload "
-                "(SIGHUP)"
-            )
-    for authority in _read_pem_certificates(line.ca, f"{prefix}ca"):
-        infos.append(
-            CertificateInfo(line.name, "ca", _subject(authority), authority.not_valid_after_utc)
-        )
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)  # verifies the chain and the name
-    context.minimum_version = ssl.TLSVersion.TLSv1_2  # the specification: never 1.1, 1.0 or SSL
-    context.options |= ssl.OP_NO_RENEGOTIATION | ssl.OP_NO_COMPRESSION
-    if not line.check_server_name:
-        context.check_hostname = False  # the chain is still verified: verify_mode stays
-    try:
-        context.load_cert_chain(line.cert, line.key)
-    except ssl.SSLError as error:
-        raise TlsSetupError(
-            f"{prefix}key = {line.key!r}: cannot be used with {prefix}cert = {line.cert!r} "
-            f"({error.reason or error}); give the private key of the certificate's first "
-            "(leaf) entry, unencrypted PEM"
-        ) from None
-    except OSError as error:
-        raise TlsSetupError(
-            f"{prefix}key = {line.key!r}: cannot read: {error.strerror or error}"
-        ) from None
-    try:
-        context.load_verify_locations(cafile=line.ca)
-    except (ssl.SSLError, OSError) as error:
-        raise TlsSetupError(f"{prefix}ca = {line.ca!r}: cannot be used: {error}") from None
-    return ClientTls(context, infos)
