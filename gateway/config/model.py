@@ -22,16 +22,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from . import schema
-from .core import pdu as fc
-from .core.ascii import MAX_ASCII_FRAME
-from .core.framing import is_mbap
-from .core.policy import Access, IPNetwork, Rule, lint, merge_ranges
-from .core.redundancy import HEARING_DELAY_S
-from .core.rtu import MAX_RTU_FRAME
-from .core.status_unit import STATUS_LINE
-from .core.timing import character_time, t35, transmission_time
-from .schema import Key, Table, Type
+from .. import schema
+from ..core import pdu as fc
+from ..core.ascii import MAX_ASCII_FRAME
+from ..core.framing import is_mbap
+from ..core.policy import Access, IPNetwork, Rule, lint, merge_ranges
+from ..core.redundancy import HEARING_DELAY_S
+from ..core.rtu import MAX_RTU_FRAME
+from ..core.status_unit import STATUS_LINE
+from ..core.timing import character_time, t35, transmission_time
+from ..schema import Key, Table, Type
 
 _LINE_KEYS_BY_NAME = schema.keys_of(Table.LINES)
 

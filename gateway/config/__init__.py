@@ -1,0 +1,58 @@
+"""Configuration: a TOML file and command-line overrides, as frozen, validated dataclasses.
+
+The package's modules are read through this one: callers import from ``gateway.config``.
+"""
+
+from .model import (
+    LINE_PORT_SETTINGS,
+    NETWORK_LINE_KINDS,
+    CacheRule,
+    ConfigError,
+    GatewayConfig,
+    LineConfig,
+    ListenerConfig,
+    LoggingConfig,
+    MetricsConfig,
+    PollConfig,
+    RedundancyConfig,
+    ServerConfig,
+    auto_timeout,
+    build_config,
+    config_warnings,
+    format_units,
+    is_loopback,
+    load_config,
+    parse_function_key,
+    parse_host_port,
+    parse_units,
+    policy_warnings,
+    poll_plan_share,
+    read_config_file,
+)
+
+__all__ = [
+    "LINE_PORT_SETTINGS",
+    "NETWORK_LINE_KINDS",
+    "CacheRule",
+    "ConfigError",
+    "GatewayConfig",
+    "LineConfig",
+    "ListenerConfig",
+    "LoggingConfig",
+    "MetricsConfig",
+    "PollConfig",
+    "RedundancyConfig",
+    "ServerConfig",
+    "auto_timeout",
+    "build_config",
+    "config_warnings",
+    "format_units",
+    "is_loopback",
+    "load_config",
+    "parse_function_key",
+    "parse_host_port",
+    "parse_units",
+    "policy_warnings",
+    "poll_plan_share",
+    "read_config_file",
+]
