@@ -403,6 +403,9 @@ class Gateway:
         config = self._keep_restart_settings(config)
         self.config = config
         router = self._build_router()
+        # A listener left running under another protocol than the file's takes no context.
+        running_tls = {listener.name for listener in config.listeners if listener.tls}
+        tls = {name: built for name, built in tls.items() if name in running_tls}
         self._apply_listeners(config, router, tls)
         self.metrics.describe_lines([line.name for line in config.lines])
         log.info(
@@ -458,27 +461,22 @@ class Gateway:
 
     def _keep_restart_settings(self, config: GatewayConfig) -> GatewayConfig:
         """``config`` with the running value of every key a reload cannot change (warned)."""
-        config, kept = keep_restart_settings(self.config, config)
+        applied, kept = keep_restart_settings(self.config, config)
         for owner in dict.fromkeys(k.owner for k in kept):
             log.warning(
                 "reload: %s changes need a restart; keeping the running %s",
                 owner,
                 ", ".join(k.path for k in kept if k.owner == owner),
             )
-        bound = {
-            s.name: (s.listener.protocol, s.listener.host, s.listener.port) for s in self.servers
-        }
-        wanted = {
-            lst.name: (lst.protocol, lst.host, lst.port)
-            for lst in config.listeners
-            if lst.serial is None
-        }
-        if config.listeners and wanted != bound:
+        running = {s.name: s.listener.protocol for s in self.servers}
+        running |= {slave.name: slave.listener.protocol for slave in self.serial_slaves}
+        wanted = {listener.name: listener.protocol for listener in config.listeners}
+        if config.listeners and wanted != running:
             log.warning(
                 "reload: adding or removing listeners, or changing their protocol, needs a "
                 "restart; the listeners stay as they are (their policies and certificates reload)"
             )
-        return config
+        return applied
 
     def _apply_listeners(
         self, config: GatewayConfig, router: Router, tls: dict[str, ServerTls]

@@ -61,7 +61,9 @@ def summarize(
             if item in items_done:
                 continue
             items_done.add(item)
-            restart = item.startswith("listeners.")  # bound (or opened) at start only
+            # Not done: a listener is bound (or opened) at start only, and what a running
+            # listener uses stays with it (its policy).
+            restart = (_whole_item(key, after) is None) == bool(removed)
             (kept if restart else changes).append(f"{item} {'added' if added else 'removed'}")
             listeners |= item.startswith(_LISTENER_TABLES) and not restart
             continue

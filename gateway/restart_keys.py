@@ -85,8 +85,11 @@ def keep_restart_settings(
 ) -> tuple[GatewayConfig, list[Kept]]:
     """``wanted`` with the running value of every restart-only key it changes, and those keys.
 
-    A listener added, removed or given another protocol is not matched here: the app leaves
-    the running listeners as they are and warns.
+    A listener is known by its name. One the file adds is not opened, and one it removes or
+    gives another protocol keeps running as it is: the result holds the running listeners,
+    each with the file's settings when the file still has it with the same protocol, so
+    that it says what runs. A running listener's policy that the file no longer has stays
+    too. The app warns that those listeners need a restart.
     """
     tables: dict[str, Any] = {}
     kept: list[Kept] = []
@@ -97,16 +100,24 @@ def keep_restart_settings(
         if names:
             tables[name] = value
             kept += names
-    by_name = {listener.name: listener for listener in running.listeners}
+    asked = {listener.name: listener for listener in wanted.listeners}
     listeners: list[ListenerConfig] = []
-    for listener in wanted.listeners:
-        before = by_name.get(listener.name)
-        if before is not None and before.protocol == listener.protocol:
-            owner = f"{listener.protocol} listener {listener.name}"
-            listener, names = _keep(before, listener, Table.LISTENERS, listener.key_prefix, owner)
-            if listener.key_prefix != "server.":  # the shorthand's address is server.listen
-                kept += names
+    for before in running.listeners:
+        listener = asked.get(before.name)
+        if listener is None or listener.protocol != before.protocol:
+            listeners.append(before)  # left as it runs
+            continue
+        owner = f"{listener.protocol} listener {listener.name}"
+        listener, names = _keep(before, listener, Table.LISTENERS, listener.key_prefix, owner)
+        if listener.key_prefix != "server.":  # the shorthand's address is server.listen
+            kept += names
         listeners.append(listener)
     if listeners != list(wanted.listeners):
         tables["listeners"] = tuple(listeners)
+        policies = dict(wanted.policies)
+        for listener in listeners:
+            if listener.policy is not None and listener.policy not in policies:
+                policies[listener.policy] = running.policies[listener.policy]
+        if policies != wanted.policies:
+            tables["policies"] = policies
     return (replace(wanted, **tables) if tables else wanted), kept
