@@ -35,6 +35,7 @@ from .core.line import Handover, LineRequest
 from .core.reasons import CloseReason
 from .io.audit import AuditLog, note_config, start_audit
 from .io.clock import PreciseClock
+from .io.frame_trace import FrameTrace
 from .io.http.endpoint import HttpEndpoint, role_route, start_http
 from .io.http.guard import RouteAccess
 from .io.http.live import LiveView
@@ -47,13 +48,13 @@ from .io.listeners.spine import LineTarget, Router, listener_policy
 from .io.listeners.status_unit import StatusUnit
 from .io.listeners.tcp import ModbusTcpServer
 from .io.listeners.tls import HandshakeFailure, ServerTls, server_context
+from .io.status import LineStatus, MasterStatus, PairStatus, PollBlockStatus
 from .io.systemd import SystemdNotifier
 from .io.tls_setup import TlsSetupError
 from .metrics import GatewayMetrics
 from .reload_summary import summarize
 from .restart_keys import keep_restart_settings
-from .status import LineStatus, MasterStatus, PairStatus, PollBlockStatus
-from .trace import FrameTrace, Tracer
+from .trace import Tracer
 
 if TYPE_CHECKING:
     from .io.pair.role import Pair

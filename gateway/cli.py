@@ -23,6 +23,7 @@ from .config import (
     read_config_file,
 )
 from .core.framing import is_mbap
+from .io.frame_trace import parse_function
 from .io.http.endpoint import endpoint_tls
 from .io.links.link import DeviceUnusableError, ListenerDeviceUnusableError
 from .io.links.tls import client_context
@@ -30,7 +31,7 @@ from .io.listeners.tls import server_context
 from .io.tls_setup import TlsSetupError
 from .logs import setup_logging
 from .schema import Key, Scope, Table, Type
-from .trace import Tracer, parse_function
+from .trace import Tracer
 
 if TYPE_CHECKING:  # the simulator loads in demo mode only
     from .sim.demo import DemoLine

@@ -51,7 +51,7 @@ from .core.outcome import DiscardReason, Outcome, ReconnectReason, SlaveState
 from .core.pdu import function_name
 from .core.reasons import CloseReason, MasterFault, RejectReason
 from .core.status_unit import STATUS_LINE
-from .status import PollBlockStatus
+from .io.status import PollBlockStatus
 
 #: ``function`` label by function code (``other`` when unknown): an index, not a call.
 _FUNCTION_LABELS = tuple(function_name(code) for code in range(256))

@@ -27,8 +27,8 @@ from types import FrameType
 from typing import Any
 from urllib.parse import urlencode, urlsplit
 
+from .io.frame_trace import parse_function
 from .pcap import IpAddress, PcapngWriter
-from .trace import parse_function
 
 
 def _function_code(text: str) -> str:

@@ -12,8 +12,8 @@ from collections.abc import Iterator
 import pytest
 
 from gateway.core.rtu import encode_rtu
+from gateway.io.status import LineState
 from gateway.sim import PtyPair, open_pty_pair
-from gateway.status import LineState
 from tests.helpers import DEADLINE_S, GatewayFactory, RunningGateway, wait_until
 
 READ = struct.pack(">BHH", 3, 0, 2)  # two holding registers: the other master reads the same

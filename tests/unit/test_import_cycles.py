@@ -156,7 +156,13 @@ def _every_import(module: str) -> set[str]:
 
 def test_status_and_trace_do_not_know_the_application() -> None:
     """They read the narrow ``GatewayView`` the app provides, not the app, even for types."""
-    for module in ("gateway.io.http.live", "gateway.status", "gateway.trace", "gateway.metrics"):
+    for module in (
+        "gateway.io.http.live",
+        "gateway.io.status",
+        "gateway.io.frame_trace",
+        "gateway.trace",
+        "gateway.metrics",
+    ):
         assert "gateway.app" not in _every_import(module), module
 
 
@@ -215,3 +221,22 @@ def test_no_import_cycle_of_any_kind_inside_the_package() -> None:
         for module, targets in graph.items()
     }
     assert find_cycles(outward) == []
+
+
+#: The top-level modules that read the shell's state out (the logged trace, the page's
+#: model): the shell's rooms hand that state out, so they never import them.
+READ_OUT = {"gateway.status", "gateway.trace"}
+
+
+def test_the_shell_imports_its_shared_vocabulary_downward() -> None:
+    """The records every room of ``gateway/io/`` hands out (line, slave, master and pair
+    statuses) and the frame trace every listener holds live inside ``gateway/io/``: no
+    module there imports ``gateway/status.py`` or ``gateway/trace.py``, not even for a
+    type or inside a function."""
+    graph = import_graph(every_import=True)
+    upward = {
+        module: sorted(targets & READ_OUT)
+        for module, targets in graph.items()
+        if module.startswith("gateway.io.") and targets & READ_OUT
+    }
+    assert upward == {}

@@ -10,8 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.io.http.live import TraceEvent, TraceFilter
-from gateway.pcap import ip_tcp_segment
-from gateway.status import (
+from gateway.io.status import (
     GatewayStatus,
     LineState,
     LineStatus,
@@ -21,6 +20,7 @@ from gateway.status import (
     quantile,
     to_json,
 )
+from gateway.pcap import ip_tcp_segment
 
 BOUNDS = (0.001, 0.01, 0.1)
 

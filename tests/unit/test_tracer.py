@@ -10,11 +10,12 @@ import pytest
 
 from gateway.cli import build_parser
 from gateway.core.outcome import Outcome
+from gateway.io.frame_trace import FrameTrace, parse_function, reply_outcome
 from gateway.io.http.live import TraceFilter, TraceHub, TraceStream
+from gateway.io.status import LineStatus, MasterStatus, PairStatus
 from gateway.logs import JsonFormatter
 from gateway.metrics import GatewayMetrics
-from gateway.status import LineStatus, MasterStatus, PairStatus
-from gateway.trace import MAX_PENDING, FrameTrace, Tracer, parse_function, reply_outcome
+from gateway.trace import MAX_PENDING, Tracer
 from tests.helpers import LogCollector
 
 READ_10 = bytes.fromhex("03 0000 000A")

@@ -23,7 +23,7 @@ moment, the line and slave address it goes to (so a remapped unit shows where
 it went). Reply latencies per slave are kept over the last ``LATENCY_SAMPLES``
 answers while watched; line latencies come from the request-duration histogram.
 
-What this module reads of the gateway is ``GatewayView`` (gateway/status.py),
+What this module reads of the gateway is ``GatewayView`` (gateway/io/status.py),
 which the application provides, and the metrics' own counters, read as numbers:
 it never imports the application, and never parses an exposition.
 """
@@ -49,8 +49,8 @@ from ...answer_values import answer_values
 from ...core import pdu as fc
 from ...core.outcome import Outcome
 from ...metrics import NO_LINE, GatewayMetrics
-from ...status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
-from ...trace import FrameTrace, parse_function, reply_outcome
+from ..frame_trace import FrameTrace, parse_function, reply_outcome
+from ..status import GatewayStatus, GatewayView, LineState, LineStatus, quantile, to_json
 from .endpoint import GuardedRoute, PacedRenderer, extra_headers, respond
 from .guard import RouteAccess
 

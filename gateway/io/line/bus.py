@@ -41,11 +41,11 @@ from ...core.framing import framing_for
 from ...core.line import Delivery, Handover, LineRequest, Transmit, new_line_core, no_reply
 from ...core.outcome import BlockState, Outcome, SlaveState
 from ...metrics import GatewayMetrics
-from ...status import LineState, LineStatus, PollBlockStatus, SlaveStatus
 from ..clock import PreciseClock, wait_until
 from ..links.link import Link, LinkError, TlsLink
 from ..links.serial_port import SerialLink
 from ..links.tls import LineTlsFailure
+from ..status import LineState, LineStatus, PollBlockStatus, SlaveStatus
 from .notes import LineNotes
 from .port import REOPEN_FIRST_DELAY, REOPEN_MAX_DELAY, LinePort
 from .tally import LineTally, wall_clock

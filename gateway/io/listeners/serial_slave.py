@@ -58,11 +58,11 @@ from ...core.slave_side import AsciiRequestReader, FrameFault, Heard, OwnEcho, h
 from ...core.timing import character_time, t35
 from ...logs import RateLimitedLogger
 from ...metrics import GatewayMetrics
-from ...status import MasterStatus
-from ...trace import FrameTrace
 from ..audit import AuditLog, AuditTicket
 from ..clock import PreciseClock
+from ..frame_trace import FrameTrace
 from ..links.serial_port import SerialLink, SerialPortError, open_serial
+from ..status import MasterStatus
 from . import spine
 from .spine import Router, listener_policy
 

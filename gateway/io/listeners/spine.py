@@ -26,8 +26,8 @@ from ...core.outcome import Outcome
 from ...core.policy import Policy, Principal
 from ...core.routes import Target
 from ...metrics import UNIT_LABELS, GatewayMetrics, LoopHistogram
-from ...trace import FrameTrace
 from ..audit import AuditLog, AuditTicket
+from ..frame_trace import FrameTrace
 
 if TYPE_CHECKING:
     from ..line.bus import Bus

@@ -82,9 +82,9 @@ from ...core.policy import IPAddress, Policy, Principal
 from ...core.reasons import CloseReason, RejectReason
 from ...logs import EventSummary, RateLimitedLogger
 from ...metrics import UNIT_LABELS, GatewayMetrics
-from ...status import MasterStatus
-from ...trace import FrameTrace
 from ..audit import AuditLog, AuditTicket
+from ..frame_trace import FrameTrace
+from ..status import MasterStatus
 from . import spine
 from .access import SourceScreen, peer_address_of
 from .spine import LineService, Router, listener_policy

@@ -33,8 +33,8 @@ from ...core.line import LineRequest
 from ...core.outcome import Outcome
 from ...core.redundancy import HEARING_DELAY_S, ChangeReason, Role, RoleMachine
 from ...core.routes import RouteTable
-from ...status import PairStatus
 from ..line.bus import Bus
+from ..status import PairStatus
 from .channel import PeerPoller, PeerRole, peer_tls, role_body
 from .line import PairedLine, keepalive_slave
 

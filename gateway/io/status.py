@@ -7,6 +7,8 @@ depends on this vocabulary, not on how a line or a connection keeps its books.
 
 ``GatewayView`` is all the status page and the live trace read of a running
 gateway: the application provides it, so neither needs to know the application.
+This vocabulary sits in ``gateway/io/``, below the rooms that hand a record out
+(the line driver, the listeners, the pair) and the one that reads them (``http/live``).
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
-from .core.outcome import BlockState as BlockState  # the status vocabulary is the core's
-from .core.outcome import SlaveState as SlaveState
+from ..core.outcome import BlockState as BlockState  # the status vocabulary is the core's
+from ..core.outcome import SlaveState as SlaveState
 
 
 class LineState(enum.Enum):
