@@ -244,7 +244,9 @@ class FairQueue:
         else:
             # To the nanosecond: masters whose transactions took the same time have equal
             # accounts, not accounts a rounding error apart, and go in the order they asked.
-            master.vtime = round(max(master.vtime, self.vclock) + wire, 9)
+            # (``round(x, 9)`` would go through a decimal string: once per transaction.)
+            account = self.vclock if master.vtime < self.vclock else master.vtime
+            master.vtime = round((account + wire) * 1e9) / 1e9
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 
