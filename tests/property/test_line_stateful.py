@@ -1871,6 +1871,8 @@ class PolledLineMachine(RuleBasedStateMachine):
         #: and its period.
         self.pace: dict[tuple[int, int, int, int], tuple[float, float | None]] = {}
         self.every: dict[tuple[int, int, int, int], float] = {}
+        #: By block: the period before a reload changed it, for the next poll (``plan_changed``).
+        self.carried: dict[tuple[int, int, int, int], float] = {}
         self.sent_requests: list[LineRequest] = []  # kept: their ids stay theirs
         self.stopped = False
         self.sent_before_stop: set[int] = set()
@@ -1996,7 +1998,8 @@ class PolledLineMachine(RuleBasedStateMachine):
                 f"block {key} polled at {self.now:.4f}, due at {due:.4f} at the earliest "
                 f"(every {every:.4f}; its last poll at {previous})"
             )
-        self.pace[key] = (due + every, self.now)
+        carried = self.carried.pop(key, every)
+        self.pace[key] = (due + min(every, carried), self.now)
 
     def plan_changed(self, polls: tuple[PollConfig, ...]) -> None:
         """The pace model of the blocks of a new plan (``check_pace``)."""
@@ -2014,6 +2017,9 @@ class PolledLineMachine(RuleBasedStateMachine):
             if block.every != was:  # the new period from the last poll, or the one waiting
                 last = -INFINITY if previous is None else previous
                 due = min(due, due - was + block.every, last + block.every)
+                # A poll already waiting when the period changed had its successor planned
+                # at the old period: the new one applies from it only if that is sooner.
+                self.carried[key] = min(was, self.carried.get(key, was))
             pace[key] = (due, previous)
         self.pace = pace
 
