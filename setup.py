@@ -47,6 +47,7 @@ COMPILED_MODULES = [
     "gateway/core/line/machine.py",
     "gateway/core/line/order.py",
     "gateway/core/line/pipelined.py",
+    "gateway/core/line/polling.py",
     "gateway/core/line/records.py",
     "gateway/core/line/response_timing.py",
     "gateway/core/line/sharing.py",
