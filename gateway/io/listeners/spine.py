@@ -7,8 +7,7 @@ request handed to its line with the reply that settles that record and counts th
 request, a broadcast to every line that takes one, the counts of a local answer. The
 listeners differ only in how an answer is written and which of their requests they still
 wait for: that is what they pass in (``deliver``, ``done``). A rule written here holds on
-every listener; the one exception, the Modbus TCP connection's reply, is written out in
-``tcp.py`` with the same steps (see ``line_request``).
+every listener.
 """
 
 from __future__ import annotations
@@ -164,8 +163,7 @@ def line_request(
 ) -> LineRequest:
     """The request for ``line`` (the caller submits it). Its answer settles the audit
     record, goes to ``deliver`` (which writes it, or says ``DROPPED`` when the master no
-    longer waits), and is counted under the line and slave. The Modbus TCP
-    connection writes these same steps out in its own reply (``tcp.MasterConnection``)."""
+    longer waits), and is counted under the line and slave."""
     metrics = listener.metrics
     function = pdu[0]
     name = line.name

@@ -81,7 +81,7 @@ from ...core.outcome import Outcome
 from ...core.policy import IPAddress, Policy, Principal
 from ...core.reasons import CloseReason, RejectReason
 from ...logs import EventSummary, RateLimitedLogger
-from ...metrics import UNIT_LABELS, GatewayMetrics
+from ...metrics import GatewayMetrics
 from ..audit import AuditLog, AuditTicket
 from ..frame_trace import FrameTrace
 from ..status import MasterStatus
@@ -378,28 +378,20 @@ class MasterConnection(asyncio.BufferedProtocol):
         server = self._server
         duration = bus.request_duration
 
-        function = pdu[0]
-        line = bus.name
-        unit_label = UNIT_LABELS[slave]  # the slave address, as in the line's metrics
-
-        # The reply ``spine.line_request`` builds, written out here: built through it, the
-        # pair's share test (tests/integration/test_peer_shares.py) saw the active stall
-        # and step down in about half of its runs, never with this one; cause not found.
-        def reply(response: bytes, outcome: Outcome) -> None:
-            if ticket is not None:  # an audited write: what became of it
-                ticket.settle(request.sent, response, outcome)
+        def deliver(request: LineRequest, response: bytes, outcome: Outcome) -> Outcome:
+            """Write the answer under its transaction id, unless the master left."""
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
                 if server.tracer.active:
-                    server.tracer.dropped(self.peer, transaction_id, unit, function)
+                    server.tracer.dropped(self.peer, transaction_id, unit, pdu[0])
             else:
                 self._send(transaction_id, unit, response, outcome)
                 duration.observe(time.monotonic() - arrived)
-            server.metrics.count_request(line, unit_label, function, outcome)
             self._request_done()
+            return outcome
 
-        request = LineRequest(slave, pdu, self, reply)
+        request = spine.line_request(server, bus, slave, pdu, self, ticket, deliver)
         self._pending.add(request)
         self._in_flight += 1
         if not bus.submit(request):
