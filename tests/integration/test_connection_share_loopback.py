@@ -93,6 +93,7 @@ def test_at_the_limit_the_heaviest_host_yields_to_a_lighter_one_down_to_equal_sh
     assert rejected(gw, "max_connections") == 2
 
 
+@pytest.mark.slow  # about 3 s or more
 def test_connections_with_requests_in_flight_are_never_evicted_for_a_lighter_host(
     gateway_with: GatewayOnSim,
 ) -> None:

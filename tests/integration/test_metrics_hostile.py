@@ -11,6 +11,7 @@ outcome it actually meets.
 
 from __future__ import annotations
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.sim import UnitFaults, plc
@@ -31,6 +32,7 @@ FUNCTIONS = tuple(
 )  # fmt: skip
 
 
+@pytest.mark.slow  # about 3 s or more
 def test_twenty_functions_to_a_hundred_units_with_the_queue_full_keep_metrics_within_2x(
     make_sim: SimFactory, make_gateway: GatewayFactory
 ) -> None:

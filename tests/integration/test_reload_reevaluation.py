@@ -136,6 +136,7 @@ def test_a_master_closed_at_a_reload_is_in_the_audit_log(
     assert ok, message
 
 
+@pytest.mark.slow  # about 3 s or more
 def test_a_queued_request_of_a_closed_master_never_reaches_the_line_nor_another_master(
     make_sim: SimFactory, make_gateway: GatewayFactory, access_log: LogCollector
 ) -> None:

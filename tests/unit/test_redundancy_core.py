@@ -828,10 +828,23 @@ def _roles(nodes: tuple[_Node, ...]) -> list[Role]:
     return [n.machine.role for n in nodes if n.machine is not None and not n.frozen]
 
 
-PairOnOneBus.TestCase.settings = settings(
-    max_examples=int(os.environ.get("REDUNDANCY_EXAMPLES", "1000")),
-    stateful_step_count=40,
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow],
-)
-TestPairOnOneBus = PairOnOneBus.TestCase
+def _pair_settings(examples: int) -> settings:
+    return settings(
+        max_examples=examples,
+        stateful_step_count=40,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
+
+
+class TestPairOnOneBus(PairOnOneBus.TestCase):  # type: ignore[misc,valid-type]
+    """A short run in the fast tier; the deep one below runs with the slow tests."""
+
+    settings = _pair_settings(100)
+
+
+@pytest.mark.slow
+class TestPairOnOneBusDeep(PairOnOneBus.TestCase):  # type: ignore[misc,valid-type]
+    """1,000 sequences (``REDUNDANCY_EXAMPLES``): about 20 s on two quiet cores."""
+
+    settings = _pair_settings(int(os.environ.get("REDUNDANCY_EXAMPLES", "1000")))
