@@ -3,7 +3,10 @@
 Theory of operation. Each master has its own queue and an account of the wire time its
 transactions took (start-time fair queuing): the master with the smallest virtual time
 goes next, and its account is charged with what its transaction actually cost
-(timeouts included), so a master provoking timeouts spends its own share. A master
+(timeouts included), so a master provoking timeouts spends its own share. Masters served
+from about the same account for about as long tie: they get the account the first of them
+got, so the next round goes in the order they ask, not in the order of their
+transactions' jitter (``charge``). A master
 that waited while others used the line starts from the line's virtual clock, never
 below it (no banked credit). A master with nothing waiting or on the wire for at least
 the line's typical transaction goes next after the transaction on the wire (behind
@@ -32,6 +35,10 @@ from .records import LineRequest, LineStats
 
 #: The weight of the newest transaction in the line's typical one (a moving mean).
 TYPICAL_WEIGHT: Final = 1.0 / 16.0
+#: A master charged from within this part of a transaction of the account the last master
+#: was charged from (for that transaction), to within as much of its new account, is given
+#: that account (``charge``).
+TIE: Final = 0.25
 #: A master idle this long (or the round of waiting requests, if shorter) polls now and
 #: then: it goes next. One asking again sooner polls flat out: it takes its fair turn.
 REST_S: Final = 0.1
@@ -62,6 +69,11 @@ class FairQueue:
         self.seq = 0
         self.vclock = 0.0
         self.vmax = 0.0  # the furthest account of a master that waited (``push``)
+        #: The last account ``charge`` set apart from a tie, the account it started from,
+        #: and how near another must come to both to tie with it (``TIE``).
+        self.last_account = 0.0
+        self.last_start = 0.0
+        self.tie = -1.0
         self.queued = 0  # requests waiting for the line, wherever they wait
         #: The line's typical transaction, the silence after it included (a moving mean kept
         #: by ``LineCore._charge``): how long a master must have been idle to go first.
@@ -242,11 +254,25 @@ class FairQueue:
         if charged:
             master.vtime += wire - charged
         else:
-            # To the nanosecond: masters whose transactions took the same time have equal
-            # accounts, not accounts a rounding error apart, and go in the order they asked.
-            # (``round(x, 9)`` would go through a decimal string: once per transaction.)
-            account = self.vclock if master.vtime < self.vclock else master.vtime
-            master.vtime = round((account + wire) * 1e9) / 1e9
+            start = self.vclock if master.vtime < self.vclock else master.vtime
+            account = start + wire
+            last = self.last_account
+            tie = self.tie
+            if (
+                -tie <= account - last <= tie
+                and -tie <= start - self.last_start <= tie
+                and last >= start + wire / 2
+            ):
+                # Served from about the account of the master charged last, for about as
+                # long: the same account, so masters served in one round go in the order
+                # they ask next, not in the order of their transactions' jitter. (Never
+                # for less than half its transaction: a master cannot tie with itself.)
+                master.vtime = last
+            else:
+                self.last_start = start
+                self.tie = wire * TIE
+                # To the nanosecond (``round(x, 9)`` would go through a decimal string).
+                master.vtime = self.last_account = round(account * 1e9) / 1e9
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 
