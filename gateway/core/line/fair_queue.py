@@ -137,6 +137,25 @@ class FairQueue:
             light = master.vtime <= self.vmax and master.vtime <= self.vclock + 2 * self.typical
             self.push(master, idle and rested and light)
 
+    def went_at_once(self, master: Master, now: float) -> None:
+        """``master``'s request found the line free and nothing waiting, and went without
+        queuing: the accounts as ``enqueue`` (an idle master) then ``pop`` leave them."""
+        vclock = self.vclock
+        vtime = master.vtime
+        if vtime < vclock:
+            master.vtime = vtime = vclock
+        answered_at = master.answered_at
+        typical = self.typical
+        if (
+            (answered_at is not None and now - answered_at < min(typical, REST_S))
+            or vtime > self.vmax
+            or vtime > vclock + 2 * typical
+        ):
+            # Not rested, or not light: it would have gone at its own account (``push``).
+            if vtime > self.vmax:
+                self.vmax = vtime
+            self.vclock = vtime
+
     def queue_at_front(self, request: LineRequest) -> None:
         """Back from the lane: first, but behind its master's earlier broadcasts."""
         master = self.master(request.master)

@@ -19,7 +19,10 @@ entry point                 what a request can become
                             from the cache, put in the isolated slaves' lane (suspect,
                             down or a first contact beside absent slaves), or answered
                             at once: 0x0A (down, stopping, full), 0x06 (the master's
-                            queue), 0x0B (noisy line, isolated slave)
+                            queue), 0x0B (noisy line, isolated slave); or sent at once
+                            when the serial line is free, nothing waits and nothing
+                            holds it (as ``service`` would send it, the fair accounts
+                            kept as if it had queued: ``FairQueue.went_at_once``)
 ``service``                 sent (a retry, a proof read, the lane on its share, the
                             fairest master, the lane free), broadcast, or dropped
                             (nobody waits for it)
@@ -335,6 +338,29 @@ class LineCore:
                 return
             if not self._admit_read(request, now):
                 return
+        wire = self.wire
+        if (
+            not queue.queued
+            and not wire.outstanding
+            and not wire.concurrent
+            and not wire.draining
+            and not request.broadcast
+            and not handed_over
+            and master.heap_seq < 0
+            and now >= self.quiet_since + self._gap
+            and not (self._paused or self.reconnecting or self.polls or self.foreign_pending)
+            and not (self.late.windows or self.sharing.joined)
+            and self.plan.next_due > now
+        ):
+            # The line is free and nothing waits, nothing holds it back: it goes now, as
+            # ``service`` would choose it, the accounts kept as if it had queued. The usual
+            # case of a master polling a line alone: once per transaction.
+            queue.went_at_once(master, now)
+            self._send_at = INFINITY
+            self._wanting_since = None
+            self._poll_went_first = self._lane_went_last = False
+            self._send(request, master, now, False)
+            return
         queue.enqueue(master, request, master.queued == 0 and not on_wire, now)
         self.service(now)
 
