@@ -166,6 +166,7 @@ def test_a_file_cut_at_its_head_fails_verify(flooded: Flooded) -> None:
     assert audit is not None
     audit.reopen()  # SIGHUP without a rotation: the same file goes on
     honest_writes(flooded, 2)
+    assert audit.flush(DEADLINE_S)  # the writer's thread may not have written them yet
     lines = flooded.path.read_text().splitlines(keepends=True)
     assert verify_files([str(flooded.path)])[0]
     reopen = next(n for n, line in enumerate(lines) if '"reason":"reopen"' in line)
