@@ -63,6 +63,7 @@ COMPILED_MODULES = [
     "gateway/io/clock.py",
     "gateway/io/line/notes.py",
     "gateway/io/listeners/rtu_over_tcp.py",
+    "gateway/io/listeners/spine.py",
     "gateway/io/links/serial_port.py",
     "gateway/io/line/tally.py",
     "gateway/io/listeners/tcp.py",
