@@ -499,8 +499,8 @@ class SerialLink:
         """Write a whole frame; a frame is small enough for the kernel buffer to take at once."""
         if self.closed:
             raise SerialPortError(f"{self._port.name}: line is closed")
-        written = 0
         try:
+            written = os.write(self._fd, data)  # all of it, but for a short write
             while written < len(data):
                 written += os.write(self._fd, data[written:])
         except BlockingIOError as error:

@@ -380,11 +380,14 @@ class MasterConnection(asyncio.BufferedProtocol):
 
         def deliver(request: LineRequest, response: bytes, outcome: Outcome) -> Outcome:
             """Write the answer under its transaction id, unless the master left."""
+            # Reads ``self._server`` and ``request.pdu`` rather than the enclosing names:
+            # each name it captures costs a cell per request.
             self._pending.discard(request)
             if self._closed:
                 outcome = Outcome.DROPPED
-                if server.tracer.active:
-                    server.tracer.dropped(self.peer, transaction_id, unit, pdu[0])
+                tracer = self._server.tracer
+                if tracer.active:
+                    tracer.dropped(self.peer, transaction_id, unit, request.pdu[0])
             else:
                 self._send(transaction_id, unit, response, outcome)
                 duration.observe(time.monotonic() - arrived)
