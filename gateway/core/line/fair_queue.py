@@ -40,7 +40,8 @@ TYPICAL_WEIGHT: Final = 1.0 / 16.0
 GRAIN_SHARE: Final = 0.5
 #: The grain follows the typical transaction only when that moves out of this band around
 #: two grains: charges in one round are rounded alike.
-GRAIN_BAND: Final = (1.75, 2.25)
+GRAIN_LOW: Final = 1.75
+GRAIN_HIGH: Final = 2.25
 #: A master idle this long (or the round of waiting requests, if shorter) polls now and
 #: then: it goes next. One asking again sooner polls flat out: it takes its fair turn.
 REST_S: Final = 0.1
@@ -279,8 +280,7 @@ class FairQueue:
             start = self.vclock if master.vtime < self.vclock else master.vtime
             grain = self.grain
             typical = self.typical
-            low, high = GRAIN_BAND
-            if not grain * low <= typical <= grain * high:
+            if not grain * GRAIN_LOW <= typical <= grain * GRAIN_HIGH:
                 self.old_grain = grain if grain else typical * GRAIN_SHARE
                 self.grain_since = start
                 self.grain = typical * GRAIN_SHARE

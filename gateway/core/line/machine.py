@@ -78,9 +78,11 @@ from .records import (
 )
 from .response_timing import DECAY_EVERY, EVIDENCE, ResponseTiming
 from .sharing import ReadSharing
-from .wire import Finding, Found, SerialWire, Wire, WireParts
+from .wire import COMPLETE, Finding, Found, SerialWire, Wire, WireParts
 
-COMPLETE: Final = Found.COMPLETE  # ``receive``'s usual finding, looked up once
+# Looked up once, not at each transaction (an enum member is a class attribute lookup).
+UP: Final = SlaveState.UP
+OK: Final = Outcome.OK
 
 #: The master a proof read is charged to when the request that lost its answer is gone.
 PROOF_MASTER: Final = "the line's proof reads"
@@ -330,7 +332,7 @@ class LineCore:
             self.sharing.broadcast()
         else:
             record = self.health.slaves.get(request.slave)
-            if record is not None and record.state is not SlaveState.UP:
+            if record is not None and record.state is not UP:
                 self._submit_isolated(request, record, now)
                 return
             if record is None and self.health.absent and self._first_contact(request, now):
@@ -1102,7 +1104,7 @@ class LineCore:
         response = frame.pdu
         if function in PROOF_FUNCTIONS and not response[0] & fc.EXCEPTION_FLAG:
             record.known_read = request.pdu
-        if record.state is SlaveState.UP:
+        if record.state is UP:
             record.misses = 0  # ``alive``, for a slave that was up
             lane = self.lane
             if lane.first_contacts and slave in lane.first_contacts:
@@ -1136,9 +1138,9 @@ class LineCore:
         elif function in fc.READ_FUNCTIONS:
             if self.policy.cache:
                 self._store_cache(attempt, response, now)
-            outcome = Outcome.OK
+            outcome = OK
         else:
-            outcome = Outcome.OK
+            outcome = OK
         if request.followers:  # answered now too: asking again at once, they are not rested
             self.queue.answered(request.followers, now)
         self._deliver(request, response, outcome, wire)

@@ -65,6 +65,8 @@ class Finding(NamedTuple):
 
 #: The fields of a ``Finding`` after ``frame``, at their defaults.
 _NO_DETAIL: Final = (None, False, None, 0, -1, b"", (), 0.0, 0)
+#: The usual finding, looked up once (an enum member is a class attribute lookup).
+COMPLETE: Final = Found.COMPLETE
 
 
 def discarded(reason: DiscardReason, count: int, slave: int = 0) -> Finding:
@@ -377,7 +379,7 @@ class SerialWire(Wire):
             self.outstanding = 0
             # ``Finding(Found.COMPLETE, attempt, frame)`` without its Python-level ``__new__``:
             # once per transaction.
-            found.append(tuple_new(Finding, (Found.COMPLETE, attempt, frame, *_NO_DETAIL)))
+            found.append(tuple_new(Finding, (COMPLETE, attempt, frame, *_NO_DETAIL)))
             if trailing and unheard:  # another master's frame right behind the answer?
                 found.append(Finding(Found.HEAR, data=trailing))
             return
