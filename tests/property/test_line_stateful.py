@@ -940,6 +940,10 @@ class LearnedLineMachine(LineMachine):
             if request.slave in timed_out:  # timed out (not cut short by a lost port)
                 self.silent_first[key] = (sent, self.core)
                 del self.pending_first[key]
+        if any(note.event is LineEvent.RECONNECT for note in core.notes):
+            # A silent connection was closed: its silence said nothing of the slaves, and
+            # the reads it lost go again on the new one (``LineCore._reconnect``).
+            self.silent_first.clear()
         attempts = {id(a.request): a for a in self.attempts()}
         for transmit in core.transmits:
             request = transmit.request

@@ -281,8 +281,9 @@ class FairQueue:
             grain = self.grain
             typical = self.typical
             if not grain * GRAIN_LOW <= typical <= grain * GRAIN_HIGH:
-                self.old_grain = grain if grain else typical * GRAIN_SHARE
-                self.grain_since = start
+                if start > self.grain_since:  # else the round keeps the grain it began with
+                    self.old_grain = grain if grain else typical * GRAIN_SHARE
+                    self.grain_since = start
                 self.grain = typical * GRAIN_SHARE
             if start <= self.grain_since:  # in the round the grain changed in
                 grain = self.old_grain
