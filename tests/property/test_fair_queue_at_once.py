@@ -56,24 +56,3 @@ def test_going_at_once_leaves_the_accounts_as_queuing_then_choosing(
 
     assert (same.vtime, direct.vclock, direct.vmax) == (master.vtime, queued.vclock, queued.vmax)
     assert (queued.queued, same.queued, same.heap_seq) == (0, 0, -1) == (direct.queued, 0, -1)
-
-
-@given(typicals=st.lists(st.floats(min_value=0.005, max_value=0.5), min_size=2, max_size=12))
-def test_masters_charged_alike_in_one_round_keep_equal_accounts_whatever_the_grain_does(
-    typicals: list[float],
-) -> None:
-    """Found by the closed-loop machine: after a slave's timeouts the line's typical
-    transaction fell back over a few rounds, and the grain changed twice in one round:
-    the last master of that round was charged with a grain the others were not, and went
-    before them in the next. A round keeps the grain it began with, however often the
-    typical transaction moves in it."""
-    queue = FairQueue(LineStats())
-    queue.vclock = 1.0
-    accounts = []
-    for index, typical in enumerate(typicals):
-        queue.typical = typical
-        master = queue.master(index)
-        master.vtime = 1.0  # every master served from the round's account
-        queue.charge(master, 0.021, 0.0)
-        accounts.append(master.vtime)
-    assert len(set(accounts)) == 1, accounts

@@ -3,10 +3,7 @@
 Theory of operation. Each master has its own queue and an account of the wire time its
 transactions took (start-time fair queuing): the master with the smallest virtual time
 goes next, and its account is charged with what its transaction actually cost
-(timeouts included), so a master provoking timeouts spends its own share. Charges are
-rounded to a grain of half the line's typical transaction: transactions that differ by the
-jitter of a turnaround cost the same, so masters served in one round start the next with
-equal accounts and go in the order they ask, not in the order of that jitter. A master
+(timeouts included), so a master provoking timeouts spends its own share. A master
 that waited while others used the line starts from the line's virtual clock, never
 below it (no banked credit). A master with nothing waiting or on the wire for at least
 the line's typical transaction goes next after the transaction on the wire (behind
@@ -35,13 +32,6 @@ from .records import LineRequest, LineStats
 
 #: The weight of the newest transaction in the line's typical one (a moving mean).
 TYPICAL_WEIGHT: Final = 1.0 / 16.0
-#: Charges are rounded to this part of the line's typical transaction (``charge``): the
-#: typical one is two grains, a transaction a quarter longer or shorter still two.
-GRAIN_SHARE: Final = 0.5
-#: The grain follows the typical transaction only when that moves out of this band around
-#: two grains: charges in one round are rounded alike.
-GRAIN_LOW: Final = 1.75
-GRAIN_HIGH: Final = 2.25
 #: A master idle this long (or the round of waiting requests, if shorter) polls now and
 #: then: it goes next. One asking again sooner polls flat out: it takes its fair turn.
 REST_S: Final = 0.1
@@ -72,12 +62,6 @@ class FairQueue:
         self.seq = 0
         self.vclock = 0.0
         self.vmax = 0.0  # the furthest account of a master that waited (``push``)
-        #: What charges are rounded to (``GRAIN_SHARE``; 0: not yet), and the grain before
-        #: it, for masters charged from an account up to ``grain_since``: a new grain
-        #: applies from the next round, never to part of one.
-        self.grain = 0.0
-        self.old_grain = 0.0
-        self.grain_since = -1.0
         self.queued = 0  # requests waiting for the line, wherever they wait
         #: The line's typical transaction, the silence after it included (a moving mean kept
         #: by ``LineCore._charge``): how long a master must have been idle to go first.
@@ -277,22 +261,11 @@ class FairQueue:
         if charged:
             master.vtime += wire - charged
         else:
-            start = self.vclock if master.vtime < self.vclock else master.vtime
-            grain = self.grain
-            typical = self.typical
-            if not grain * GRAIN_LOW <= typical <= grain * GRAIN_HIGH:
-                if start > self.grain_since:  # else the round keeps the grain it began with
-                    self.old_grain = grain if grain else typical * GRAIN_SHARE
-                    self.grain_since = start
-                self.grain = typical * GRAIN_SHARE
-            if start <= self.grain_since:  # in the round the grain changed in
-                grain = self.old_grain
-            units = round(wire / grain) if grain else 0
-            if units:  # a transaction shorter than half a grain is charged as it was
-                wire = units * grain
-            # To the nanosecond (``round(x, 9)`` would go through a decimal string): masters
-            # charged alike from one account have the same account.
-            master.vtime = round((start + wire) * 1e9) / 1e9
+            # To the nanosecond: masters whose transactions took the same time have equal
+            # accounts, not accounts a rounding error apart, and go in the order they asked.
+            # (``round(x, 9)`` would go through a decimal string: once per transaction.)
+            account = self.vclock if master.vtime < self.vclock else master.vtime
+            master.vtime = round((account + wire) * 1e9) / 1e9
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 

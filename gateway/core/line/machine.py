@@ -1346,8 +1346,7 @@ class LineCore:
         master = queue.masters.get(attempt.request.master)
         # The line's typical transaction (a moving mean) and when the master was served: the
         # fair queue's rest rule reads both (``FairQueue.enqueue``).
-        typical = queue.typical
-        queue.typical = typical + (wire - typical) * TYPICAL_WEIGHT if typical else wire
+        queue.typical += (wire - queue.typical) * TYPICAL_WEIGHT
         if master is not None:
             master.answered_at = now
         if attempt.from_credit:
