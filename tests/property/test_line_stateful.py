@@ -133,6 +133,11 @@ class LineMachine(RuleBasedStateMachine):
         self.answers: dict[int, int] = {}  # id(request) -> times answered
         self.requests: list[LineRequest] = []
         self.transmissions: dict[int, int] = {}  # id(request) -> frames sent
+        #: Every request the core sent or answered, kept alive: the books above are keyed
+        #: by ``id``, and a request the core made itself (a proof read, a poll) would
+        #: otherwise be freed and its ``id`` reused by a later one, which would inherit
+        #: its count.
+        self.seen: list[LineRequest] = []
         self.last_tx_end = 0.0
         self.last_rx = 0.0
         self.turnaround_until = 0.0
@@ -166,6 +171,8 @@ class LineMachine(RuleBasedStateMachine):
         core = self.core
         transmits, core.transmits = core.transmits, []
         deliveries, core.deliveries = core.deliveries, []
+        self.seen.extend(t.request for t in transmits)
+        self.seen.extend(d.request for d in deliveries)
         broadcasts = {id(t.request) for t in transmits if t.request.broadcast}
         for delivery in deliveries:
             if id(delivery.request) not in broadcasts:
@@ -2589,5 +2596,30 @@ def test_a_first_contact_in_the_lane_leaves_it_when_its_slave_answers_another_ma
     machine.wait(step=0.15)
     machine.again(index=7, master="b")
     machine.wait(step=0.01)
+    assert not machine.problems, machine.problems
+    machine.teardown()
+
+
+def test_proof_reads_freed_by_the_core_do_not_count_against_a_later_write() -> None:
+    """Found by the machine: after ten reconnections a master's write had a lost answer
+    proved by four reads of the line's own; the next write showed as sent three times. It
+    went once: the proof reads had been freed and their ``id`` reused. The books now keep
+    every request they count alive."""
+    machine = ProofLineMachine()
+    machine.reload(coalesce=False, dead_after=0, fixed={}, retries=0)
+    machine.long_wait(step=1.0)
+    machine.write_then_read_back(address=0, master="a", other="a", slave=1)
+    for _ in range(10):
+        machine.disconnect(master="a")
+    machine.behave(delay=None, garble=False, ignores=frozenset(), noise=False, slave=1)
+    machine.again(index=0, master="a")
+    machine.again(index=0, master="a")
+    machine.long_wait(step=1.0)
+    machine.write_then_read_back(address=0, master="a", other="a", slave=1)
+    machine.side_effects_are_sent_once()
+    proofs = [request for request in machine.seen if request.proof]
+    assert proofs, "the sequence no longer sends proof reads: it tests nothing"
+    writes = [request for request in machine.requests if request.pdu[0] == 6]
+    assert [machine.transmissions.get(id(write), 0) for write in writes] == [1, 1]
     assert not machine.problems, machine.problems
     machine.teardown()
