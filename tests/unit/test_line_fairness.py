@@ -20,6 +20,8 @@ from hypothesis import strategies as st
 
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
+from gateway.core.line.fair_queue import FairQueue
+from gateway.core.line.records import LineStats, no_reply
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
 from gateway.core.timing import character_time
@@ -386,3 +388,22 @@ def test_a_master_answered_through_a_joined_read_that_asks_again_at_once_takes_i
     index = after_m2.index("f")
     # m3 waited at the same account since before f asked again: it goes first.
     assert after_m2[index - 1] == "m3", after_m2[: index + 2]
+
+
+def test_a_master_whose_queue_emptied_does_not_keep_its_place() -> None:
+    """Found by the closed-loop machine: a newcomer's read, queued at the head of the line,
+    was answered 0x0B when its slave went down; the master's place stayed in the fair order.
+    Its next read, asked at once after an answer, rode that place past a periodic master's
+    poll that had waited behind it for a second."""
+    queue = FairQueue(LineStats())
+    queue.typical = 0.02
+    newcomer, periodic = queue.master("newcomer"), queue.master("periodic")
+    queue.enqueue(newcomer, LineRequest(8, read(0, 10), "newcomer", no_reply), True, 0.0)
+    taken = queue.isolated(8)  # slave 8 went down: its requests are answered 0x0B
+    assert [request.master for request in taken] == ["newcomer"]
+    periodic.answered_at = 0.0
+    queue.enqueue(periodic, LineRequest(1, read(0, 1), "periodic", no_reply), True, 1.0)
+    newcomer.answered_at = 1.1  # answered through a read it joined; asks again at once
+    queue.enqueue(newcomer, LineRequest(2, read(0, 10), "newcomer", no_reply), True, 1.1)
+    first = queue.pop(1.1, lambda master, _now: master.queue[0] if master.queue else None)
+    assert first is not None and first[1] is periodic

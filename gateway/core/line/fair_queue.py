@@ -191,11 +191,17 @@ class FairQueue:
         heapq.heappush(self.heap, (vtime, 1, self.seq, master))
 
     def reschedule(self, master: Master) -> None:
-        """Put ``master`` back in the fair order after its transaction (or forget it)."""
+        """Put ``master`` back in the fair order after its transaction or a request taken
+        from its queue (or forget it). A master whose queue emptied leaves the order: its
+        entry goes stale, and its next request enters by ``enqueue``'s rules, not on a
+        place taken for a request since gone (a closed loop's read, on the head of the
+        line its first request had as a newcomer)."""
         if master.queue:
             if master.heap_seq < 0:
                 self.push(master)
-        elif master.queued == 0 and master.gone:
+            return
+        master.heap_seq = -1
+        if master.queued == 0 and master.gone:
             self.masters.pop(master.key, None)
 
     def dequeued(self, master: Master | None, request: LineRequest) -> None:
@@ -284,6 +290,7 @@ class FairQueue:
         for master, request in doomed:
             master.queue.remove(request)
             self.dequeued(master, request)
+            self.reschedule(master)
         return [request for _, request in doomed]
 
     def first_contacts(
