@@ -24,6 +24,7 @@ def a_queue(
 ) -> tuple[FairQueue, Master]:
     queue = FairQueue(LineStats())
     queue.vclock, queue.vmax, queue.typical = vclock, vmax, typical
+    queue.grain = typical / 2.0  # answered transactions shorter than the typical one
     master = queue.master("m")
     master.vtime, master.answered_at = vtime, answered
     return queue, master
@@ -42,7 +43,7 @@ def test_going_at_once_leaves_the_accounts_as_queuing_then_choosing(
 ) -> None:
     """Every case of ``enqueue``'s rule: rested or not (answered ``rest`` typical
     transactions ago), light or not (its account behind, between or past the furthest
-    account and the virtual time's two typical transactions)."""
+    account's turn and the virtual time's two typical transactions)."""
     vtime = vclock + offset
     now = (answered if answered is not None else 0.0) + rest * typical
     queued, master = a_queue(vclock, vclock + ahead, typical, vtime, answered)

@@ -1369,12 +1369,12 @@ class FairLineMachine(RuleBasedStateMachine):
 
     def light(self, name: str) -> bool:
         """``name``'s account, as the fair queue keeps it, is not ahead of every waiting
-        master's, nor more than two typical transactions ahead of the virtual time: the
-        account says it used less than its share (``FairQueue.enqueue``)."""
+        master's by more than a turn, nor more than two typical transactions ahead of the
+        virtual time: the account says it used less than its share (``FairQueue.enqueue``)."""
         queue = self.line.core.queue
         account = queue.masters.get(name)
         vtime = max(account.vtime if account is not None else 0.0, queue.vclock)
-        return vtime <= queue.vmax and vtime <= queue.vclock + 2 * queue.typical
+        return vtime <= queue.vmax + queue.grain and vtime <= queue.vclock + 2 * queue.typical
 
     def tick(self, name: str) -> None:
         master = self.masters[name]

@@ -3,18 +3,25 @@
 Theory of operation. Each master has its own queue and an account of the wire time its
 transactions took (start-time fair queuing): the master with the smallest virtual time
 goes next, and its account is charged with what its transaction actually cost
-(timeouts included), so a master provoking timeouts spends its own share. A master
-that waited while others used the line starts from the line's virtual clock, never
-below it (no banked credit). A master with nothing waiting or on the wire for at least
-the line's typical transaction goes next after the transaction on the wire (behind
-others that came so before it), unless its account is ahead of every waiting master's:
-it cannot become the heaviest user that way. A master answered a moment ago that asks
-again at once takes its fair turn: it goes behind the round it left. Each master has its
-own queue bound (0x06 beyond it); the line-wide bound pushes out the longest queue's
-newest request before refusing a master with a shorter queue. A request still unsent
-after the line's ``max_queue_wait`` is
-overdue: ``arrivals`` holds the queued requests in submission order, so the oldest is
-found without a scan (requests that left another way are skipped when met at its head).
+(timeouts included), so a master provoking timeouts spends its own share. Charges are
+whole *turns*: the line's typical answered transaction (its grain) times the number of
+them a transaction took, rounded (one shorter than half a turn is charged its own time).
+Transactions that differ by a slave's jitter cost the same, so masters served in one
+round start the next with equal accounts and go in the order they asked, as first come,
+first served would put them, not in the order of that jitter; a timeout or a long read
+still costs its many turns. The grain moves only when the typical transaction leaves a
+band around it: masters charged in one round are charged alike. A master that waited
+while others used the line starts from the line's virtual clock, never below it (no
+banked credit). A master with nothing waiting or on the wire for at least the line's
+typical transaction goes next after the transaction on the wire (behind others that came
+so before it), unless its account is ahead of every waiting master's by more than a
+turn: it cannot become the heaviest user that way. A master answered a moment ago that
+asks again at once takes its fair turn: it goes behind the round it left. Each master
+has its own queue bound (0x06 beyond it); the line-wide bound pushes out the longest
+queue's newest request before refusing a master with a shorter queue. A request still
+unsent after the line's ``max_queue_wait`` is overdue: ``arrivals`` holds the queued
+requests in submission order, so the oldest is found without a scan (requests that left
+another way are skipped when met at its head).
 
 This part keeps the order and the counts; it answers questions and never emits an
 action: the machine (``machine.LineCore``) decides what becomes of a request.
@@ -32,6 +39,12 @@ from .records import LineRequest, LineStats
 
 #: The weight of the newest transaction in the line's typical one (a moving mean).
 TYPICAL_WEIGHT: Final = 1.0 / 16.0
+#: The grain follows the typical answered transaction only when that leaves this band
+#: around it: a typical transaction, and its jitter, are one turn whatever the grain.
+GRAIN_BAND: Final = 1.25
+#: The grain never goes below this (seconds): a line whose transactions take next to no
+#: time charges them as they took.
+GRAIN_FLOOR_S: Final = 0.001
 #: A master idle this long (or the round of waiting requests, if shorter) polls now and
 #: then: it goes next. One asking again sooner polls flat out: it takes its fair turn.
 REST_S: Final = 0.1
@@ -66,6 +79,12 @@ class FairQueue:
         #: The line's typical transaction, the silence after it included (a moving mean kept
         #: by ``LineCore._charge``): how long a master must have been idle to go first.
         self.typical = 0.0
+        #: What one turn is (``cost``; 0: nothing answered yet): the typical *answered*
+        #: transaction, the silence after it included, to within ``GRAIN_BAND``
+        #: (``learned``). Timeouts are left out: one would lift it for every master.
+        self.grain = 0.0
+        self._mean = 0.0
+        self._mean_square = 0.0
         #: Requests queued by ``enqueue``, oldest first; some may have left since (``overdue``).
         self.arrivals: deque[LineRequest] = deque()
 
@@ -119,10 +138,14 @@ class FairQueue:
             # transactions), up to ``REST_S``: a closed loop's round trip is shorter.
             rest = min(self.queued * self.typical, REST_S)
             rested = answered_at is None or now - answered_at >= rest
-            # At most two typical transactions ahead of the virtual time: rested masters that
-            # keep coming cannot keep the others' turn from coming (the virtual time moves on
-            # those others' turns only).
-            light = master.vtime <= self.vmax and master.vtime <= self.vclock + 2 * self.typical
+            # At most a turn ahead of the heaviest waiting master (the others' charges are
+            # rounded to whole turns, its short reads are not), and at most two ahead of
+            # the virtual time: rested masters that keep coming cannot keep the others'
+            # turn from coming (the virtual time moves on those others' turns only).
+            light = (
+                master.vtime <= self.vmax + self.grain
+                and master.vtime <= self.vclock + 2 * self.typical
+            )
             self.push(master, idle and rested and light)
 
     def went_at_once(self, master: Master, now: float) -> None:
@@ -136,7 +159,7 @@ class FairQueue:
         typical = self.typical
         if (
             (answered_at is not None and now - answered_at < min(typical, REST_S))
-            or vtime > self.vmax
+            or vtime > self.vmax + self.grain
             or vtime > vclock + 2 * typical
         ):
             # Not rested, or not light: it would have gone at its own account (``push``).
@@ -261,17 +284,44 @@ class FairQueue:
             if master is not None:
                 master.answered_at = now
 
+    def learned(self, wire: float) -> None:
+        """An answered transaction took ``wire`` seconds, the silence after it included.
+
+        The typical one is the transaction a moment of the line's time falls in (the mean
+        weighted by time: moving means of the times and of their squares), not the mean
+        transaction: on a line of long reads beside a master's short polls, the mean falls
+        between the two, and the long reads, near one and a half of it, would be rounded to
+        one turn or two by their jitter."""
+        mean = self._mean
+        if mean:
+            mean += (wire - mean) * TYPICAL_WEIGHT
+            self._mean_square += (wire * wire - self._mean_square) * TYPICAL_WEIGHT
+        else:
+            mean = wire  # the first: from there, not climbing from zero
+            self._mean_square = wire * wire
+        self._mean = mean
+        typical = self._mean_square / mean
+        grain = self.grain
+        if not grain * (1.0 / GRAIN_BAND) <= typical <= grain * GRAIN_BAND:
+            self.grain = typical if typical > GRAIN_FLOOR_S else GRAIN_FLOOR_S
+
+    def cost(self, wire: float) -> float:
+        """``wire`` seconds in whole turns (``learned``), or as they are when shorter than
+        half a turn (or before the line knows what a turn is)."""
+        grain = self.grain
+        turns = round(wire / grain) if grain else 0
+        return turns * grain if turns else wire
+
     def charge(self, master: Master, wire: float, charged: float) -> None:
         """``master``'s transaction took ``wire`` seconds, of which ``charged`` were charged
         when it was sent (an estimate, on a pipelined line)."""
         if charged:
-            master.vtime += wire - charged
+            master.vtime += self.cost(wire) - charged
         else:
-            # To the nanosecond: masters whose transactions took the same time have equal
-            # accounts, not accounts a rounding error apart, and go in the order they asked.
-            # (``round(x, 9)`` would go through a decimal string: once per transaction.)
+            # Masters charged alike from one account have the same account: they go in the
+            # order they asked (``push``), not in the order of their transactions' jitter.
             account = self.vclock if master.vtime < self.vclock else master.vtime
-            master.vtime = round((account + wire) * 1e9) / 1e9
+            master.vtime = account + self.cost(wire)
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 

@@ -1132,7 +1132,7 @@ class LineCore:
                 # An exception cannot be told from the lost request's: this one's own
                 # answer may be the one still on its way now.
                 self._open_window(slave, record, request, now, attempt.sent_at)
-        self._charge(attempt, wire, now)
+        self._charge(attempt, wire, now, True)
         if response[0] & fc.EXCEPTION_FLAG:
             outcome = Outcome.SLAVE_EXCEPTION
         elif function in fc.READ_FUNCTIONS:
@@ -1213,7 +1213,7 @@ class LineCore:
         ):
             self.lane.spend(wire + self._gap, now)
         self.lane.last_loss = now
-        self._charge(attempt, wire, now)
+        self._charge(attempt, wire, now, False)
         self._retry_or_answer(request, record, now, heard=error is not None)
         if before is not record.state:
             keep = (
@@ -1336,7 +1336,7 @@ class LineCore:
             else:
                 self._answer(request, ExceptionCode.GATEWAY_TARGET_FAILED, Outcome.TARGET_FAILED)
 
-    def _charge(self, attempt: Attempt, wire: float, now: float) -> None:
+    def _charge(self, attempt: Attempt, wire: float, now: float, answered: bool) -> None:
         """Account the line time to the master who used it (or to the isolated share): the
         attempt's time on the wire and the silence the line keeps after it. Without the
         silence an answer on a fast port would cost next to nothing, and a master that paid
@@ -1347,6 +1347,8 @@ class LineCore:
         # The line's typical transaction (a moving mean) and when the master was served: the
         # fair queue's rest rule reads both (``FairQueue.enqueue``).
         queue.typical += (wire - queue.typical) * TYPICAL_WEIGHT
+        if answered:
+            queue.learned(wire)
         if master is not None:
             master.answered_at = now
         if attempt.from_credit:
