@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from gateway.config import LineConfig, build_config
 from gateway.core.line import LineCore, LineRequest
-from gateway.core.line.fair_queue import FairQueue
+from gateway.core.line.fair_queue import GRAIN_BAND, GRAIN_FLOOR_S, FairQueue
 from gateway.core.line.records import LineStats, no_reply
 from gateway.core.outcome import Outcome
 from gateway.core.rtu import encode_rtu
@@ -474,6 +474,54 @@ def test_a_master_answered_through_a_joined_read_that_asks_again_at_once_takes_i
     index = after_m2.index("f")
     # m3 waited at the same account since before f asked again: it goes first.
     assert after_m2[index - 1] == "m3", after_m2[: index + 2]
+
+
+def test_a_turn_is_the_typical_answered_transaction_weighted_by_time() -> None:
+    """Long reads beside a master's short polls: the mean transaction (about 0.19 s here)
+    falls between the two, where the long reads would be one turn or two by their jitter.
+    Weighted by time, the turn is the long read's: each costs one, a poll its fraction."""
+    queue = FairQueue(LineStats())
+    assert queue.cost(0.3) == 0.3  # nothing answered yet: the time as it was
+    for _ in range(20):
+        for wire in (0.283, 0.024, 0.283, 0.024, 0.283):
+            queue.learned(wire)
+    assert 0.283 / GRAIN_BAND <= queue.grain <= 0.283 * GRAIN_BAND
+    assert queue.cost(0.283) == queue.cost(0.290) == queue.grain  # jitter: one turn
+    assert queue.cost(0.024) == 0.024  # shorter than half a turn: as it was
+    assert queue.cost(0.6) == 2 * queue.grain
+
+
+def test_the_turn_moves_only_when_the_typical_transaction_leaves_its_band() -> None:
+    """Masters charged in one round are charged alike: a slave 3 ms slower now and then does
+    not move the turn; a line whose reads grow does."""
+    queue = FairQueue(LineStats())
+    queue.learned(0.021)
+    for _ in range(100):
+        queue.learned(0.024)
+    assert queue.grain == 0.021
+    for _ in range(100):
+        queue.learned(0.050)
+    assert 0.050 / GRAIN_BAND <= queue.grain <= 0.050
+    assert queue.cost(0.050) == queue.cost(0.044) == queue.grain
+    for _ in range(200):
+        queue.learned(0.00001)  # a fast network: the turn's floor, charges as they were
+    assert queue.grain == GRAIN_FLOOR_S
+    assert queue.cost(0.00001) == 0.00001
+
+
+def test_a_timeout_leaves_the_turn_as_it_was() -> None:
+    """A timeout is charged in turns of the answered transactions: it does not make every
+    other master's transaction cost less for a while."""
+    wire = Wire(baud=19200, turnaround=0.002, timeout=0.4, retries=0)
+    wire.silent.add(2)
+    keep_deep(wire, 2, 2, 10)
+    wire.run(1.0)
+    grain = wire.core.queue.grain
+    assert grain > 0.0
+    wire.submit("probe", read(0, 10), slave=2)
+    wire.run(1.5)
+    assert wire.waits["probe"] == [pytest.approx(0.4, abs=0.02)]
+    assert wire.core.queue.grain == grain
 
 
 def test_a_master_whose_queue_emptied_does_not_keep_its_place() -> None:
