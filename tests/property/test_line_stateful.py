@@ -1302,8 +1302,9 @@ class FairLineMachine(RuleBasedStateMachine):
       the round's), and masters that came back rested (periodic ones, new connections,
       after a 0x0B pause): rested and light they go first, which the next invariant checks.
     * **Next after the wire.** A periodic master's poll, idle ``REST_S`` or more and light
-      (its account, read from the fair queue, neither ahead of every waiting master's nor
-      more than two typical transactions ahead of the virtual time: ``light``) goes
+      (its account, read from the fair queue, neither ahead of every waiting master's by
+      more than a turn nor more than two typical transactions ahead of the virtual time:
+      ``light``) goes
       before every flat-out master's read: only the lane, proofs, retries and other rested
       masters' requests go first (those that came before it; or came after, where its
       account is ahead of theirs).

@@ -476,19 +476,24 @@ def test_a_master_answered_through_a_joined_read_that_asks_again_at_once_takes_i
     assert after_m2[index - 1] == "m3", after_m2[: index + 2]
 
 
+#: An account charged from after every change of the turn in these tests (their virtual
+#: time stays 0): charged the line's current turn (``FairQueue.cost``).
+LATER = 1.0
+
+
 def test_a_turn_is_the_typical_answered_transaction_weighted_by_time() -> None:
     """Long reads beside a master's short polls: the mean transaction (about 0.19 s here)
     falls between the two, where the long reads would be one turn or two by their jitter.
     Weighted by time, the turn is the long read's: each costs one, a poll its fraction."""
     queue = FairQueue(LineStats())
-    assert queue.cost(0.3) == 0.3  # nothing answered yet: the time as it was
+    assert queue.cost(0.3, LATER) == 0.3  # nothing answered yet: the time as it was
     for _ in range(20):
         for wire in (0.283, 0.024, 0.283, 0.024, 0.283):
             queue.learned(wire)
     assert 0.283 / GRAIN_BAND <= queue.grain <= 0.283 * GRAIN_BAND
-    assert queue.cost(0.283) == queue.cost(0.290) == queue.grain  # jitter: one turn
-    assert queue.cost(0.024) == 0.024  # shorter than half a turn: as it was
-    assert queue.cost(0.6) == 2 * queue.grain
+    assert queue.cost(0.283, LATER) == queue.cost(0.290, LATER) == queue.grain  # jitter: one turn
+    assert queue.cost(0.024, LATER) == 0.024  # shorter than half a turn: as it was
+    assert queue.cost(0.6, LATER) == 2 * queue.grain
 
 
 def test_the_turn_moves_only_when_the_typical_transaction_leaves_its_band() -> None:
@@ -502,11 +507,31 @@ def test_the_turn_moves_only_when_the_typical_transaction_leaves_its_band() -> N
     for _ in range(100):
         queue.learned(0.050)
     assert 0.050 / GRAIN_BAND <= queue.grain <= 0.050
-    assert queue.cost(0.050) == queue.cost(0.044) == queue.grain
+    assert queue.cost(0.050, LATER) == queue.cost(0.044, LATER) == queue.grain
     for _ in range(200):
         queue.learned(0.00001)  # a fast network: the turn's floor, charges as they were
     assert queue.grain == GRAIN_FLOOR_S
-    assert queue.cost(0.00001) == 0.00001
+    assert queue.cost(0.00001, LATER) == 0.00001
+
+
+def test_a_new_turn_applies_from_the_next_round() -> None:
+    """Found by the closed-loop machine: the turn changed from 29 to 23 ms in the middle of
+    a round (a flaky slave's 10 ms turnaround had set it); a master served after the change
+    was charged less than one served before it from the same account, and went before it
+    in the next round. Both are charged the round's turn; the next round the new one."""
+    queue = FairQueue(LineStats())
+    queue.learned(0.029)
+    queue.vclock = 1.0  # a later round: both masters are served from this account
+    first, second = queue.master("first"), queue.master("second")
+    queue.charge(first, 0.021, 0.0)
+    for _ in range(40):
+        queue.learned(0.021)
+    assert queue.grain < 0.029 / GRAIN_BAND  # the turn changed
+    queue.charge(second, 0.021, 0.0)
+    assert first.vtime == second.vtime == 1.0 + 0.029
+    queue.vclock = first.vtime  # the next round
+    queue.charge(first, 0.021, 0.0)
+    assert first.vtime == 1.0 + 0.029 + queue.grain
 
 
 def test_a_timeout_leaves_the_turn_as_it_was() -> None:

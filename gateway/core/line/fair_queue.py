@@ -83,6 +83,11 @@ class FairQueue:
         #: transaction, the silence after it included, to within ``GRAIN_BAND``
         #: (``learned``). Timeouts are left out: one would lift it for every master.
         self.grain = 0.0
+        #: The turn before the last change, for masters charged from an account up to
+        #: ``grain_since`` (the virtual time when it changed): a new turn applies from
+        #: the next round, never to part of one.
+        self.old_grain = 0.0
+        self.grain_since = -1.0
         self._mean = 0.0
         self._mean_square = 0.0
         #: Requests queued by ``enqueue``, oldest first; some may have left since (``overdue``).
@@ -303,25 +308,38 @@ class FairQueue:
         typical = self._mean_square / mean
         grain = self.grain
         if not grain * (1.0 / GRAIN_BAND) <= typical <= grain * GRAIN_BAND:
+            if self.vclock > self.grain_since:  # the first change in this round
+                self.old_grain = grain
+                self.grain_since = self.vclock
             self.grain = typical if typical > GRAIN_FLOOR_S else GRAIN_FLOOR_S
 
-    def cost(self, wire: float) -> float:
-        """``wire`` seconds in whole turns (``learned``), or as they are when shorter than
-        half a turn (or before the line knows what a turn is)."""
+    def cost(self, wire: float, start: float) -> float:
+        """``wire`` seconds, charged from the account ``start``, in whole turns
+        (``learned``), or as they are when shorter than half a turn (or before the line
+        knows what a turn is). A master charged in the round the turn changed in is
+        charged the round's turn: masters served from one account end with one account.
+        (The first turn applies at once: before it, transactions were charged as they
+        took, and turns that were never charged cannot be told apart.)"""
         grain = self.grain
+        if start <= self.grain_since and self.old_grain:
+            grain = self.old_grain
         turns = round(wire / grain) if grain else 0
-        return turns * grain if turns else wire
+        if turns:
+            return turns * grain
+        # To the nanosecond: transactions that took the same time cost the same, not costs
+        # a rounding error apart. (``round(x, 9)`` would go through a decimal string.)
+        return round(wire * 1e9) / 1e9
 
     def charge(self, master: Master, wire: float, charged: float) -> None:
         """``master``'s transaction took ``wire`` seconds, of which ``charged`` were charged
         when it was sent (an estimate, on a pipelined line)."""
         if charged:
-            master.vtime += self.cost(wire) - charged
+            master.vtime += self.cost(wire, master.vtime - charged) - charged
         else:
             # Masters charged alike from one account have the same account: they go in the
             # order they asked (``push``), not in the order of their transactions' jitter.
             account = self.vclock if master.vtime < self.vclock else master.vtime
-            master.vtime = account + self.cost(wire)
+            master.vtime = account + self.cost(wire, account)
         if master.heap_seq >= 0:
             self.push(master)  # its old entry goes stale
 
