@@ -10,7 +10,8 @@ Transactions that differ by a slave's jitter cost the same, so masters served in
 round start the next with equal accounts and go in the order they asked, as first come,
 first served would put them, not in the order of that jitter; a timeout or a long read
 still costs its many turns. The grain moves only when the typical transaction leaves a
-band around it: masters charged in one round are charged alike. A master that waited
+band around it, and a new grain applies from the next round: masters charged in one round
+are charged alike. A master that waited
 while others used the line starts from the line's virtual clock, never below it (no
 banked credit). A master with nothing waiting or on the wire for at least the line's
 typical transaction goes next after the transaction on the wire (behind others that came

@@ -1345,7 +1345,8 @@ class LineCore:
         queue = self.queue
         master = queue.masters.get(attempt.request.master)
         # The line's typical transaction (a moving mean) and when the master was served: the
-        # fair queue's rest rule reads both (``FairQueue.enqueue``).
+        # fair queue's rest rule reads both (``FairQueue.enqueue``). An answered one also
+        # teaches it the turn it charges in; a timeout does not (``FairQueue.learned``).
         queue.typical += (wire - queue.typical) * TYPICAL_WEIGHT
         if answered:
             queue.learned(wire)
