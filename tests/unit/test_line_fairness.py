@@ -566,3 +566,14 @@ def test_a_master_whose_queue_emptied_does_not_keep_its_place() -> None:
     queue.enqueue(newcomer, LineRequest(2, read(0, 10), "newcomer", no_reply), True, 1.1)
     first = queue.pop(1.1, lambda master, _now: master.queue[0] if master.queue else None)
     assert first is not None and first[1] is periodic
+
+
+def test_an_answer_taken_in_the_instant_it_was_sent_teaches_no_turn() -> None:
+    """Found by the pipelined machines: a network line's answer can arrive in the instant
+    its request went; a zero-length transaction made the turn divide by zero."""
+    queue = FairQueue(LineStats())
+    queue.learned(0.0)
+    assert queue.grain == 0.0
+    queue.learned(0.002)
+    queue.learned(0.0)
+    assert queue.grain == 0.002

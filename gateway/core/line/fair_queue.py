@@ -298,8 +298,10 @@ class FairQueue:
         transaction: on a line of long reads beside a master's short polls, the mean falls
         between the two, and the long reads, near one and a half of it, would be rounded to
         one turn or two by their jitter."""
+        if wire <= 0.0:
+            return  # nothing held the line (an answer taken in the instant it was sent)
         mean = self._mean
-        if mean:
+        if mean > 0.0:
             mean += (wire - mean) * TYPICAL_WEIGHT
             self._mean_square += (wire * wire - self._mean_square) * TYPICAL_WEIGHT
         else:
