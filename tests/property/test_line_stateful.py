@@ -2364,7 +2364,12 @@ class PolledLineMachine(RuleBasedStateMachine):
             return
         for slave in self.slaves.values():
             slave.mode = "ok"
-        self.advance_to(self.now + 5.0)
+        # Long enough for a request queued now to be sent just inside ``max_queue_wait``
+        # and finish, retry included: 5 s (the wait itself) left one on the wire.
+        config = self.config
+        assert config is not None
+        last = config.max_queue_wait + (config.retries + 1) * POLLED_TIMEOUT
+        self.advance_to(self.now + last + 1.0)
         assert not self.problems, self.problems[:3]
         unanswered = [r.pdu.hex() for r in self.requests if self.answers.get(id(r), 0) != 1]
         assert not unanswered, f"answered other than once: {unanswered}"
