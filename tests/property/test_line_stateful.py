@@ -1594,7 +1594,8 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
       more often than that; only the share's probes, and the free ones when the periodic
       master has used more of the line than the scanners, meet its polls. Its poll rate
       stays at least half its quiet one. (Its first poll of a slave never heard from, beside
-    absent addresses, is a first contact: a probe in the lane itself, not checked.)
+    absent addresses, is a first contact: a probe in the lane itself, not checked; nor
+    is a poll that came while another master's first contact with that slave waited.)
     """
 
     def __init__(self) -> None:
@@ -1614,6 +1615,9 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
         self.probe_ends: dict[int, float] = {}
         self.waiting: dict[int, int] = {}  # id(poll) -> probes sent before it came
         self.on_wire_probe: dict[int, bool] = {}  # id(poll) -> a probe held the line then
+        #: id(poll) of polls asked before their slave had ever answered: they wait for its
+        #: first contact, which goes with the absent addresses' in the lane.
+        self.unheard: set[int] = set()
         self.problems: list[str] = []
 
     @staticmethod
@@ -1637,6 +1641,9 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
         core = self.line.core
         on_wire = core.wire_busy and core.wire.requests()[0].slave in ABSENT
         self.on_wire_probe[id(request)] = on_wire
+        record = core.health.slaves.get(master.slave)
+        if record is None or not record.answered:
+            self.unheard.add(id(request))
         core.submit(request, self.line.now)
         self.line._pump()
 
@@ -1670,6 +1677,7 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
         if not request.single:  # a first contact with its slave was a probe itself
             self.waits[name].append(self.line.now - request.enqueued_at)
             self.check_probes(request)
+        self.unheard.discard(id(request))
         if master.due and not master.gone:
             master.due = False
             self.line.at(self.line.now, lambda: self.poll(name))
@@ -1681,6 +1689,8 @@ class AbsentBesideLineMachine(RuleBasedStateMachine):
     def check_probes(self, request: LineRequest) -> None:
         since = self.waiting.pop(id(request))
         during = len(self.probes) - since + self.on_wire_probe.pop(id(request))
+        if id(request) in self.unheard:
+            return  # behind its slave's first contact, which waits with the others'
         if during > 1:
             self.problems.append(
                 f"{request.master}'s poll at {request.enqueued_at:.4f} waited "
