@@ -2394,6 +2394,102 @@ PolledLineMachine.TestCase.settings = settings(
 TestPolledLineCore = pytest.mark.slow(PolledLineMachine.TestCase)
 
 
+#: Sequences the closed-loop machine failed on while the fair queue learned to charge in
+#: turns: each step is one of the machine's rules and its arguments.
+FAIR_SEQUENCES: dict[str, tuple[tuple[str, dict[str, object]], ...]] = {
+    "a slower slave's account split a round (seed 81427)": (
+        ("seed", {"seed": 0}),
+        ("run", {"step": 0.05}),
+        ("run", {"step": 0.05}),
+        ("run", {"step": 0.05}),
+        ("flaky_pace", {"delay": 0.005, "slave": 6}),
+        ("closed_loops", {"count": 4, "flaky": False, "think": 0.0}),
+        ("closed_loops", {"count": 8, "flaky": True, "think": 0.0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("closed_loops", {"count": 4, "flaky": False, "think": 0.0}),
+        ("periodic", {"period": 0.2, "quantity": 1, "slave": 1}),
+        ("run", {"step": 0.5}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.2}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.5}),
+    ),
+    "the turn changed twice in a round (seed 39614)": (
+        ("seed", {"seed": 2}),
+        ("run", {"step": 0.05}),
+        ("run", {"step": 0.05}),
+        ("closed_loops", {"count": 4, "flaky": False, "think": 0.0}),
+        ("run", {"step": 1.0}),
+        ("flaky_pace", {"delay": None, "slave": 6}),
+        ("closed_loops", {"count": 1, "flaky": False, "think": 0.0}),
+        ("closed_loops", {"count": 1, "flaky": True, "think": 0.0}),
+        ("run", {"step": 0.5}),
+        ("run", {"step": 1.0}),
+    ),
+    "timeouts moved the turn between rounds (seed 27718)": (
+        ("seed", {"seed": 70}),
+        ("closed_loops", {"count": 5, "flaky": False, "think": 0.0}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.5}),
+        ("run", {"step": 0.5}),
+        ("run", {"step": 1.0}),
+        ("flaky_pace", {"delay": 0.001, "slave": 6}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.05}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 1}),
+        ("flaky_pace", {"delay": None, "slave": 9}),
+        ("closed_loops", {"count": 10, "flaky": False, "think": 0.0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.5}),
+        ("closed_loops", {"count": 7, "flaky": True, "think": 0.0}),
+        ("leave", {"index": 36}),
+        ("run", {"step": 0.2}),
+        ("run", {"step": 0.2}),
+        ("flaky_pace", {"delay": 0.01, "slave": 6}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("leave", {"index": 0}),
+        ("run", {"step": 0.5}),
+        ("run", {"step": 0.5}),
+    ),
+    "a new turn in the middle of a round (seed 4242)": (
+        ("seed", {"seed": 15589}),
+        ("flaky_pace", {"delay": None, "slave": 6}),
+        ("flaky_pace", {"delay": 0.01, "slave": 7}),
+        ("closed_loops", {"count": 1, "flaky": True, "think": 0.0}),
+        ("periodic", {"period": 0.2, "quantity": 1, "slave": 1}),
+        ("closed_loops", {"count": 1, "flaky": False, "think": 0.0}),
+        ("closed_loops", {"count": 5, "flaky": True, "think": 0.0}),
+        ("run", {"step": 1.0}),
+        ("run", {"step": 1.0}),
+        ("run", {"step": 1.0}),
+    ),
+}
+
+
+@pytest.mark.parametrize("found", list(FAIR_SEQUENCES))
+def test_sequences_the_closed_loop_machine_found_stay_fair(found: str) -> None:
+    """Rounds split by ties, turns changed inside a round or by timeouts between rounds:
+    each sequence, played again, keeps every loop to one round."""
+    machine = FairLineMachine()
+    for step, arguments in FAIR_SEQUENCES[found]:
+        getattr(machine, step)(**arguments)
+        machine.fair()
+    machine.teardown()
+
+
 def test_a_broadcast_waits_for_a_read_joined_to_one_that_failed_into_the_lane() -> None:
     """Found by the machine: master a's read joins b's; b's read times out, its slave turns
     suspect and the read (with a's follower) goes to the isolated slaves' lane. a's later
