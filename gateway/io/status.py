@@ -97,6 +97,9 @@ class LineStatus:
     not_heard: int = 0  # routed slaves in ``slaves`` that have not answered
     unavailable: int = 0  # requests for it answered 0x0A since start: the line down or full
     blocks: tuple[PollBlockStatus, ...] = ()  # its poll blocks, in configuration order
+    #: Seconds of line time one turn of the fair queue charges a master, learned from the
+    #: line's typical answered transaction; None before the line's first answer.
+    fair_turn_s: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

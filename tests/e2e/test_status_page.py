@@ -187,6 +187,9 @@ def test_the_console_in_chromium(
         # Units 1 and 3..30 are routed, none has answered: counted, not listed.
         assert browser.evaluate("document.getElementById('notheard').dataset.count") == "29"
         assert browser.evaluate("document.querySelectorAll('#slaves tbody tr').length") == 1
+        turn = "#lines tr[data-line='a'] td.turn"
+        assert browser.evaluate(_text(turn)) == "\u2013"  # nothing answered: no turn learned
+        assert "fair queue" in browser.evaluate(f'document.querySelector("{turn}").title')
         browser.wait_for("document.getElementById('tracestate').textContent === 'streaming'",
                          "the live trace to connect")  # fmt: skip
         with gw.connect() as master:
@@ -253,6 +256,8 @@ def _refused_and_recent(browser: Browser, master: Any, peer: str) -> None:
     window = browser.evaluate(_text("#latencywindow"))
     assert window.startswith("latency: p50 and p99 as masters see it, last "), window
     assert browser.evaluate(_text("#lines tr[data-line='a'] td.p50")).endswith(" ms")
+    turn = browser.evaluate(_text("#lines tr[data-line='a'] td.turn"))
+    assert turn.endswith(" ms") and float(turn.split()[0]) > 0, turn  # learned from the answers
     scale = browser.evaluate("document.querySelector('#lines svg.spark').dataset.scale")
     assert float(scale) in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
     top = browser.evaluate(_text("#lines svg.spark text.top"))

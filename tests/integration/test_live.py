@@ -320,14 +320,20 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
     (before,) = status(gw)["lines"]
     assert before["not_heard"] == 3 and before["settings"].startswith("rtu 115200 8N1")
     assert before["uart_errors"] is None  # a pty keeps no UART error counters
+    assert before["fair_turn_s"] is None  # nothing answered yet: no turn learned
     named = {s["unit"]: s for s in before["slaves"]}[2]
     assert (named["name"], named["units"], named["heard"]) == ("meter", [2, 100], False)
+    round_trips: list[float] = []
     with gw.connect() as master, stream(gw, "?unit=1") as trace:
+        started = time.monotonic()
         assert master.request(1, READ_10)[:2] == b"\x03\x14"
+        round_trips.append(time.monotonic() - started)
         assert master.request(1, bytes.fromhex("03 FFF0 0001")) == b"\x83\x02"
         assert master.request(1, bytes.fromhex("06 0001 0001")) == b"\x86\x01"  # denied
         assert master.request(200, READ_10) == b"\x83\x0a"  # allowed, but no route
+        started = time.monotonic()
         assert master.request(100, READ_10)[:2] == b"\x03\x14"
+        round_trips.append(time.monotonic() - started)
         sim.faults(2).silent = True
         assert master.request(100, READ_10) == b"\x83\x0b"  # a timeout
         reply = trace.event()
@@ -356,3 +362,6 @@ def test_status_lists_slaves_by_unit_id_with_names_counts_and_masters_denials(
     assert after["history_s"] == live.HISTORY_S and isinstance(after["history"], list)
     assert after["unavailable"] == 0  # the line was up and had room
     assert 0 < after["latency_window_s"] <= live.LATENCY_WINDOW_S  # since the first look
+    # One turn is the typical answered transaction (a read of 10 registers at 115200 baud and
+    # the silence after it), the timeout no answer: within a few of the reads' round trips.
+    assert min(round_trips) / 5 <= after["fair_turn_s"] <= 5 * max(round_trips), round_trips

@@ -237,6 +237,11 @@ class Bus:
         """The response timeouts learned for ``slaves`` (those with one)."""
         return self._core.timing.by_slave(slaves)
 
+    def fair_turn(self) -> float | None:
+        """The line time (seconds) one turn of the fair queue charges a master, learned from
+        the line's typical answered transaction; ``None`` before anything was answered."""
+        return self._core.queue.grain or None
+
     # -- lifecycle -----------------------------------------------------------------------
 
     def start(self) -> None:
@@ -572,6 +577,7 @@ def line_status(bus: Bus, slaves: Iterable[int] = ()) -> LineStatus:
         settings=line_settings(config),
         uart_errors=bus.uart_errors(),
         not_heard=sum(1 for slave in listed if not slave.heard),
+        fair_turn_s=_rounded(bus.fair_turn()),
         blocks=poll_block_status(bus.name, bus.poll_blocks(), time.monotonic()),
     )
 
