@@ -1132,7 +1132,7 @@ class LineCore:
                 # An exception cannot be told from the lost request's: this one's own
                 # answer may be the one still on its way now.
                 self._open_window(slave, record, request, now, attempt.sent_at)
-        self._charge(attempt, wire, now, True)
+        self._charge(attempt, wire, now, answered=True)
         if response[0] & fc.EXCEPTION_FLAG:
             outcome = Outcome.SLAVE_EXCEPTION
         elif function in fc.READ_FUNCTIONS:
@@ -1213,7 +1213,7 @@ class LineCore:
         ):
             self.lane.spend(wire + self._gap, now)
         self.lane.last_loss = now
-        self._charge(attempt, wire, now, False)
+        self._charge(attempt, wire, now, answered=False)
         self._retry_or_answer(request, record, now, heard=error is not None)
         if before is not record.state:
             keep = (
