@@ -2,27 +2,26 @@
 
 Theory of operation. Each master has its own queue and an account of the wire time its
 transactions took (start-time fair queuing): the master with the smallest virtual time
-goes next, and its account is charged with what its transaction actually cost
-(timeouts included), so a master provoking timeouts spends its own share. Charges are
-whole *turns*: the line's typical answered transaction (its grain) times the number of
-them a transaction took, rounded (one shorter than half a turn is charged its own time).
+goes next, and its account is charged with what its transaction actually cost (timeouts
+included), so a master provoking timeouts spends its own share. Charges are whole
+*turns*: the line's typical answered transaction (its grain) times the number of them a
+transaction took, rounded (one shorter than half a turn is charged its own time).
 Transactions that differ by a slave's jitter cost the same, so masters served in one
 round start the next with equal accounts and go in the order they asked, as first come,
 first served would put them, not in the order of that jitter; a timeout or a long read
 still costs its many turns. The grain moves only when the typical transaction leaves a
-band around it, and a new grain applies from the next round: masters charged in one round
-are charged alike. A master that waited
-while others used the line starts from the line's virtual clock, never below it (no
-banked credit). A master with nothing waiting or on the wire for at least the line's
-typical transaction goes next after the transaction on the wire (behind others that came
-so before it), unless its account is ahead of every waiting master's by more than a
-turn: it cannot become the heaviest user that way. A master answered a moment ago that
-asks again at once takes its fair turn: it goes behind the round it left. Each master
-has its own queue bound (0x06 beyond it); the line-wide bound pushes out the longest
-queue's newest request before refusing a master with a shorter queue. A request still
-unsent after the line's ``max_queue_wait`` is overdue: ``arrivals`` holds the queued
-requests in submission order, so the oldest is found without a scan (requests that left
-another way are skipped when met at its head).
+band around it, and a new grain applies from the next round: masters charged in one
+round are charged alike. A master that waited while others used the line starts from the
+line's virtual clock, never below it (no banked credit). A master with nothing waiting
+or on the wire for at least the line's typical transaction goes next after the
+transaction on the wire (behind others that came so before it), unless its account is
+ahead of every waiting master's by more than a turn: it cannot become the heaviest user
+that way. A master answered a moment ago that asks again at once takes its fair turn: it
+goes behind the round it left. Each master has its own queue bound (0x06 beyond it); the
+line-wide bound pushes out the longest queue's newest request before refusing a master
+with a shorter queue. A request still unsent after the line's ``max_queue_wait`` is
+overdue: ``arrivals`` holds the queued requests in submission order, so the oldest is
+found without a scan (requests that left another way are skipped when met at its head).
 
 This part keeps the order and the counts; it answers questions and never emits an
 action: the machine (``machine.LineCore``) decides what becomes of a request.
